@@ -1,0 +1,55 @@
+"""The declarative I/O spec of the two IRIS graphs: names, dtypes, axes, tolerances.
+
+Export builds the graphs with these names and dynamic axes, validation checks the tolerances, and
+the manifest (``iris.json``) carries this spec so that the runtime reads the same names without
+importing this package (``iris_runtime`` never imports torch or ``export``).
+
+Axis names: V views, R rays, S samples per ray; C' field channels, h x w feature grid, H x W the
+model's image size. Everything per view is view-major ([V', R, S, ...]) because that is how the
+runtime's numpy projection produces it.
+"""
+from __future__ import annotations
+
+IO_SPEC_VERSION = 1
+
+ENCODER = {
+    "file": "encoder.onnx",
+    "inputs": {
+        # RGB in [0, 1] at the model's resolution (H, W fixed, recorded in the manifest).
+        "images": {"dtype": "float32", "shape": ["V", 3, "H", "W"]},
+    },
+    "outputs": {
+        # Per-scene field maps (LatentField.prepare of the encoder features): what the renderer samples.
+        "field_maps": {"dtype": "float32", "shape": ["V", "C'", "h", "w"]},
+        "world_from_cam": {"dtype": "float32", "shape": ["V", 4, 4]},    # view 0 = I
+        "focal": {"dtype": "float32", "shape": [2]},                    # (fx/W, fy/H)
+    },
+    "dynamic_axes": {"images": {0: "V"}, "field_maps": {0: "V"}, "world_from_cam": {0: "V"}},
+    # Max abs error of ONNX Runtime vs torch on the probe inputs.
+    "tolerance": {"field_maps": 1e-4, "world_from_cam": 1e-5, "focal": 1e-5},
+}
+
+RENDERER = {
+    "file": "renderer.onnx",
+    "inputs": {
+        "field_maps": {"dtype": "float32", "shape": ["V", "C'", "h", "w"]},
+        # Normalised sample positions in each view, grid_sample convention (align_corners=False).
+        "grid": {"dtype": "float32", "shape": ["V", "R", "S", 2]},
+        "cues": {"dtype": "float32", "shape": ["V", "R", "S", 4]},         # geometric cue Δ
+        "mask": {"dtype": "bool", "shape": ["V", "R", "S"]},               # valid projection
+        "positions": {"dtype": "float32", "shape": ["R", "S", 3]},
+        "directions": {"dtype": "float32", "shape": ["R", 3]},
+    },
+    "outputs": {
+        "rgb": {"dtype": "float32", "shape": ["R", 3]},
+        "weights": {"dtype": "float32", "shape": ["R", "S"]},
+    },
+    "dynamic_axes": {
+        "field_maps": {0: "V"}, "grid": {0: "V", 1: "R", 2: "S"}, "cues": {0: "V", 1: "R", 2: "S"},
+        "mask": {0: "V", 1: "R", 2: "S"}, "positions": {0: "R", 1: "S"}, "directions": {0: "R"},
+        "rgb": {0: "R"}, "weights": {0: "R", 1: "S"},
+    },
+    "tolerance": {"rgb": 1e-4, "weights": 1e-4},
+}
+
+GRAPHS = {"encoder": ENCODER, "renderer": RENDERER}

@@ -1,0 +1,218 @@
+"""Camera geometry in numpy: the one convention of DESIGN.md, used by the runtime.
+
+Convention (everywhere in IRIS): OpenCV camera axes (x right, y down, z forward). Poses are
+``world_from_cam`` 4x4 (camera-to-world): rotation columns are the camera axes in world, the last
+column is the camera centre. Pixel (row i, col j) has its centre at (u, v) = (j + 0.5, i + 0.5).
+Rays are ``x = o + z * d`` with ``d = R K^-1 [u, v, 1]`` so that ``z`` is the camera depth.
+
+``iris_train.geometry`` is the torch twin of this file (same names, same maths); a test checks that
+the two agree in float64 to 1e-10. Functions work for float32 and float64 and keep the dtype of
+their main input.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+#: A point is valid in a view only when its camera depth exceeds this (model units). Keeps
+#: ``u = x / z`` finite and excludes points on or behind the camera plane.
+DEPTH_EPS = 1e-6
+#: Normalised grid coordinates are clipped to this range so that masked points never carry inf
+#: or NaN into the feature sampler; any |g| > 1 is outside the image and masked anyway.
+GRID_CLIP = 2.0
+#: Norm floor for unit vectors (geometric cue, 6D rotations).
+NORM_EPS = 1e-12
+
+
+def pixel_centres(height: int, width: int, dtype=np.float64) -> np.ndarray:
+    """Pixel centres ``[H*W, 2]`` as (u, v) = (j + 0.5, i + 0.5), row-major."""
+    v, u = np.meshgrid(np.arange(height, dtype=dtype) + 0.5, np.arange(width, dtype=dtype) + 0.5,
+                       indexing="ij")
+    return np.stack([u.ravel(), v.ravel()], axis=-1)
+
+
+def intrinsics_from_focal(focal: np.ndarray, height: int, width: int) -> np.ndarray:
+    """``K [3, 3]`` in pixels from the model's normalised focal ``[fx/W, fy/H]``; centred principal point."""
+    focal = np.asarray(focal)
+    K = np.zeros((3, 3), dtype=np.result_type(focal.dtype, np.float32))
+    K[0, 0] = focal[0] * width
+    K[1, 1] = focal[1] * height
+    K[0, 2] = width / 2.0
+    K[1, 2] = height / 2.0
+    K[2, 2] = 1.0
+    return K
+
+
+def scale_intrinsics(K: np.ndarray, from_hw: tuple[int, int], to_hw: tuple[int, int]) -> np.ndarray:
+    """Intrinsics of the same camera for an image resized from ``from_hw`` to ``to_hw`` (no crop).
+
+    With pixel centres at +0.5 a resize by s maps u to s*u exactly, so fx and cx scale alike.
+    """
+    sy = to_hw[0] / from_hw[0]
+    sx = to_hw[1] / from_hw[1]
+    S = np.diag([sx, sy, 1.0]).astype(K.dtype)
+    return S @ K
+
+
+def invert_pose(T: np.ndarray) -> np.ndarray:
+    """Inverse of rigid transforms ``[..., 4, 4]`` (``cam_from_world`` from ``world_from_cam``)."""
+    R = T[..., :3, :3]
+    t = T[..., :3, 3:]
+    Rt = np.swapaxes(R, -1, -2)
+    out = np.zeros_like(T)
+    out[..., :3, :3] = Rt
+    out[..., :3, 3:] = -Rt @ t
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def compose(a_from_b: np.ndarray, b_from_c: np.ndarray) -> np.ndarray:
+    """``a_from_c = a_from_b @ b_from_c`` (named so the frames chain visibly)."""
+    return a_from_b @ b_from_c
+
+
+def rotation_from_6d(a: np.ndarray) -> np.ndarray:
+    """6D rotation ``[..., 6]`` (two columns a1, a2) to a rotation matrix ``[..., 3, 3]``.
+
+    Gram-Schmidt: b1 = a1/|a1|, b2 = unit(a2 - (b1.a2) b1), b3 = b1 x b2; columns [b1, b2, b3].
+    Degenerate inputs stay finite and orthonormal with det +1: where |a1| is below ``tol`` times
+    the input's scale, b1 falls back to x; where a2's part orthogonal to b1 is below it (a2 zero or
+    parallel to a1), b2 falls back to the coordinate axis least aligned with b1. A second
+    Gram-Schmidt pass keeps b2 orthogonal to b1 to rounding even when a2 is nearly parallel.
+    """
+    dtype = a.dtype
+    tiny = np.finfo(dtype).tiny
+    tol = 64 * np.finfo(dtype).eps
+    a1, a2 = a[..., 0:3], a[..., 3:6]
+    scale = np.maximum(np.abs(a).max(axis=-1, keepdims=True), tiny)
+    a1, a2 = a1 / scale, a2 / scale          # scale-free: 1e-30 and 1e30 inputs behave alike
+    n1 = np.linalg.norm(a1, axis=-1, keepdims=True)
+    b1 = np.where(n1 > tol, a1 / np.maximum(n1, tiny), np.array([1.0, 0.0, 0.0], dtype=dtype))
+    eye = np.eye(3, dtype=dtype)
+    fallback = eye[np.argmin(np.abs(b1), axis=-1)]
+    a2p = a2 - (b1 * a2).sum(-1, keepdims=True) * b1
+    n2 = np.linalg.norm(a2p, axis=-1, keepdims=True)
+    a2p = np.where(n2 > tol, a2p, fallback - (b1 * fallback).sum(-1, keepdims=True) * b1)
+    b2 = a2p - (b1 * a2p).sum(-1, keepdims=True) * b1
+    b2 = b2 / np.maximum(np.linalg.norm(b2, axis=-1, keepdims=True), tiny)
+    b3 = np.cross(b1, b2)
+    return np.stack([b1, b2, b3], axis=-1)
+
+
+def rays_from_pixels(uv: np.ndarray, K: np.ndarray, world_from_cam: np.ndarray):
+    """Rays through pixel positions ``uv [N, 2]`` of a camera ``K [3,3]``, ``world_from_cam [4,4]``.
+
+    Returns ``origins [N, 3]`` and ``directions [N, 3]``; directions are ``R K^-1 [u, v, 1]``, not
+    normalised, so ``o + z d`` is the point at camera depth ``z``.
+    """
+    dtype = np.result_type(uv.dtype, K.dtype, world_from_cam.dtype)
+    x = (uv[:, 0] - K[0, 2]) / K[0, 0]
+    y = (uv[:, 1] - K[1, 2]) / K[1, 1]
+    d_cam = np.stack([x, y, np.ones_like(x)], axis=-1).astype(dtype)
+    directions = d_cam @ world_from_cam[:3, :3].T.astype(dtype)
+    origins = np.broadcast_to(world_from_cam[:3, 3].astype(dtype), directions.shape)
+    return np.ascontiguousarray(origins), directions
+
+
+def sample_depths(near: float, far: float, n_samples: int, n_rays: int = 1,
+                  stratified: bool = False, rng: np.random.Generator | None = None,
+                  dtype=np.float64) -> np.ndarray:
+    """Camera depths ``[n_rays, S]`` in ``[near, far]``: bin centres, or one uniform draw per bin."""
+    edges = np.linspace(near, far, n_samples + 1, dtype=np.float64)
+    width = (far - near) / n_samples
+    if stratified:
+        rng = rng if rng is not None else np.random.default_rng()
+        jitter = rng.random((n_rays, n_samples))
+    else:
+        jitter = np.full((n_rays, n_samples), 0.5)
+    return (edges[:-1] + jitter * width).astype(dtype)
+
+
+def project_points(points: np.ndarray, K: np.ndarray, cam_from_world: np.ndarray,
+                   height: int, width: int):
+    """Project world points ``[..., 3]`` into views ``K [3,3]``, ``cam_from_world [V, 4, 4]``.
+
+    Returns ``uv [V, ..., 2]`` (pixels; finite, clipped for masked points), ``z [V, ...]`` camera
+    depth, and ``valid [V, ...]`` (bool): z > DEPTH_EPS and 0 <= u < W and 0 <= v < H.
+    """
+    R = cam_from_world[:, :3, :3]                                # [V, 3, 3]
+    t = cam_from_world[:, :3, 3]                                 # [V, 3]
+    flat = points.reshape(-1, 3)
+    cam = np.einsum("vij,nj->vni", R, flat) + t[:, None, :]      # [V, N, 3]
+    z = cam[..., 2]
+    z_safe = np.where(z > DEPTH_EPS, z, DEPTH_EPS)
+    u = K[0, 0] * cam[..., 0] / z_safe + K[0, 2]
+    v = K[1, 1] * cam[..., 1] / z_safe + K[1, 2]
+    valid = (z > DEPTH_EPS) & (u >= 0) & (u < width) & (v >= 0) & (v < height)
+    # Clip so that points behind or far outside stay finite (they are masked).
+    lim_u, lim_v = GRID_CLIP * width, GRID_CLIP * height
+    u = np.clip(np.nan_to_num(u, nan=0.0), -lim_u, lim_u)
+    v = np.clip(np.nan_to_num(v, nan=0.0), -lim_v, lim_v)
+    V = cam_from_world.shape[0]
+    shape = (V,) + points.shape[:-1]
+    uv = np.stack([u, v], axis=-1).reshape(shape + (2,))
+    return uv, z.reshape(shape), valid.reshape(shape)
+
+
+def pixels_to_grid(uv: np.ndarray, height: int, width: int) -> np.ndarray:
+    """Pixel positions to normalised ``grid_sample`` coordinates (align_corners=False).
+
+    The image's left edge u = 0 maps to -1 and its right edge u = W to +1; feature cell centres of
+    an h x w map over the same image sit at patch centres.
+    """
+    scale = np.array([2.0 / width, 2.0 / height], dtype=uv.dtype)
+    return np.clip(uv * scale - 1.0, -GRID_CLIP, GRID_CLIP)
+
+
+def sample_bilinear(feature_map: np.ndarray, grid: np.ndarray) -> np.ndarray:
+    """Bilinear sampling of ``feature_map [C, h, w]`` at ``grid [..., 2]`` (normalised x, y).
+
+    Same semantics as ``torch.nn.functional.grid_sample(align_corners=False,
+    padding_mode="border")``: the sample position is clamped to the border of the cell-centre
+    lattice. Returns ``[..., C]`` (channel-last, what the renderer consumes).
+    """
+    C, h, w = feature_map.shape
+    gx = ((grid[..., 0] + 1.0) * w - 1.0) / 2.0
+    gy = ((grid[..., 1] + 1.0) * h - 1.0) / 2.0
+    gx = np.clip(gx, 0.0, w - 1.0)
+    gy = np.clip(gy, 0.0, h - 1.0)
+    x0 = np.floor(gx).astype(np.int64)
+    y0 = np.floor(gy).astype(np.int64)
+    x1 = np.minimum(x0 + 1, w - 1)
+    y1 = np.minimum(y0 + 1, h - 1)
+    wx = (gx - x0)[..., None].astype(feature_map.dtype)
+    wy = (gy - y0)[..., None].astype(feature_map.dtype)
+    flat = feature_map.reshape(C, h * w).T                       # [h*w, C] channel-last gather
+    f00 = flat[y0 * w + x0]
+    f01 = flat[y0 * w + x1]
+    f10 = flat[y1 * w + x0]
+    f11 = flat[y1 * w + x1]
+    return (f00 * (1 - wx) + f01 * wx) * (1 - wy) + (f10 * (1 - wx) + f11 * wx) * wy
+
+
+def geometric_cue(points: np.ndarray, target_centre: np.ndarray, source_centres: np.ndarray,
+                  eps: float = NORM_EPS) -> np.ndarray:
+    """GNT-style 4-d cue ``Δ_k(x)`` for points ``[..., 3]`` and views ``source_centres [V, 3]``.
+
+    With t = unit(target_centre - x) and s = unit(source_centre_k - x):
+    ``[(t - s) / max(|t - s|, eps), t . s]`` -> ``[..., V, 4]``. Equal centres (t = s) give
+    ``[0, 0, 0, 1]``; a point on a camera centre gives a zero unit vector, never NaN.
+    """
+    target_centre = np.asarray(target_centre, dtype=points.dtype)
+    t = target_centre - points
+    t = t / np.maximum(np.linalg.norm(t, axis=-1, keepdims=True), eps)
+    s = source_centres.astype(points.dtype) - points[..., None, :]          # [..., V, 3]
+    s = s / np.maximum(np.linalg.norm(s, axis=-1, keepdims=True), eps)
+    diff = t[..., None, :] - s
+    diff = diff / np.maximum(np.linalg.norm(diff, axis=-1, keepdims=True), eps)
+    dot = (t[..., None, :] * s).sum(-1, keepdims=True)
+    return np.concatenate([diff, dot], axis=-1)
+
+
+def is_rigid(T: np.ndarray, atol: float = 1e-4) -> bool:
+    """True when ``T [4, 4]`` is finite with an orthonormal, det +1 rotation and last row [0,0,0,1]."""
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        return False
+    R = T[:3, :3]
+    return (np.allclose(R.T @ R, np.eye(3), atol=atol) and abs(np.linalg.det(R) - 1.0) < atol
+            and np.allclose(T[3], [0, 0, 0, 1], atol=atol))

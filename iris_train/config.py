@@ -1,0 +1,84 @@
+"""Every number of the IRIS model, in one frozen dataclass that travels with the weights."""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    # Input images (the model's resolution; the runtime crops/resizes to it).
+    image_height: int = 64
+    image_width: int = 64
+    patch_size: int = 8
+    # Multi-view encoder (Muskie/VGGT-style: alternating per-view and cross-view attention).
+    encoder_width: int = 128
+    encoder_pairs: int = 2            # number of (per-view block, cross-view block) pairs
+    encoder_heads: int = 4
+    mlp_ratio: float = 4.0
+    # Camera head: focal bounded to [focal_min, focal_max] in units of image size (fx/W, fy/H).
+    focal_min: float = 0.25
+    focal_max: float = 4.0
+    # Latent field / renderer width and depth.
+    field_width: int = 64             # model width of the view and ray transformers
+    view_blocks: int = 1              # view-transformer blocks (paper: one aggregation stage)
+    ray_blocks: int = 2               # ray-transformer blocks
+    field_heads: int = 4
+    pos_freqs: int = 6                # sinusoidal frequencies for sample positions
+    dir_freqs: int = 4                # ... and for ray directions
+    # Ray sampling (DESIGN.md: camera depths in [0.1, 1.0], 64 samples).
+    near: float = 0.1
+    far: float = 1.0
+    samples: int = 64
+
+    def __post_init__(self):
+        if self.image_height % self.patch_size or self.image_width % self.patch_size:
+            raise ValueError(f"image size {self.image_height}x{self.image_width} must be a multiple "
+                             f"of patch_size {self.patch_size}")
+        if self.encoder_width % self.encoder_heads or self.field_width % self.field_heads:
+            raise ValueError("widths must be divisible by their head counts")
+        if not 0 < self.near < self.far:
+            raise ValueError(f"need 0 < near < far, got near={self.near}, far={self.far}")
+        if not 0 < self.focal_min < self.focal_max:
+            raise ValueError("need 0 < focal_min < focal_max")
+
+    @property
+    def feature_grid(self) -> tuple[int, int]:
+        """(h, w) of the encoder's feature maps."""
+        return self.image_height // self.patch_size, self.image_width // self.patch_size
+
+    @property
+    def field_channels(self) -> int:
+        """Channels of the per-scene (pre-projected) feature maps the renderer samples.
+
+        u (width projection) plus, per view-transformer block, its key and value projections.
+        """
+        return self.field_width * (1 + 2 * self.view_blocks)
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "ModelConfig":
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = set(d) - known
+        if unknown:
+            raise ValueError(f"unknown ModelConfig fields: {sorted(unknown)}")
+        return cls(**d)
+
+
+PRESETS: dict[str, ModelConfig] = {
+    # Trainable on 2 CPU cores.
+    "tiny": ModelConfig(),
+    # Muskie-base-like widths at 256x256, patch 16 (needs a GPU to train).
+    "paper": ModelConfig(image_height=256, image_width=256, patch_size=16, encoder_width=768,
+                         encoder_pairs=6, encoder_heads=12, field_width=256, view_blocks=1,
+                         ray_blocks=1, field_heads=8, pos_freqs=10, dir_freqs=4),
+}
+
+
+def preset(name: str) -> ModelConfig:
+    try:
+        return PRESETS[name]
+    except KeyError:
+        raise ValueError(f"unknown preset {name!r}; expected one of {sorted(PRESETS)}") from None

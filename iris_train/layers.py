@@ -1,0 +1,78 @@
+"""Small building blocks shared by the IRIS stages: MLP, transformer block, masked reductions,
+sinusoidal encodings.
+
+Masking has one meaning everywhere, in torch and in the exported ONNX graphs: masked entries are
+filled with the finite ``MASK_FILL`` before the softmax (never -inf, which turns into NaN when a
+whole row is masked), and the normalised weights are multiplied by the mask afterwards. A row with
+no valid entry therefore gets all-zero weights, and a masked max-pool over no valid entry gives 0.
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+#: Finite stand-in for -inf in masked softmax and max-pool (exp underflows to exactly 0 in float32).
+MASK_FILL = -1e30
+
+
+def masked_softmax(logits: torch.Tensor, mask: torch.Tensor, dim: int = -1) -> torch.Tensor:
+    """Softmax over ``dim`` restricted to ``mask`` (bool, broadcastable); all-masked rows give 0."""
+    filled = torch.where(mask, logits, torch.full_like(logits, MASK_FILL))
+    return torch.softmax(filled, dim=dim) * mask.to(logits.dtype)
+
+
+def masked_max(x: torch.Tensor, mask: torch.Tensor, dim: int) -> torch.Tensor:
+    """Max over ``dim`` of ``x`` where ``mask`` (bool, same shape as x up to broadcasting); 0 if none."""
+    filled = torch.where(mask, x, torch.full_like(x, MASK_FILL))
+    any_valid = mask.any(dim=dim)
+    return torch.where(any_valid, filled.amax(dim=dim), torch.zeros((), dtype=x.dtype))
+
+
+class MLP(nn.Sequential):
+    def __init__(self, dim_in: int, dim_hidden: int, dim_out: int):
+        super().__init__(nn.Linear(dim_in, dim_hidden), nn.GELU(), nn.Linear(dim_hidden, dim_out))
+
+
+class SelfAttentionBlock(nn.Module):
+    """Pre-norm transformer block (attention + MLP) over tokens ``[B, T, D]``, no mask.
+
+    Used by the encoder, where every token is valid; uses PyTorch's fused attention.
+    """
+
+    def __init__(self, dim: int, heads: int, mlp_ratio: float):
+        super().__init__()
+        self.heads = heads
+        self.norm1 = nn.LayerNorm(dim)
+        self.qkv = nn.Linear(dim, 3 * dim)
+        self.proj = nn.Linear(dim, dim)
+        self.norm2 = nn.LayerNorm(dim)
+        self.mlp = MLP(dim, int(dim * mlp_ratio), dim)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        B, T, D = x.shape
+        q, k, v = self.qkv(self.norm1(x)).view(B, T, 3, self.heads, D // self.heads).permute(2, 0, 3, 1, 4)
+        a = F.scaled_dot_product_attention(q, k, v)                  # [B, H, T, Dh]
+        x = x + self.proj(a.transpose(1, 2).reshape(B, T, D))
+        return x + self.mlp(self.norm2(x))
+
+
+def sinusoidal_encoding(x: torch.Tensor, n_freqs: int) -> torch.Tensor:
+    """``[..., C]`` -> ``[..., C * (1 + 2 n_freqs)]``: x, sin(2^k pi x), cos(2^k pi x)."""
+    freqs = (2.0 ** torch.arange(n_freqs, dtype=x.dtype, device=x.device)) * math.pi
+    xf = (x[..., None] * freqs).flatten(-2)                          # [..., C * F]
+    return torch.cat([x, torch.sin(xf), torch.cos(xf)], dim=-1)
+
+
+def sincos_2d(h: int, w: int, dim: int, dtype=torch.float32, device=None) -> torch.Tensor:
+    """Fixed 2D sin-cos positional encoding ``[h*w, dim]`` (half the channels for rows, half for cols)."""
+    assert dim % 4 == 0, "2D sin-cos encoding needs dim divisible by 4"
+    quarter = dim // 4
+    omega = 1.0 / (10000.0 ** (torch.arange(quarter, dtype=torch.float64, device=device) / quarter))
+    ys, xs = torch.meshgrid(torch.arange(h, dtype=torch.float64, device=device),
+                            torch.arange(w, dtype=torch.float64, device=device), indexing="ij")
+    ey = ys.reshape(-1, 1) * omega
+    ex = xs.reshape(-1, 1) * omega
+    return torch.cat([ey.sin(), ey.cos(), ex.sin(), ex.cos()], dim=1).to(dtype)

@@ -1,0 +1,199 @@
+"""IRIS composed from its stages; checkpoints; the torch API shared by training, export, tests and
+benchmarks.
+
+    model = build_model(preset("tiny"))
+    scene = model.encode(images)                     # images [V, 3, H, W] in [0, 1]
+    rgb, depth = model.render(scene, poses, H, W)    # poses [N, 4, 4] world_from_cam
+
+Checkpoints are a plain dict (format tag, config dict, state dict, training info) loaded with
+``torch.load(..., weights_only=True)``: no pickled classes, nothing executed on load.
+"""
+from __future__ import annotations
+
+import dataclasses
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+import torch.nn as nn
+
+from . import geometry as G
+from .camera_head import CameraHead
+from .config import ModelConfig
+from .encoder import MultiViewEncoder
+from .latent_field import LatentField
+from .ray_renderer import RayRenderer
+
+CHECKPOINT_FORMAT = "iris-checkpoint"
+CHECKPOINT_VERSION = 1
+#: Feature grids up to this many cells are sampled with a dense interpolation matmul (faster
+#: forward and much faster backward than grid_sample on CPU; identical values).
+_DENSE_SAMPLING_MAX_CELLS = 1024
+
+
+class CheckpointError(ValueError):
+    """A file that is not a readable IRIS checkpoint (foreign, truncated, corrupt, wrong version)."""
+
+
+@dataclass(frozen=True)
+class Scene:
+    """What the encoder leaves for rendering: the latent scene memory S = {(f_k, K, P_k)}.
+
+    ``maps [V, C', h, w]`` are the per-scene field maps (LatentField.prepare of the features),
+    ``world_from_cam [V, 4, 4]`` the predicted poses (view 0 = I), ``focal [2]`` (fx/W, fy/H) and
+    ``image_size`` (H, W) the model's resolution.
+    """
+    maps: torch.Tensor
+    world_from_cam: torch.Tensor
+    focal: torch.Tensor
+    image_size: tuple[int, int]
+
+    @property
+    def num_views(self) -> int:
+        return self.maps.shape[0]
+
+    def intrinsics(self, height: int | None = None, width: int | None = None) -> torch.Tensor:
+        H, W = self.image_size
+        return G.intrinsics_from_focal(self.focal, height or H, width or W)
+
+    def subset(self, indices) -> "Scene":
+        """Keep only these views as references, in the same camera frame."""
+        idx = torch.as_tensor(list(indices), dtype=torch.long)
+        return dataclasses.replace(self, maps=self.maps[idx], world_from_cam=self.world_from_cam[idx])
+
+
+class IrisModel(nn.Module):
+    def __init__(self, cfg: ModelConfig, encoder: MultiViewEncoder, camera_head: CameraHead,
+                 field: LatentField, renderer: RayRenderer):
+        super().__init__()
+        self.cfg = cfg
+        self.encoder = encoder
+        self.camera_head = camera_head
+        self.field = field
+        self.renderer = renderer
+
+    # -- encoding ---------------------------------------------------------------------------
+    def encode_batch(self, images: torch.Tensor):
+        """``images [B, V, 3, H, W]`` -> features ``[B, V, D, h, w]``, poses ``[B, V, 4, 4]``, focal ``[B, 2]``."""
+        features, camera_tokens = self.encoder(images)
+        world_from_cam, focal = self.camera_head(camera_tokens)
+        return features, world_from_cam, focal
+
+    def encode(self, images: torch.Tensor) -> Scene:
+        """``images [V, 3, H, W]`` in [0, 1] at the model's resolution -> Scene."""
+        cfg = self.cfg
+        if images.ndim != 4 or images.shape[1:] != (3, cfg.image_height, cfg.image_width):
+            raise ValueError(f"images: expected [V, 3, {cfg.image_height}, {cfg.image_width}], "
+                             f"got {tuple(images.shape)}")
+        features, world_from_cam, focal = self.encode_batch(images[None])
+        return Scene(self.field.prepare(features[0]), world_from_cam[0], focal[0],
+                     (cfg.image_height, cfg.image_width))
+
+    # -- rendering --------------------------------------------------------------------------
+    def render_rays(self, scene: Scene, origins: torch.Tensor, directions: torch.Tensor,
+                    depths: torch.Tensor, need_weights: bool = True):
+        """Render rays ``origins, directions [R, 3]`` with sample depths ``[R, S]`` from the
+        scene's reference views -> ``rgb [R, 3]``, ``weights [R, S]`` (None unless need_weights)."""
+        H, W = scene.image_size
+        R, S = depths.shape
+        V = scene.num_views
+        points = origins[:, None, :] + depths[..., None] * directions[:, None, :]      # [R, S, 3]
+        K = scene.intrinsics()
+        cam_from_world = G.invert_pose(scene.world_from_cam)
+        uv, _, valid = G.project_points(points, K, cam_from_world, H, W)                # [V, R, S, .]
+        grid = G.pixels_to_grid(uv, H, W)
+        sample = G.sample_bilinear_dense if scene.maps[0, 0].numel() <= _DENSE_SAMPLING_MAX_CELLS \
+            else G.sample_bilinear
+        sampled = sample(scene.maps, grid)                                              # [V, R, S, C']
+        cues = G.geometric_cue(points, origins[:, None, :], scene.world_from_cam[:, :3, 3])
+        mask = valid.permute(1, 2, 0)                                                   # [R, S, V]
+        f = self.field(sampled.permute(1, 2, 0, 3).reshape(R * S, V, -1),
+                       cues.reshape(R * S, V, 4), mask.reshape(R * S, V))
+        return self.renderer(f.reshape(R, S, -1), points, directions, mask.any(-1), need_weights)
+
+    @torch.no_grad()
+    def render(self, scene: Scene, world_from_cam: torch.Tensor, height: int | None = None,
+               width: int | None = None, chunk: int = 4096):
+        """Render target poses ``world_from_cam [N, 4, 4]`` -> ``rgb [N, H, W, 3]``, ``depth [N, H, W]``.
+
+        Deterministic bin-centre samples; intrinsics are the scene's shared focal scaled to
+        (height, width); rays in chunks of ``chunk`` so memory stays bounded.
+        """
+        cfg = self.cfg
+        height = height or cfg.image_height
+        width = width or cfg.image_width
+        dtype = scene.maps.dtype
+        K = scene.intrinsics(height, width)
+        uv = G.pixel_centres(height, width, dtype=dtype)
+        rgbs, depths_out = [], []
+        for pose in world_from_cam.to(dtype):
+            origins, directions = G.rays_from_pixels(uv, K, pose)
+            rgb = torch.empty(height * width, 3, dtype=dtype)
+            depth = torch.empty(height * width, dtype=dtype)
+            for start in range(0, height * width, chunk):
+                sl = slice(start, start + chunk)
+                z = G.sample_depths(cfg.near, cfg.far, cfg.samples, origins[sl].shape[0], dtype=dtype)
+                rgb[sl], w = self.render_rays(scene, origins[sl], directions[sl], z)
+                depth[sl] = (w * z).sum(-1)
+            rgbs.append(rgb.reshape(height, width, 3))
+            depths_out.append(depth.reshape(height, width))
+        return torch.stack(rgbs), torch.stack(depths_out)
+
+
+def build_model(cfg: ModelConfig) -> IrisModel:
+    """The one place that builds IRIS from its config."""
+    return IrisModel(cfg, MultiViewEncoder(cfg), CameraHead(cfg), LatentField(cfg), RayRenderer(cfg))
+
+
+# -- checkpoints ------------------------------------------------------------------------------
+def save_checkpoint(path: str | os.PathLike, model: IrisModel, **extra) -> None:
+    """Write ``{format, version, config, model, **extra}`` atomically (temp file + rename)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    payload = {"format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION,
+               "config": model.cfg.to_dict(), "model": model.state_dict(), **extra}
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
+    os.close(fd)
+    try:
+        torch.save(payload, tmp)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def read_checkpoint(path: str | os.PathLike) -> dict:
+    """Load a checkpoint dict safely (``weights_only=True``); typed error for anything else."""
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"checkpoint {str(path)!r}: no such file")
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:   # truncated zip, foreign pickle, random bytes...
+        raise CheckpointError(f"checkpoint {str(path)!r} is not a readable torch checkpoint "
+                              f"({type(exc).__name__}: {str(exc).splitlines()[0][:200]})") from None
+    if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
+        raise CheckpointError(f"checkpoint {str(path)!r} is not an IRIS checkpoint "
+                              f"(expected format {CHECKPOINT_FORMAT!r})")
+    if payload.get("version") != CHECKPOINT_VERSION:
+        raise CheckpointError(f"checkpoint {str(path)!r} has version {payload.get('version')!r}; "
+                              f"this code reads version {CHECKPOINT_VERSION}")
+    for key in ("config", "model"):
+        if key not in payload:
+            raise CheckpointError(f"checkpoint {str(path)!r} lacks {key!r}")
+    return payload
+
+
+def load_model(path: str | os.PathLike) -> IrisModel:
+    """Checkpoint -> IrisModel in eval mode on the CPU."""
+    payload = read_checkpoint(path)
+    try:
+        cfg = ModelConfig.from_dict(payload["config"])
+        model = build_model(cfg)
+        model.load_state_dict(payload["model"])
+    except (TypeError, ValueError, RuntimeError) as exc:
+        raise CheckpointError(f"checkpoint {str(path)!r} does not match the IRIS model: "
+                              f"{str(exc).splitlines()[0][:300]}") from None
+    return model.eval()

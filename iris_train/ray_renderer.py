@@ -1,0 +1,111 @@
+"""Ray renderer: compose the point-wise latent features along a target ray (Algorithm 2).
+
+Per block l, each sample's feature is enriched with sinusoidal encodings of its position and of the
+ray direction (ψ^(l), additive), then the ray transformer attends over the S samples. A final norm,
+a mean pool over samples and a bounded rgb head give the colour. The per-sample weights of the last
+ray attention, averaged over heads and query samples, form a distribution over samples (they sum to
+one) that gives the soft depth D = Σ w_m z_m.
+
+Samples that project validly into no reference view carry no information: they are masked out of
+the ray attention (as keys), of the pool and of the depth weights. The renderer is therefore
+exactly invariant to dropping them (and to the order of samples: there is no sample-index
+embedding, position enters only through γ_pos(x)), which the runtime uses to skip them. A ray
+with no valid sample gets rgb = head(0) and all-zero weights.
+"""
+from __future__ import annotations
+
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+from .config import ModelConfig
+from .layers import MASK_FILL, MLP, masked_softmax, sinusoidal_encoding
+
+
+class RayBlock(nn.Module):
+    """Pre-norm masked self-attention over the samples of a ray, then an MLP."""
+
+    def __init__(self, width: int, heads: int, mlp_ratio: float):
+        super().__init__()
+        self.heads = heads
+        self.norm1 = nn.LayerNorm(width)
+        self.qkv = nn.Linear(width, 3 * width)
+        self.proj = nn.Linear(width, width)
+        self.norm2 = nn.LayerNorm(width)
+        self.mlp = MLP(width, int(width * mlp_ratio), width)
+
+    def forward(self, x: torch.Tensor, sample_mask: torch.Tensor, need_weights: bool = True):
+        """``x [R, S, W]``, ``sample_mask [R, S]`` -> ``x [R, S, W]``, attention ``[R, H, S, S]``.
+
+        Without ``need_weights`` the fused SDPA kernel runs with an additive finite mask: on every
+        query row with at least one valid key it is the same softmax (exp(-1e30) is exactly 0);
+        rows with no valid key differ, but they belong to rays with no valid sample, whose
+        outputs are pooled away. Returns ``None`` for the attention then.
+        """
+        R, S, W = x.shape
+        H = self.heads
+        q, k, v = self.qkv(self.norm1(x)).reshape(R, S, 3, H, W // H).permute(2, 0, 3, 1, 4)
+        if need_weights:
+            logits = (q @ k.transpose(-1, -2)) * (W // H) ** -0.5             # [R, H, S, S]
+            attn = masked_softmax(logits, sample_mask[:, None, None, :], dim=-1)
+            out = attn @ v
+        else:
+            bias = torch.where(sample_mask, 0.0, MASK_FILL).to(x.dtype)[:, None, None, :]
+            out, attn = F.scaled_dot_product_attention(q, k, v, attn_mask=bias), None
+        out = out.transpose(1, 2).reshape(R, S, W)
+        x = x + self.proj(out)
+        return x + self.mlp(self.norm2(x)), attn
+
+
+class RayTransformer(nn.Module):
+    def __init__(self, cfg: ModelConfig):
+        super().__init__()
+        pos_dim = 3 * (1 + 2 * cfg.pos_freqs)
+        dir_dim = 3 * (1 + 2 * cfg.dir_freqs)
+        self.pos_freqs, self.dir_freqs = cfg.pos_freqs, cfg.dir_freqs
+        self.inject = nn.ModuleList(nn.Linear(pos_dim + dir_dim, cfg.field_width)   # ψ^(l)
+                                    for _ in range(cfg.ray_blocks))
+        self.blocks = nn.ModuleList(RayBlock(cfg.field_width, cfg.field_heads, cfg.mlp_ratio)
+                                    for _ in range(cfg.ray_blocks))
+
+    def forward(self, f: torch.Tensor, positions: torch.Tensor, directions: torch.Tensor,
+                sample_mask: torch.Tensor, need_weights: bool = True):
+        """``f [R, S, W]``, ``positions [R, S, 3]``, ``directions [R, 3]``, ``sample_mask [R, S]``."""
+        R, S, _ = f.shape
+        unit_dir = directions / directions.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        e_pos = sinusoidal_encoding(positions, self.pos_freqs)                       # [R, S, P]
+        e_dir = sinusoidal_encoding(unit_dir, self.dir_freqs)[:, None].expand(R, S, -1)
+        enc = torch.cat([e_pos, e_dir], dim=-1)
+        attn = None
+        last = len(self.blocks) - 1
+        for i, (inject, block) in enumerate(zip(self.inject, self.blocks)):
+            # Only the last block's weights are read (soft depth), so the others take the fused path.
+            f, attn = block(f + inject(enc), sample_mask, need_weights=need_weights and i == last)
+        return f, attn
+
+
+class RayRenderer(nn.Module):
+    def __init__(self, cfg: ModelConfig):
+        super().__init__()
+        self.ray_transformer = RayTransformer(cfg)
+        self.norm = nn.LayerNorm(cfg.field_width)
+        self.rgb_head = MLP(cfg.field_width, cfg.field_width, 3)
+
+    def forward(self, f: torch.Tensor, positions: torch.Tensor, directions: torch.Tensor,
+                sample_mask: torch.Tensor, need_weights: bool = True):
+        """-> ``rgb [R, 3]`` in (0, 1), per-sample ``weights [R, S]`` (sum 1, or 0 for empty rays).
+
+        ``need_weights=False`` (training) skips the explicit attention matrix; weights are None.
+        """
+        f, attn = self.ray_transformer(f, positions, directions, sample_mask, need_weights)
+        m = sample_mask.to(f.dtype)                                                  # [R, S]
+        n_valid = m.sum(-1, keepdim=True)                                            # [R, 1]
+        h = (self.norm(f) * m[..., None]).sum(1) / n_valid.clamp_min(1.0)            # [R, W]
+        rgb = torch.sigmoid(self.rgb_head(h))
+        if attn is None:
+            return rgb, None
+        # Mean over heads and over valid query samples of the last attention: a distribution
+        # over key samples (rows of the softmax sum to one on valid keys).
+        per_query = attn.mean(1)                                                     # [R, S, S]
+        weights = (per_query * m[..., None]).sum(1) / n_valid.clamp_min(1.0)         # [R, S]
+        return rgb, weights
