@@ -157,14 +157,12 @@ def train(cfg: TrainConfig, out: Path, resume: bool = False, scenes=None, thread
     model = build_model(mcfg)
     optimizer = make_optimizer(model, cfg)
     start_step, elapsed_before = 0, 0.0
-    rng = np.random.default_rng([cfg.seed, rank])
     if resume and ckpt_path.exists():
         payload = read_checkpoint(ckpt_path)
         model.load_state_dict(payload["model"])
         optimizer.load_state_dict(payload["optimizer"])
         start_step = int(payload["step"])
         elapsed_before = float(payload.get("elapsed", 0.0))
-        rng = np.random.default_rng([cfg.seed, rank, start_step])
     model.train()
     if scenes is None:
         from .data import SyntheticScenes
@@ -187,7 +185,8 @@ def train(cfg: TrainConfig, out: Path, resume: bool = False, scenes=None, thread
         factor = lr_factor(step, cfg)
         for group in optimizer.param_groups:
             group["lr"] = cfg.lr * factor * group["lr_scale"]
-        batch = draw_batch(scenes, cfg, mcfg, rng)
+        # One generator per (seed, rank, step): a resumed run draws exactly the batches it would have.
+        batch = draw_batch(scenes, cfg, mcfg, np.random.default_rng([cfg.seed, rank, step]))
         loss = step_module(*batch)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
