@@ -42,7 +42,7 @@ class CameraHead(nn.Module):
         R = rotation_from_6d(self.identity_6d + out[..., :6])                    # [B, V, 3, 3]
         t = out[..., 6:, None]                                                   # [B, V, 3, 1]
         bottom = torch.zeros_like(camera_tokens[..., :4])
-        bottom = bottom + torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=bottom.dtype)
+        bottom = bottom + torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=bottom.dtype, device=bottom.device)
         pose = torch.cat([torch.cat([R, t], dim=-1), bottom[..., None, :]], dim=-2)
         is_canonical = (torch.arange(V, device=pose.device) == 0)[None, :, None, None]
         eye = torch.eye(4, dtype=pose.dtype, device=pose.device)

@@ -29,15 +29,17 @@ class MultiViewEncoder(nn.Module):
         self.blocks = nn.ModuleList(SelfAttentionBlock(d, cfg.encoder_heads, cfg.mlp_ratio)
                                     for _ in range(2 * cfg.encoder_pairs))
         self.norm = nn.LayerNorm(d)
-        h, w = cfg.feature_grid
-        self.register_buffer("pos_embed", sincos_2d(h, w, d)[None], persistent=False)
+        self.feature_grid = cfg.feature_grid
+        self.register_buffer("pos_embed", sincos_2d(*self.feature_grid, d)[None], persistent=False)
 
     def forward(self, images: torch.Tensor):
         """``images [B, V, 3, H, W]`` in [0, 1] -> ``features [B, V, D, h, w]``, ``camera_tokens [B, V, D]``."""
         B, V, _, H, W = images.shape
         x = self.patch_embed((images.flatten(0, 1) - _PIXEL_MEAN) / _PIXEL_STD)   # [BV, D, h, w]
         D, h, w = x.shape[1:]
-        pos = self.pos_embed if self.pos_embed.shape[1] == h * w else sincos_2d(h, w, D, x.dtype)[None]
+        pos = self.pos_embed
+        if (h, w) != self.feature_grid:     # not just h*w: a 4x16 grid must not reuse the 8x8 table
+            pos = sincos_2d(h, w, D, x.dtype, x.device)[None]
         tokens = x.flatten(2).transpose(1, 2) + pos                                 # [BV, hw, D]
         tokens = torch.cat([self.camera_token.expand(B * V, 1, D), tokens], dim=1)  # [BV, T, D]
         T = tokens.shape[1]

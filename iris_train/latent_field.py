@@ -15,7 +15,9 @@ order of Algorithm 1. The per-sample work left is the query path, the cue's 4 ->
 attention itself and the MLP.
 
 Measured effect (``python benchmarks/field_precompute.py``, tiny preset, 4 reference views,
-64 x 64 target, S = 64, torch eager, 2 threads): see benchmarks/results/field_precompute.md.
+4096 rays x 64 samples, torch eager, 2 threads; benchmarks/results/field_precompute.md): getting
+the view transformer's inputs takes 0.165 s per-scene vs 0.512 s per-sample (3.1x), with a max abs
+difference of 2e-6 between the two orders (float32 rounding).
 """
 from __future__ import annotations
 

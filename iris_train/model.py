@@ -122,19 +122,22 @@ class IrisModel(nn.Module):
         (height, width); rays in chunks of ``chunk`` so memory stays bounded.
         """
         cfg = self.cfg
+        if world_from_cam.ndim != 3 or world_from_cam.shape[1:] != (4, 4):
+            raise ValueError(f"world_from_cam: expected target poses [N, 4, 4], got {tuple(world_from_cam.shape)}")
         height = height or cfg.image_height
         width = width or cfg.image_width
-        dtype = scene.maps.dtype
+        dtype, device = scene.maps.dtype, scene.maps.device
         K = scene.intrinsics(height, width)
-        uv = G.pixel_centres(height, width, dtype=dtype)
+        uv = G.pixel_centres(height, width, dtype=dtype, device=device)
         rgbs, depths_out = [], []
-        for pose in world_from_cam.to(dtype):
+        for pose in world_from_cam.to(device=device, dtype=dtype):
             origins, directions = G.rays_from_pixels(uv, K, pose)
-            rgb = torch.empty(height * width, 3, dtype=dtype)
-            depth = torch.empty(height * width, dtype=dtype)
+            rgb = torch.empty(height * width, 3, dtype=dtype, device=device)
+            depth = torch.empty(height * width, dtype=dtype, device=device)
             for start in range(0, height * width, chunk):
                 sl = slice(start, start + chunk)
-                z = G.sample_depths(cfg.near, cfg.far, cfg.samples, origins[sl].shape[0], dtype=dtype)
+                z = G.sample_depths(cfg.near, cfg.far, cfg.samples, origins[sl].shape[0], dtype=dtype,
+                                    device=device)
                 rgb[sl], w = self.render_rays(scene, origins[sl], directions[sl], z)
                 depth[sl] = (w * z).sum(-1)
             rgbs.append(rgb.reshape(height, width, 3))
@@ -171,9 +174,10 @@ def read_checkpoint(path: str | os.PathLike) -> dict:
         raise CheckpointError(f"checkpoint {str(path)!r}: no such file")
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:   # truncated zip, foreign pickle, random bytes...
+    except Exception as exc:   # truncated zip, foreign pickle, random bytes, empty file...
+        reason = (str(exc).splitlines() or [""])[0]     # an empty file raises EOFError('')
         raise CheckpointError(f"checkpoint {str(path)!r} is not a readable torch checkpoint "
-                              f"({type(exc).__name__}: {str(exc).splitlines()[0][:200]})") from None
+                              f"({type(exc).__name__}: {reason[:200]})") from None
     if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
         raise CheckpointError(f"checkpoint {str(path)!r} is not an IRIS checkpoint "
                               f"(expected format {CHECKPOINT_FORMAT!r})")
@@ -194,6 +198,7 @@ def load_model(path: str | os.PathLike) -> IrisModel:
         model = build_model(cfg)
         model.load_state_dict(payload["model"])
     except (TypeError, ValueError, RuntimeError) as exc:
+        reason = (str(exc).splitlines() or [""])[0]
         raise CheckpointError(f"checkpoint {str(path)!r} does not match the IRIS model: "
-                              f"{str(exc).splitlines()[0][:300]}") from None
+                              f"{reason[:300]}") from None
     return model.eval()
