@@ -1,0 +1,518 @@
+"""iris-eval: novel view synthesis (PSNR, SSIM) and relative pose accuracy (RPA) of an IRIS model.
+
+    iris-eval runs/tiny/last.pt synthetic:heldout --json eval.json
+    iris-eval out/ my_scenes/ --scenes 10 --grid grid.png      # an exported model, users' data
+
+MODEL is a training checkpoint (``.pt``, run in torch) or an exported model directory (holding
+``iris.json``, run with ``iris_runtime.IrisRuntime``: the numbers of what is served). DATA is
+``synthetic:heldout`` (the held-out synthetic scenes ``iris_train.data.HELDOUT_SEEDS``, rendered
+once and cached) or a folder of scene folders (``iris_train.data.load_dataset_folder``; cameras
+optional). The metrics themselves (``iris_train.metrics``) are numpy + OpenCV only.
+
+Protocol (DESIGN.md "Evaluation protocol", the paper's appendix scaled down):
+
+- A scene has N = 8 frames (``--views``) in trajectory order. Scenes with more frames are
+  subsampled evenly along the stored order; scenes with fewer are skipped.
+- Fixed split: targets are frames ``TARGET_FRAMES = (1, 4, 6)``, references the others
+  (0, 2, 3, 5, 7); for N != 8 see ``split_frames``.
+- The encoder sees all N frames, so the target poses are predicted from the target images. The
+  targets are rendered from the reference views only (``scene.subset(references)``) at their
+  predicted poses, at the model's resolution, and compared with the target images: PSNR and SSIM
+  (``iris_train.metrics``), per image, averaged over targets, then over scenes.
+- Pose: RPA@5/15/30 of the N predicted poses against the ground truth over all frame pairs.
+- Two input orders: **Seq** (frames as stored) and **Rand** (a fixed per-scene permutation from
+  ``RAND_SEED`` and the scene's index). Targets and references are the same frames in both; in Rand
+  they are merely presented in shuffled order, and the first presented frame becomes the canonical
+  frame (RPA does not depend on the world frame).
+- Baselines on the same scenes and frames: *nearest reference* (the reference image whose
+  ground-truth camera is closest to the target's: rotation angle in radians + centre distance
+  divided by the mean distance of the scene's camera centres from their centroid; see
+  ``nearest_reference``) and *mean colour* (every pixel the mean RGB of the reference images)
+  for NVS; *identity poses* (all cameras predicted at the canonical one) for RPA. With the
+  zero-translation convention of ``iris_train.metrics`` identity poses score 0 on every pair
+  whose cameras are not at the same place.
+- Scenes without ground-truth cameras (users' folders) count towards the model's PSNR/SSIM and the
+  mean-colour baseline only; pose metrics and the nearest-reference baseline average over the
+  scenes with cameras (``null`` in the JSON when there are none).
+- LPIPS is left out: it needs pretrained network weights that cannot be fetched here.
+
+PSNR per image is capped at ``PSNR_CAP`` dB (an identical image would otherwise give inf).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import tempfile
+import warnings
+from pathlib import Path
+from typing import Iterable, Sequence
+
+import numpy as np
+
+from .metrics import RPA_THRESHOLDS, psnr, rpa, ssim
+
+__all__ = ["evaluate", "split_frames", "rand_permutation", "nearest_reference", "format_table",
+           "load_scenes", "load_evaluable", "TARGET_FRAMES", "DEFAULT_VIEWS", "RAND_SEED", "ORDERS",
+           "PSNR_CAP", "write_json", "save_grid", "main"]
+
+#: Target frames of an 8-frame scene (the fixed split); the other frames are references.
+TARGET_FRAMES = (1, 4, 6)
+#: Frames per evaluation scene.
+DEFAULT_VIEWS = 8
+#: Seed of the per-scene "Rand" permutations (``rand_permutation``).
+RAND_SEED = 2024
+#: Input orders, in the order they are reported.
+ORDERS = ("seq", "rand")
+#: PSNR of one image is capped here (dB), so that a pixel-identical image stays finite.
+PSNR_CAP = 100.0
+_RPA_KEYS = tuple(f"rpa@{t:g}" for t in RPA_THRESHOLDS)
+
+
+# ----------------------------------------------------------------------------------------------
+# Protocol pieces
+# ----------------------------------------------------------------------------------------------
+
+def split_frames(n_views: int = DEFAULT_VIEWS) -> tuple[tuple[int, ...], tuple[int, ...]]:
+    """``(references, targets)`` frame indices of an ``n_views``-frame scene.
+
+    For 8 frames the targets are ``TARGET_FRAMES``. For other N the same relative positions are
+    used: target k of the 8-frame split maps to ``clamp(floor(k * N / 8 + 0.5), 1, N - 1)``
+    (duplicates merged), so frame 0 is always a reference. Needs N >= 2.
+    """
+    if n_views < 2:
+        raise ValueError(f"a scene needs at least 2 frames for the split, got {n_views}")
+    if n_views == DEFAULT_VIEWS:
+        targets = TARGET_FRAMES
+    else:
+        targets = tuple(sorted({min(max(math.floor(k * n_views / DEFAULT_VIEWS + 0.5), 1), n_views - 1)
+                                for k in TARGET_FRAMES}))
+    refs = tuple(i for i in range(n_views) if i not in targets)
+    return refs, targets
+
+
+def rand_permutation(n_views: int, scene_index: int, seed: int = RAND_SEED) -> np.ndarray:
+    """The fixed "Rand" presentation order of scene ``scene_index``: ``order[p]`` = frame shown at
+    position p. Reproducible: ``numpy.random.default_rng([seed, scene_index]).permutation``."""
+    return np.random.default_rng([seed, scene_index]).permutation(n_views)
+
+
+def _rotation_angle(Ra: np.ndarray, Rb: np.ndarray) -> np.ndarray:
+    cos = (np.einsum("...ij,...ij->...", Ra, Rb) - 1.0) / 2.0
+    return np.arccos(np.clip(cos, -1.0, 1.0))
+
+
+def nearest_reference(world_from_cam: np.ndarray, references: Sequence[int],
+                      targets: Sequence[int]) -> list[int]:
+    """For each target frame, the reference frame with the closest ground-truth camera.
+
+    Distance = rotation angle between the two cameras in radians + distance between their centres
+    divided by the scene's camera spread (mean distance of all ``world_from_cam [V, 4, 4]`` centres
+    from their centroid; the centre term is dropped when all centres coincide). So one radian of
+    turning weighs as much as moving by the typical camera spread, and the choice does not depend
+    on the scene's scale or world frame. Ties go to the earlier reference.
+    """
+    T = np.asarray(world_from_cam, dtype=np.float64)
+    centres = T[:, :3, 3]
+    spread = np.linalg.norm(centres - centres.mean(0), axis=-1).mean()
+    refs = np.asarray(references)
+    out = []
+    for t in targets:
+        angle = _rotation_angle(T[t, :3, :3][None], T[refs, :3, :3])
+        dist = np.linalg.norm(centres[refs] - centres[t], axis=-1)
+        cost = angle + (dist / spread if spread > 0 else 0.0)
+        out.append(int(refs[int(np.argmin(cost))]))
+    return out
+
+
+def _psnr(pred: np.ndarray, gt: np.ndarray) -> float:
+    return min(psnr(pred, gt), PSNR_CAP)
+
+
+def _nvs_scores(preds: Sequence[np.ndarray], gts: Sequence[np.ndarray]) -> dict[str, float]:
+    return {"psnr": float(np.mean([_psnr(p, g) for p, g in zip(preds, gts)])),
+            "ssim": float(np.mean([ssim(p, g) for p, g in zip(preds, gts)]))}
+
+
+# ----------------------------------------------------------------------------------------------
+# One interface over the torch model and the exported runtime
+# ----------------------------------------------------------------------------------------------
+
+class _TorchBackend:
+    """``IrisModel`` in torch (a checkpoint)."""
+
+    def __init__(self, model):
+        self.model = model
+        self.image_size = (model.cfg.image_height, model.cfg.image_width)
+        self.depth_range = (model.cfg.near, model.cfg.far)
+
+    def encode(self, images: np.ndarray):
+        import torch
+        x = torch.from_numpy(np.ascontiguousarray(images)).permute(0, 3, 1, 2).float() / 255.0
+        with torch.no_grad():
+            return self.model.encode(x)
+
+    def poses(self, scene) -> np.ndarray:
+        return scene.world_from_cam.detach().double().numpy()
+
+    def render(self, scene, refs: Sequence[int], poses: np.ndarray):
+        import torch
+        H, W = self.image_size
+        rgb, depth = self.model.render(scene.subset(refs),
+                                       torch.as_tensor(poses, dtype=scene.maps.dtype), H, W)
+        return rgb.double().numpy(), depth.double().numpy()
+
+
+class _RuntimeBackend:
+    """An exported model run by ``iris_runtime.IrisRuntime`` (numpy + onnxruntime)."""
+
+    def __init__(self, runtime):
+        self.rt = runtime
+        self.image_size, self.depth_range = _runtime_geometry(runtime)
+
+    def encode(self, images: np.ndarray):
+        return self.rt.encode(list(images))
+
+    def poses(self, scene) -> np.ndarray:
+        return np.asarray(scene.world_from_cam, dtype=np.float64)
+
+    def render(self, scene, refs: Sequence[int], poses: np.ndarray):
+        H, W = self.image_size
+        sub = scene.subset(list(refs))
+        rgbs, depths = [], []
+        for pose in poses:
+            result = self.rt.render(sub, pose, height=H, width=W, depth=True)
+            image = getattr(result, "image_float", None)
+            if image is None:
+                image = np.asarray(getattr(result, "image", result), dtype=np.float64) / 255.0
+            rgbs.append(np.asarray(image, dtype=np.float64))
+            depth = getattr(result, "depth", None)
+            depths.append(np.zeros((H, W)) if depth is None else np.asarray(depth, dtype=np.float64))
+        return np.stack(rgbs), np.stack(depths)
+
+
+def _runtime_geometry(runtime) -> tuple[tuple[int, int], tuple[float, float]]:
+    """Model resolution and depth range of an ``IrisRuntime`` (from its manifest)."""
+    H, W = runtime.image_size
+    return (int(H), int(W)), (float(runtime.near), float(runtime.far))
+
+
+def _backend(model):
+    try:
+        from .model import IrisModel
+    except ImportError:          # torch missing: only the runtime path is possible
+        IrisModel = ()
+    if isinstance(model, IrisModel):
+        return _TorchBackend(model)
+    return _RuntimeBackend(model)
+
+
+# ----------------------------------------------------------------------------------------------
+# Scenes
+# ----------------------------------------------------------------------------------------------
+
+def _prepare_scene(scene, views: int, image_size: tuple[int, int]):
+    """-> ``(images uint8 [N, H, W, 3] at the model's size, world_from_cam [N, 4, 4] or None)``,
+    or None when the scene has fewer than ``views`` frames."""
+    images = np.asarray(scene.images)
+    if images.ndim != 4 or images.shape[-1] != 3 or images.dtype != np.uint8:
+        raise ValueError(f"scene images: expected uint8 [V, H, W, 3], got {images.dtype} {images.shape}")
+    poses = getattr(scene, "world_from_cam", None)
+    V = images.shape[0]
+    if V < views:
+        return None
+    idx = np.round(np.linspace(0, V - 1, views)).astype(int)
+    images = images[idx]
+    if poses is not None:
+        poses = np.asarray(poses, dtype=np.float64)[idx]
+    if images.shape[1:3] != tuple(image_size):
+        from iris_runtime.images import fit_to_model
+        images = np.stack([fit_to_model(im, *image_size)[0] for im in images])
+    return images, poses
+
+
+# ----------------------------------------------------------------------------------------------
+# Evaluation
+# ----------------------------------------------------------------------------------------------
+
+def _mean_or_none(values: list[float]):
+    return float(np.mean(values)) if values else None
+
+
+def evaluate(model, scenes: Iterable, *, views: int = DEFAULT_VIEWS, seed: int = RAND_SEED,
+             grid: str | os.PathLike | None = None, progress: bool = True,
+             total: int | None = None) -> dict:
+    """Evaluate ``model`` (an ``IrisModel`` or an ``iris_runtime.IrisRuntime``) on ``scenes``.
+
+    ``scenes``: objects with ``images`` uint8 ``[V, H, W, 3]`` (trajectory order) and
+    ``world_from_cam`` ``[V, 4, 4]`` or None (no ground-truth cameras). Images of another size are
+    brought to the model's resolution by ``iris_runtime.images.fit_to_model``. The Rand order of
+    a scene is ``rand_permutation(views, i, seed)`` with i its position in ``scenes``. ``grid``:
+    write a PNG of the first scene (Seq order). ``total``: number of scenes, for the progress bar.
+
+    Returns ``{"seq": R, "rand": R}`` with ``R = {"model": {"psnr", "ssim", "rpa@5", "rpa@15",
+    "rpa@30"}, "baselines": {"nearest_reference": {"psnr", "ssim"}, "mean_colour": {"psnr",
+    "ssim"}, "identity_poses": {"rpa@5", "rpa@15", "rpa@30"}}}``: means over scenes (see the module
+    docstring for the protocol). Raises ``ValueError`` when no scene has ``views`` frames.
+    """
+    backend = _backend(model)
+    refs, targets = split_frames(views)
+    refs_a, targets_a = np.asarray(refs), np.asarray(targets)
+    training = getattr(model, "training", None)
+    if training:
+        model.eval()
+    acc = {order: {"model": {k: [] for k in ("psnr", "ssim", *_RPA_KEYS)},
+                   "nearest_reference": {"psnr": [], "ssim": []},
+                   "mean_colour": {"psnr": [], "ssim": []},
+                   "identity_poses": {k: [] for k in _RPA_KEYS}} for order in ORDERS}
+    n_used, n_skipped = 0, 0
+    from tqdm import tqdm
+    bar = tqdm(scenes, total=total, desc="iris-eval", unit="scene", disable=not progress,
+               dynamic_ncols=True)
+    try:
+        for index, scene in enumerate(bar):
+            prepared = _prepare_scene(scene, views, backend.image_size)
+            if prepared is None:
+                n_skipped += 1
+                continue
+            images, gt_poses = prepared
+            n_used += 1
+            gt_images = images.astype(np.float64) / 255.0
+            targets_gt = gt_images[targets_a]
+
+            # Baselines: they see the same frames in either order, so compute them once.
+            mean_rgb = gt_images[refs_a].reshape(-1, 3).mean(0)
+            mean_scores = _nvs_scores([np.broadcast_to(mean_rgb, g.shape) for g in targets_gt], targets_gt)
+            near_scores = None
+            if gt_poses is not None:
+                nearest = nearest_reference(gt_poses, refs, targets)
+                near_scores = _nvs_scores(gt_images[nearest], targets_gt)
+
+            for order in ORDERS:
+                perm = np.arange(views) if order == "seq" else rand_permutation(views, index, seed)
+                pos = np.argsort(perm)                    # pos[frame] = its presented position
+                encoded = backend.encode(images[perm])
+                pred = backend.poses(encoded)              # presented order
+                rgb, depth = backend.render(encoded, np.sort(pos[refs_a]).tolist(),
+                                            pred[pos[targets_a]])
+                if not (np.isfinite(rgb).all() and np.isfinite(pred).all()):
+                    raise ValueError(f"scene {index} ({order}): the model returned NaN or inf "
+                                     "(poses or colours); nothing to score")
+                rgb = np.clip(rgb, 0.0, 1.0)
+                a = acc[order]
+                for k, v in _nvs_scores(rgb, targets_gt).items():
+                    a["model"][k].append(v)
+                for k, v in mean_scores.items():
+                    a["mean_colour"][k].append(v)
+                if gt_poses is not None:
+                    gt_presented = gt_poses[perm]
+                    for k, v in rpa(pred, gt_presented).items():
+                        a["model"][k].append(v)
+                    identity = np.broadcast_to(np.eye(4), gt_presented.shape)
+                    for k, v in rpa(identity, gt_presented).items():
+                        a["identity_poses"][k].append(v)
+                    for k, v in near_scores.items():
+                        a["nearest_reference"][k].append(v)
+                if grid is not None and order == "seq" and n_used == 1:
+                    save_grid(grid, gt_images[refs_a], targets_gt, rgb, depth, backend.depth_range,
+                              refs, targets)
+    finally:
+        bar.close()
+        if training:
+            model.train()
+    if n_used == 0:
+        raise ValueError(f"no scene with at least {views} frames to evaluate"
+                         + (f" ({n_skipped} skipped)" if n_skipped else ""))
+    if n_skipped:
+        warnings.warn(f"iris-eval: skipped {n_skipped} scene(s) with fewer than {views} frames")
+
+    def summary(a):
+        return {"model": {k: _mean_or_none(v) for k, v in a["model"].items()},
+                "baselines": {name: {k: _mean_or_none(v) for k, v in a[name].items()}
+                              for name in ("nearest_reference", "mean_colour", "identity_poses")}}
+    return {order: summary(acc[order]) for order in ORDERS}
+
+
+# ----------------------------------------------------------------------------------------------
+# Output: table, JSON, grid
+# ----------------------------------------------------------------------------------------------
+
+def format_table(results: dict) -> str:
+    """The results as a fixed-width text table (one row per order and method; "-" = not measured)."""
+    cols = ("psnr", "ssim", *_RPA_KEYS)
+    head = f"{'order':<6} {'method':<18}" + "".join(f"{c.upper():>9}" for c in cols)
+    lines = [head, "-" * len(head)]
+    rows = (("IRIS", lambda r: r["model"]),
+            ("nearest reference", lambda r: r["baselines"]["nearest_reference"]),
+            ("mean colour", lambda r: r["baselines"]["mean_colour"]),
+            ("identity poses", lambda r: r["baselines"]["identity_poses"]))
+    for order in ORDERS:
+        for name, get in rows:
+            values = get(results[order])
+            cells = []
+            for c in cols:
+                v = values.get(c)
+                cells.append(f"{'-':>9}" if v is None else
+                             f"{v:>9.2f}" if c == "psnr" else f"{v:>9.3f}")
+            lines.append(f"{order.capitalize():<6} {name:<18}" + "".join(cells))
+    return "\n".join(lines)
+
+
+def _atomic_write(path: str | os.PathLike, data: bytes) -> None:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def write_json(path: str | os.PathLike, results: dict) -> None:
+    """Write ``results`` as JSON atomically (temp file + rename); refuses NaN/inf."""
+    _atomic_write(path, (json.dumps(results, indent=2, allow_nan=False) + "\n").encode())
+
+
+def save_grid(path: str | os.PathLike, references: np.ndarray, targets: np.ndarray,
+              renders: np.ndarray, depths: np.ndarray, depth_range: tuple[float, float],
+              ref_frames: Sequence[int] | None = None, target_frames: Sequence[int] | None = None
+              ) -> None:
+    """PNG of one scene: reference views; ground-truth targets; renders (with their PSNR); soft
+    depth (turbo colour map over the model's [near, far]). Images float ``[n, H, W, 3]`` in [0, 1],
+    depths ``[n, H, W]``; ``*_frames`` label the columns with frame indices. Written atomically."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import io
+
+    import matplotlib.pyplot as plt
+    ref_frames = range(len(references)) if ref_frames is None else ref_frames
+    target_frames = range(len(targets)) if target_frames is None else target_frames
+    rows = (("references", references, [f"frame {i}" for i in ref_frames]),
+            ("targets (GT)", targets, [f"frame {i}" for i in target_frames]),
+            ("renders", renders, [f"{_psnr(np.clip(r, 0, 1), t):.1f} dB" for r, t in zip(renders, targets)]),
+            ("soft depth", depths, [f"{d.min():.2f}-{d.max():.2f}" for d in depths]))
+    ncols = max(len(r[1]) for r in rows)
+    fig, axes = plt.subplots(len(rows), ncols, figsize=(1.4 * ncols, 1.5 * len(rows)), squeeze=False)
+    for r, (label, ims, titles) in enumerate(rows):
+        for c in range(ncols):
+            ax = axes[r, c]
+            ax.set_xticks([])
+            ax.set_yticks([])
+            for spine in ax.spines.values():
+                spine.set_visible(False)
+            if c < len(ims):
+                if ims[c].ndim == 2:
+                    ax.imshow(ims[c], cmap="turbo", vmin=depth_range[0], vmax=depth_range[1])
+                else:
+                    ax.imshow(np.clip(ims[c], 0, 1))
+                ax.set_title(titles[c], fontsize=7)
+            if c == 0:
+                ax.set_ylabel(label, fontsize=8)
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=100)
+    plt.close(fig)
+    _atomic_write(path, buf.getvalue())
+
+
+# ----------------------------------------------------------------------------------------------
+# CLI
+# ----------------------------------------------------------------------------------------------
+
+def load_evaluable(path: str | os.PathLike, threads: int | None = None):
+    """A checkpoint file -> ``IrisModel``; a directory with ``iris.json`` -> ``IrisRuntime``
+    (``threads``: its ONNX Runtime intra-op threads)."""
+    path = Path(path)
+    if path.is_dir():
+        if not (path / "iris.json").is_file():
+            raise FileNotFoundError(f"MODEL {str(path)!r} is a directory without iris.json "
+                                    "(expected an exported model directory or a .pt checkpoint)")
+        from iris_runtime import IrisRuntime      # lazily: the runtime is optional here
+        return IrisRuntime(path, threads=threads)
+    from .model import load_model
+    return load_model(path)
+
+
+def load_scenes(data: str, image_size: tuple[int, int], views: int = DEFAULT_VIEWS,
+                limit: int | None = None) -> tuple[Iterable, int]:
+    """DATA argument -> (scenes, count). ``synthetic:heldout`` renders the held-out synthetic scenes
+    lazily; anything else is a folder of scene folders (``iris_train.data.load_dataset_folder``)."""
+    if data == "synthetic:heldout":
+        from .data import HELDOUT_SEEDS, SyntheticScenes
+        # Rendered on first use and cached on disk (iris_train.data.default_cache_dir).
+        scenes = SyntheticScenes(list(HELDOUT_SEEDS)[:limit], n_views=views, size=tuple(image_size))
+        return (scenes[i] for i in range(len(scenes))), len(scenes)
+    if data.startswith("synthetic:"):
+        raise ValueError(f"DATA {data!r}: the only synthetic set is 'synthetic:heldout'")
+    path = Path(data)
+    if not path.is_dir():
+        raise FileNotFoundError(f"DATA {data!r}: not 'synthetic:heldout' and not a folder")
+    from .data import load_dataset_folder
+    scenes = load_dataset_folder(path, size=tuple(image_size))[:limit]
+    return scenes, len(scenes)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="iris-eval", description=__doc__.split("\n\n")[0],
+                                     epilog="Protocol: see the module docstring of iris_train.evaluate.",
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("model", metavar="MODEL",
+                        help="checkpoint (.pt) or exported model directory (with iris.json)")
+    parser.add_argument("data", metavar="DATA",
+                        help="'synthetic:heldout' or a folder of scene folders")
+    parser.add_argument("--json", metavar="FILE", type=Path, default=None,
+                        help='write {"seq": ..., "rand": ...} to FILE (atomically)')
+    parser.add_argument("--scenes", metavar="N", type=int, default=None,
+                        help="evaluate only the first N scenes")
+    parser.add_argument("--views", metavar="N", type=int, default=DEFAULT_VIEWS,
+                        help=f"frames per scene (default {DEFAULT_VIEWS}; targets {TARGET_FRAMES} at 8)")
+    parser.add_argument("--seed", type=int, default=RAND_SEED,
+                        help=f"seed of the Rand-order permutations (default {RAND_SEED})")
+    parser.add_argument("--grid", metavar="FILE.png", type=Path, default=None,
+                        help="write a PNG grid of the first scene (references, targets, renders, depth)")
+    parser.add_argument("--threads", type=int, default=None,
+                        help="intra-op threads of torch (checkpoint) or ONNX Runtime (exported "
+                             "model); default: the library's choice. On a busy machine 1 can be "
+                             "much faster than oversubscribed cores")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    args = parser.parse_args(argv)
+    if args.scenes is not None and args.scenes < 1:
+        parser.error("--scenes must be at least 1")
+    if args.views < 2:
+        parser.error("--views must be at least 2")
+
+    if args.threads is not None:
+        if args.threads < 1:
+            parser.error("--threads must be at least 1")
+        if not Path(args.model).is_dir():
+            import torch
+            torch.set_num_threads(args.threads)
+    from iris_runtime.errors import IrisError
+    try:
+        model = load_evaluable(args.model, threads=args.threads)
+        backend = _backend(model)
+        scenes, count = load_scenes(args.data, backend.image_size, args.views, args.scenes)
+        results = evaluate(model, scenes, views=args.views, seed=args.seed, grid=args.grid,
+                           progress=not args.no_progress, total=count)
+    except (IrisError, ValueError, FileNotFoundError) as exc:   # bad model, data or arguments
+        print(f"iris-eval: error: {exc}", file=sys.stderr)
+        return 2
+    refs, targets = split_frames(args.views)
+    print(f"iris-eval: {args.model} on {args.data}: {count} scene(s), {args.views} frames, "
+          f"references {refs}, targets {targets}")
+    print(format_table(results))
+    if args.json is not None:
+        write_json(args.json, results)
+        print(f"wrote {args.json}")
+    if args.grid is not None:
+        print(f"wrote {args.grid}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
