@@ -1,0 +1,17 @@
+"""IRIS runtime: render novel views from an exported IRIS model with ONNX Runtime, no torch.
+
+    from iris_runtime import IrisRuntime
+    rt = IrisRuntime("out/")                     # checks iris.json and the graphs' sha256
+    image = rt.render(images, pose)              # uint8 [H, W, 3]
+    scene = rt.encode(images)                    # encode once ...
+    result = rt.render(scene, 1, depth=True)     # ... render many poses (here: input view 1's)
+
+Dependencies: numpy, onnxruntime, Pillow, OpenCV. Never torch (a test imports this package with
+torch blocked).
+"""
+from .errors import (ImageError, InputError, IrisError, ManifestError, ModelFileError,
+                     ModelFormatError, ModelIntegrityError)
+from .runtime import IrisRuntime, RenderResult, Scene
+
+__all__ = ["IrisRuntime", "Scene", "RenderResult", "IrisError", "InputError", "ImageError",
+           "ModelFileError", "ManifestError", "ModelFormatError", "ModelIntegrityError"]

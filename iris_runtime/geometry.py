@@ -19,8 +19,13 @@ DEPTH_EPS = 1e-6
 #: Normalised grid coordinates are clipped to this range so that masked points never carry inf
 #: or NaN into the feature sampler; any |g| > 1 is outside the image and masked anyway.
 GRID_CLIP = 2.0
-#: Norm floor for unit vectors (geometric cue, 6D rotations).
+#: Norm floor for unit vectors (directions to camera centres).
 NORM_EPS = 1e-12
+#: Norm floor of (t - s) in the geometric cue. The direction of t - s is undefined where target and
+#: source directions coincide (e.g. rendering exactly at an input camera); below this norm the cue's
+#: first three entries shrink linearly to 0 instead of jumping between unit vectors, so the cue is
+#: Lipschitz with constant 1/CUE_EPS (a pose moved by 1e-8 moved rgb by 4e-3 with a 1e-12 floor).
+CUE_EPS = 1e-4
 
 
 def pixel_centres(height: int, width: int, dtype=np.float64) -> np.ndarray:
@@ -190,11 +195,11 @@ def sample_bilinear(feature_map: np.ndarray, grid: np.ndarray) -> np.ndarray:
 
 
 def geometric_cue(points: np.ndarray, target_centre: np.ndarray, source_centres: np.ndarray,
-                  eps: float = NORM_EPS) -> np.ndarray:
+                  eps: float = NORM_EPS, cue_eps: float = CUE_EPS) -> np.ndarray:
     """GNT-style 4-d cue ``Δ_k(x)`` for points ``[..., 3]`` and views ``source_centres [V, 3]``.
 
     With t = unit(target_centre - x) and s = unit(source_centre_k - x):
-    ``[(t - s) / max(|t - s|, eps), t . s]`` -> ``[..., V, 4]``. Equal centres (t = s) give
+    ``[(t - s) / max(|t - s|, cue_eps), t . s]`` -> ``[..., V, 4]``. Equal centres (t = s) give
     ``[0, 0, 0, 1]``; a point on a camera centre gives a zero unit vector, never NaN.
     """
     target_centre = np.asarray(target_centre, dtype=points.dtype)
@@ -203,7 +208,7 @@ def geometric_cue(points: np.ndarray, target_centre: np.ndarray, source_centres:
     s = source_centres.astype(points.dtype) - points[..., None, :]          # [..., V, 3]
     s = s / np.maximum(np.linalg.norm(s, axis=-1, keepdims=True), eps)
     diff = t[..., None, :] - s
-    diff = diff / np.maximum(np.linalg.norm(diff, axis=-1, keepdims=True), eps)
+    diff = diff / np.maximum(np.linalg.norm(diff, axis=-1, keepdims=True), cue_eps)
     dot = (t[..., None, :] * s).sum(-1, keepdims=True)
     return np.concatenate([diff, dot], axis=-1)
 

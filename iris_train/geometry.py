@@ -10,10 +10,10 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-from iris_runtime.geometry import DEPTH_EPS, GRID_CLIP, NORM_EPS
+from iris_runtime.geometry import CUE_EPS, DEPTH_EPS, GRID_CLIP, NORM_EPS
 
 __all__ = [
-    "DEPTH_EPS", "GRID_CLIP", "NORM_EPS", "pixel_centres", "intrinsics_from_focal",
+    "CUE_EPS", "DEPTH_EPS", "GRID_CLIP", "NORM_EPS", "pixel_centres", "intrinsics_from_focal",
     "scale_intrinsics", "invert_pose", "compose", "rotation_from_6d", "rays_from_pixels",
     "sample_depths", "project_points", "pixels_to_grid", "sample_bilinear", "sample_bilinear_dense",
     "geometric_cue",
@@ -180,8 +180,8 @@ def sample_bilinear_dense(feature_maps: torch.Tensor, grid: torch.Tensor) -> tor
 
 
 def geometric_cue(points: torch.Tensor, target_centre: torch.Tensor, source_centres: torch.Tensor,
-                  eps: float = NORM_EPS) -> torch.Tensor:
-    """GNT-style 4-d cue ``[..., V, 4]``: ``[(t - s)/max(|t - s|, eps), t . s]`` (see numpy twin).
+                  eps: float = NORM_EPS, cue_eps: float = CUE_EPS) -> torch.Tensor:
+    """GNT-style 4-d cue ``[..., V, 4]``: ``[(t - s)/max(|t - s|, cue_eps), t . s]`` (numpy twin).
 
     ``target_centre`` broadcasts against ``points`` (``[3]`` or ``[..., 3]``).
     """
@@ -190,6 +190,6 @@ def geometric_cue(points: torch.Tensor, target_centre: torch.Tensor, source_cent
     s = source_centres - points[..., None, :]
     s = s / s.norm(dim=-1, keepdim=True).clamp_min(eps)
     diff = t[..., None, :] - s
-    diff = diff / diff.norm(dim=-1, keepdim=True).clamp_min(eps)
+    diff = diff / diff.norm(dim=-1, keepdim=True).clamp_min(cue_eps)
     dot = (t[..., None, :] * s).sum(-1, keepdim=True)
     return torch.cat([diff, dot], dim=-1)

@@ -714,3 +714,16 @@ def test_projection_property_direct_formula(quat, t, fn, cn, hw, cam_pts):
     far_from_border = np.minimum.reduce([np.abs(ref[:, 0]), np.abs(ref[:, 0] - W),
                                          np.abs(ref[:, 1]), np.abs(ref[:, 1] - H)]) > 2 * tol
     np.testing.assert_array_equal(valid[0][far_from_border], inside[far_from_border])
+
+
+def test_geometric_cue_is_continuous_where_target_and_source_centres_meet():
+    """Rendering exactly at (or 1e-8 away from) an input camera must not flip the cue's direction."""
+    rng = np.random.default_rng(11)
+    centre = rng.normal(size=3)
+    pts = centre + rng.normal(size=(50, 3))
+    for name, f in cue_impls():
+        at = f(pts, centre, centre[None])
+        for _ in range(5):
+            near = f(pts, centre + rng.normal(size=3) * 1e-8, centre[None])
+            # Lipschitz: |Δcue| <= |Δ(t - s)| / CUE_EPS, with |Δ(t - s)| ~ 1e-8 / |x - c|.
+            assert np.abs(near - at).max() < 1e-8 / NG.CUE_EPS * 10, name

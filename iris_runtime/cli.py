@@ -1,0 +1,317 @@
+"""``iris-render MODEL_DIR IMAGES... -o OUT``: novel views from a few unposed photos, torch-free.
+
+A thin command line over ``IrisRuntime``. It encodes the input images once, then renders:
+
+- ``--view i`` (repeatable): the predicted pose of input view i (a reconstruction of it);
+- ``--pose FILE``: JSON, one 4x4 ``world_from_cam`` or a list of them, in the canonical frame
+  (view 0's camera, OpenCV axes: x right, y down, z forward);
+- ``--orbit N``: N frames on a smooth closed path through and around the predicted input cameras,
+  looking at the scene centre (``iris_runtime.orbit``), plus ``orbit.mp4``;
+- nothing of the above: every input view (``--view`` 0..V-1).
+
+Written to OUT (created if needed; files of the same name are replaced):
+
+- ``<name>.png``: the rendered view (8-bit RGB), ``<name>`` = ``view_003``, ``pose_000``,
+  ``orbit_0000``; ``<name>_depth.png``: soft depth as 16-bit PNG, **value = round(depth / far
+  * 65535)** (far from the model's manifest, 1.0 unless trained otherwise; 0 where no sample
+  sees a reference view); ``<name>_depth.npy``: the float32 depth in model units;
+- ``orbit.mp4`` (``mp4v``) and ``orbit_poses.json`` (its poses, usable with ``--pose``);
+- ``inputs/NNN.png``: the input images as the model saw them (centre-cropped, resized), with
+  their predicted cameras in ``transforms.json`` (nerfstudio; OpenGL axes) and in
+  ``colmap/{cameras,images,points3D}.txt`` (COLMAP text; image folder ``inputs/``). The
+  intrinsics are in pixels of these model-resolution images.
+
+Everything is checked (model, images, poses, view indices) before anything is written. Errors
+print one line on stderr and exit with code 2, without a traceback.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+EXIT_ERROR = 2
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse, but usage errors are one line too."""
+
+    def error(self, message: str):
+        self.exit(EXIT_ERROR, f"{self.prog}: error: {message} (see --help)\n")
+
+
+def _size(text: str) -> tuple[int, int]:
+    try:
+        h, w = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected HxW (e.g. 256x256), got {text!r}") from None
+    if h < 1 or w < 1:
+        raise argparse.ArgumentTypeError(f"expected positive HxW, got {text!r}")
+    return h, w
+
+
+def _positive(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
+    return v
+
+
+def _non_negative(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a view index (int >= 0), got {text!r}") \
+            from None
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"expected a view index (int >= 0), got {text!r}")
+    return v
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = _Parser(
+        prog="iris-render",
+        description="Render novel views of a scene from a few unposed photos with an exported IRIS "
+                    "model (ONNX Runtime, no torch). Poses are world_from_cam 4x4 in the frame of "
+                    "the first image's camera (OpenCV axes: x right, y down, z forward).",
+        epilog="Outputs: NAME.png, NAME_depth.png (16-bit, value = depth / far * 65535), "
+               "NAME_depth.npy (float32, model units), orbit.mp4 + orbit_poses.json with --orbit, "
+               "inputs/*.png with transforms.json (nerfstudio) and colmap/*.txt (COLMAP text) for "
+               "the predicted cameras of the inputs. Exit code 2 on any error (one line on "
+               "stderr).")
+    p.add_argument("model_dir", metavar="MODEL_DIR", help="directory written by iris-export")
+    p.add_argument("images", metavar="IMAGES", nargs="+",
+                   help="input photos (any size: centre-cropped to the model's aspect and resized)")
+    p.add_argument("-o", "--out", required=True, metavar="OUT", help="output directory")
+    target = p.add_argument_group("what to render (default: every input view)")
+    target.add_argument("--pose", metavar="FILE", action="append", default=[],
+                        help="JSON file with a 4x4 world_from_cam or a list of them (repeatable)")
+    target.add_argument("--view", metavar="I", type=_non_negative, action="append", default=[],
+                        help="the predicted pose of input view I (repeatable)")
+    target.add_argument("--orbit", metavar="N", type=_positive,
+                        help="N frames on a closed path around the input cameras, plus orbit.mp4")
+    out = p.add_argument_group("output and speed")
+    out.add_argument("--size", metavar="HxW", type=_size,
+                     help="output size (default: the model's resolution)")
+    out.add_argument("--fps", type=_positive, default=24,
+                     help="frame rate of orbit.mp4 (default 24)")
+    out.add_argument("--no-depth", action="store_true", help="skip the depth PNG/NPY files")
+    out.add_argument("--threads", type=_positive, default=None,
+                     help="ONNX Runtime intra-op threads (default: one per physical core)")
+    out.add_argument("--chunk-rays", type=_positive, default=None,
+                     help="rays per renderer call (default: chosen from the number of views)")
+    out.add_argument("--precision", choices=["float32", "int8"], default="float32",
+                     help="renderer graph: float32, or int8 if exported with --quantize int8")
+    out.add_argument("-q", "--quiet", action="store_true", help="print nothing but errors")
+    return p
+
+
+def _read_poses(path: str) -> list[np.ndarray]:
+    from .errors import InputError
+    from .runtime import check_pose
+    try:
+        doc = json.loads(Path(path).read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise InputError(f"--pose {path}: no such file") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"--pose {path}: cannot read: {exc}") from None
+    except json.JSONDecodeError as exc:
+        raise InputError(f"--pose {path}: not valid JSON ({exc})") from None
+    try:
+        arr = np.asarray(doc, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InputError(f"--pose {path}: expected a 4x4 matrix or a list of 4x4 matrices "
+                         f"(nested lists of numbers)") from None
+    if arr.shape == (4, 4):
+        arr = arr[None]
+    if arr.ndim != 3 or arr.shape[1:] != (4, 4) or len(arr) == 0:
+        raise InputError(f"--pose {path}: expected a 4x4 matrix or a non-empty list of 4x4 "
+                         f"matrices, got shape {arr.shape}")
+    return [check_pose(T, f"--pose {path}[{k}]") for k, T in enumerate(arr)]
+
+
+class _Progress:
+    """A tqdm bar over rays when tqdm is installed and stderr is a terminal; silent otherwise."""
+
+    def __init__(self, total: int, enabled: bool):
+        self.bar = None
+        self.base = 0
+        if enabled:
+            try:
+                from tqdm import tqdm
+            except ImportError:            # tqdm is optional: not a runtime dependency
+                tqdm = None
+            if tqdm is not None:
+                self.bar = tqdm(total=total, unit="ray", unit_scale=True, desc="rendering",
+                                leave=False, disable=None, dynamic_ncols=True)
+
+    def frame(self, base: int):
+        self.base = base
+
+    def __call__(self, done: int, total: int):
+        if self.bar is not None:
+            self.bar.n = self.base + done
+            self.bar.refresh()
+
+    def close(self):
+        if self.bar is not None:
+            self.bar.close()
+
+
+def _write_png(path: Path, rgb: np.ndarray) -> None:
+    from PIL import Image
+    Image.fromarray(rgb).save(path)
+
+
+def _write_depth(path_png: Path, path_npy: Path, depth: np.ndarray, far: float) -> None:
+    import cv2
+    scaled = np.rint(np.clip(depth / far, 0.0, 1.0) * 65535.0).astype(np.uint16)
+    if not cv2.imwrite(str(path_png), scaled):
+        raise OSError(f"{path_png}: cv2.imwrite failed")
+    np.save(path_npy, depth.astype(np.float32))
+
+
+def _nearest_rigid(T: np.ndarray) -> np.ndarray:
+    """Project the rotation blocks on SO(3) (the encoder's float32 poses are orthonormal to ~1e-7;
+    the camera writers insist on 1e-6)."""
+    T = np.array(T, dtype=np.float64)
+    U, _, Vt = np.linalg.svd(T[:, :3, :3])
+    T[:, :3, :3] = U @ Vt
+    T[:, 3] = [0.0, 0.0, 0.0, 1.0]
+    return T
+
+
+def run(args: argparse.Namespace) -> int:
+    from . import camera_io
+    from .errors import InputError
+    from .images import fit_to_model, load_image
+    from .orbit import orbit_poses
+    from .runtime import IrisRuntime
+
+    say = (lambda *a: None) if args.quiet else (lambda *a: print("iris-render:", *a, flush=True))
+    t_all = time.perf_counter()
+
+    # 1. Check everything before writing anything.
+    t0 = time.perf_counter()
+    rt = IrisRuntime(args.model_dir, threads=args.threads, precision=args.precision)
+    H, W = rt.image_size
+    inputs = [fit_to_model(load_image(p, p), H, W)[0] for p in args.images]
+    V = len(inputs)
+    bad = [i for i in args.view if i >= V]
+    if bad:
+        raise InputError(f"--view {bad[0]}: out of range, {V} input image(s) give views 0..{V - 1}")
+    poses_from_files = [T for f in args.pose for T in _read_poses(f)]
+    t_load = time.perf_counter() - t0
+
+    # 2. Encode once.
+    t0 = time.perf_counter()
+    scene = rt.encode(inputs)
+    t_encode = time.perf_counter() - t0
+    say(f"encoded {V} view(s) at {H}x{W} in {t_encode:.2f} s (model check + image loading "
+        f"{t_load:.2f} s); focal fx/W={scene.focal[0]:.4f} fy/H={scene.focal[1]:.4f}")
+
+    jobs: list[tuple[str, np.ndarray | int]] = []
+    jobs += [(f"view_{i:03d}", i) for i in args.view]
+    jobs += [(f"pose_{k:03d}", T) for k, T in enumerate(poses_from_files)]
+    orbit = None
+    if args.orbit:
+        orbit = orbit_poses(scene.world_from_cam, args.orbit, near=rt.near, far=rt.far)
+        jobs += [(f"orbit_{k:04d}", T) for k, T in enumerate(orbit)]
+    if not jobs:
+        jobs = [(f"view_{i:03d}", i) for i in range(V)]
+
+    # 3. Cameras of the inputs (and the images they refer to).
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "inputs").mkdir(exist_ok=True)
+    names = [f"{i:03d}.png" for i in range(V)]
+    for name, rgb in zip(names, inputs, strict=True):
+        _write_png(out / "inputs" / name, rgb)
+    cams = _nearest_rigid(scene.world_from_cam)
+    camera_io.write_transforms_json(out / "transforms.json", cams, scene.K, (H, W),
+                                    [f"inputs/{n}" for n in names])
+    camera_io.write_colmap_text(out / "colmap", cams, scene.K, (H, W), names)
+    if orbit is not None:
+        (out / "orbit_poses.json").write_text(json.dumps(orbit.tolist()) + "\n")
+
+    # 4. Render.
+    size = args.size or (H, W)
+    progress = _Progress(total=len(jobs) * size[0] * size[1], enabled=not args.quiet)
+    totals = {"rays": 0.0, "renderer": 0.0, "write": 0.0}
+    t_render = time.perf_counter()
+    writer = None
+    video_path = out / "orbit.mp4"
+    try:
+        for k, (name, pose) in enumerate(jobs):
+            progress.frame(k * size[0] * size[1])
+            res = rt.render(scene, pose, height=size[0], width=size[1], depth=True,
+                            chunk_rays=args.chunk_rays, progress=progress)
+            totals["rays"] += res.timings["rays"]
+            totals["renderer"] += res.timings["renderer"]
+            t0 = time.perf_counter()
+            _write_png(out / f"{name}.png", res.image)
+            if not args.no_depth:
+                _write_depth(out / f"{name}_depth.png", out / f"{name}_depth.npy", res.depth,
+                             rt.far)
+            if name.startswith("orbit_"):
+                if writer is None:
+                    writer = _open_video(video_path, args.fps, size)
+                if writer is not None:
+                    writer.write(res.image[..., ::-1].copy())         # OpenCV wants BGR
+            totals["write"] += time.perf_counter() - t0
+    finally:
+        progress.close()
+        if writer is not None:
+            writer.release()
+    t_render = time.perf_counter() - t_render
+
+    say(f"rendered {len(jobs)} view(s) at {size[0]}x{size[1]} in {t_render:.2f} s "
+        f"(rays {totals['rays']:.2f} s, renderer {totals['renderer']:.2f} s, "
+        f"writing {totals['write']:.2f} s)")
+    first, last = jobs[0][0], jobs[-1][0]
+    say(f"images: {out}/{first}.png" + (f" ... {last}.png" if len(jobs) > 1 else "")
+        + ("" if args.no_depth else f", depth in NAME_depth.png (16-bit, depth / far * 65535, "
+                                    f"far = {rt.far:g}) and NAME_depth.npy (float32)"))
+    if writer is not None:
+        say(f"video: {video_path} ({len(orbit)} frames at {args.fps} fps)")
+    elif orbit is not None:
+        say(f"video: not written (OpenCV has no mp4v encoder here); frames are in {out}")
+    say(f"cameras of the inputs: {out / 'transforms.json'}, {out / 'colmap'} "
+        f"(images in {out / 'inputs'})")
+    say(f"total {time.perf_counter() - t_all:.2f} s")
+    return 0
+
+
+def _open_video(path: Path, fps: int, size: tuple[int, int]):
+    import cv2
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), float(fps),
+                             (size[1], size[0]))
+    if not writer.isOpened():
+        writer.release()
+        return None
+    return writer
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    from .errors import IrisError
+    try:
+        return run(args)
+    except (IrisError, OSError) as exc:        # IrisError covers bad input and bad model files
+        print(f"iris-render: error: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}",
+              file=sys.stderr)
+        return EXIT_ERROR
+    except KeyboardInterrupt:
+        print("iris-render: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

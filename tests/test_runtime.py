@@ -1,0 +1,556 @@
+"""Tests of iris_runtime: IrisRuntime, Scene, the manifest checks, the orbit path and iris-render.
+
+Model under test: ``IRIS_TEST_MODEL_DIR`` (an ``iris-export`` output directory) when set, which is
+how these tests run in an environment without torch; otherwise, when torch is installed, a random
+tiny model (``torch.manual_seed(0); build_model(preset("tiny"))``) exported once per session.
+Tests marked ``torch`` compare with ``IrisModel`` and always use the exported random model.
+
+Renders are kept small (a few hundred rays each): the renderer costs ~1-2 ms of CPU per ray.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import shutil
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from iris_runtime import (ImageError, InputError, IrisError, IrisRuntime, ManifestError,
+                          ModelFileError, ModelFormatError, ModelIntegrityError, RenderResult,
+                          Scene)
+from iris_runtime import geometry as G
+from iris_runtime.images import fit_to_model
+from iris_runtime.orbit import orbit_poses
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _has_torch() -> bool:
+    try:
+        import torch  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+# ----------------------------------------------------------------------------------------------
+# Fixtures
+# ----------------------------------------------------------------------------------------------
+
+@pytest.fixture(scope="session")
+def torch_export(tmp_path_factory):
+    """(model_dir, IrisModel): a random tiny model and its export (needs torch and onnx)."""
+    torch = pytest.importorskip("torch")
+    pytest.importorskip("onnx")
+    import iris_train
+    from export.pipeline import export_model
+
+    torch.manual_seed(0)
+    model = iris_train.build_model(iris_train.preset("tiny")).eval()
+    out = tmp_path_factory.mktemp("iris_model") / "tiny"
+    export_model(model, out, quick=True, progress=False, threads=1)
+    return out, model
+
+
+@pytest.fixture(scope="session")
+def model_dir(request) -> Path:
+    env = os.environ.get("IRIS_TEST_MODEL_DIR")
+    if env:
+        return Path(env)
+    if not _has_torch():
+        pytest.skip("no IRIS_TEST_MODEL_DIR and no torch to export a model")
+    return request.getfixturevalue("torch_export")[0]
+
+
+@pytest.fixture(scope="session")
+def rt(model_dir) -> IrisRuntime:
+    return IrisRuntime(model_dir, threads=1)
+
+
+def _images(n: int, size=(64, 64), seed: int = 0) -> list[np.ndarray]:
+    rng = np.random.default_rng(seed)
+    return [rng.integers(0, 256, (*size, 3), dtype=np.uint8) for _ in range(n)]
+
+
+@pytest.fixture(scope="session")
+def scene(rt) -> Scene:
+    return rt.encode(_images(3, rt.image_size))
+
+
+def _rotation(axis, angle) -> np.ndarray:
+    axis = np.asarray(axis, float) / np.linalg.norm(axis)
+    Kx = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + np.sin(angle) * Kx + (1 - np.cos(angle)) * Kx @ Kx
+
+
+def _pose(axis=(0.3, 1.0, 0.1), angle=0.05, t=(0.02, -0.01, 0.03)) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = _rotation(axis, angle)
+    T[:3, 3] = t
+    return T
+
+
+#: A pose that sees part of the scene only: rays and samples outside every reference view exist,
+#: so culling (skipped samples, views and rays) is exercised.
+SIDEWAYS = _pose(axis=(0.0, 1.0, 0.0), angle=0.6, t=(0.25, 0.0, -0.05))
+
+
+# ----------------------------------------------------------------------------------------------
+# Parity with torch
+# ----------------------------------------------------------------------------------------------
+
+def _torch_scene(model, images):
+    import torch
+    x = np.stack(images).astype(np.float32).transpose(0, 3, 1, 2) * np.float32(1.0 / 255.0)
+    with torch.no_grad():
+        return model.encode(torch.from_numpy(x))
+
+
+@pytest.fixture(scope="session")
+def torch_pair(torch_export):
+    """(runtime, runtime scene, IrisModel, torch scene) on the same images."""
+    model_dir, model = torch_export
+    runtime = IrisRuntime(model_dir, threads=1)
+    images = _images(3, runtime.image_size, seed=1)
+    return runtime, runtime.encode(images), model, _torch_scene(model, images)
+
+
+def _torch_render(model, tscene, pose, height, width):
+    import torch
+    with torch.no_grad():
+        poses = torch.tensor(pose, dtype=torch.float32)[None]
+        rgb, depth = model.render(tscene, poses, height, width)
+    return rgb[0].numpy(), depth[0].numpy()
+
+
+@pytest.mark.torch
+def test_encode_matches_torch(torch_pair):
+    _, scene, _, tscene = torch_pair
+    assert np.abs(scene.world_from_cam - tscene.world_from_cam.double().numpy()).max() <= 1e-5
+    assert np.abs(scene.focal - tscene.focal.double().numpy()).max() <= 1e-5
+    assert np.abs(scene.field_maps - tscene.maps.numpy()).max() <= 1e-4
+    assert np.abs(scene.K - tscene.intrinsics().double().numpy()).max() <= 1e-4
+
+
+@pytest.mark.torch
+@pytest.mark.parametrize("pose, size", [(_pose(), (16, 16)),      # model res is 64x64: smaller
+                                        (SIDEWAYS, (12, 20)),     # other aspect, partial overlap
+                                        (2, (12, 12))])           # pose of input view 2
+def test_render_matches_torch(torch_pair, pose, size):
+    runtime, scene, model, tscene = torch_pair
+    res = runtime.render(scene, pose, height=size[0], width=size[1], depth=True)
+    # An int pose is compared with torch rendering *its own* prediction of that view: the
+    # geometric cue normalises t - s, which is discontinuous where the target centre meets a
+    # reference centre, so torch fed ONNX's pose (1e-8 away from its own) would differ by ~1e-3.
+    T = tscene.world_from_cam[pose].double().numpy() if isinstance(pose, int) else pose
+    rgb, depth = _torch_render(model, tscene, T, *size)
+    assert res.image_float.shape == (*size, 3) and res.depth.shape == size
+    assert np.abs(res.image_float - rgb).max() <= 1e-4
+    assert np.abs(res.depth - depth).max() <= 1e-4
+
+
+@pytest.mark.torch
+def test_subset_matches_torch(torch_pair):
+    runtime, scene, model, tscene = torch_pair
+    sub = scene.subset([2, 0])
+    res = runtime.render(sub, _pose(angle=-0.05), height=12, width=12, depth=True)
+    rgb, depth = _torch_render(model, tscene.subset([2, 0]), _pose(angle=-0.05), 12, 12)
+    assert np.abs(res.image_float - rgb).max() <= 1e-4
+    assert np.abs(res.depth - depth).max() <= 1e-4
+
+
+# ----------------------------------------------------------------------------------------------
+# Runtime behaviour (no torch needed)
+# ----------------------------------------------------------------------------------------------
+
+def test_scene_is_immutable_and_typed(rt, scene):
+    H, W = rt.image_size
+    V = 3
+    assert scene.num_views == V and scene.image_size == (H, W)
+    assert scene.field_maps.dtype == np.float32 and scene.field_maps.ndim == 4
+    assert scene.world_from_cam.dtype == np.float64 and scene.world_from_cam.shape == (V, 4, 4)
+    assert scene.focal.shape == (2,) and scene.K.shape == (3, 3)
+    np.testing.assert_allclose(scene.world_from_cam[0], np.eye(4), atol=1e-6)
+    np.testing.assert_allclose(scene.K, G.intrinsics_from_focal(scene.focal, H, W))
+    for name in ("field_maps", "world_from_cam", "focal", "K"):
+        assert not getattr(scene, name).flags.writeable
+    with pytest.raises(ValueError):
+        scene.field_maps[0, 0, 0, 0] = 1.0
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        scene.focal = np.ones(2)
+    assert all(G.is_rigid(T) for T in scene.world_from_cam)
+
+
+def test_subset_keeps_frame(scene):
+    sub = scene.subset([2, 1])
+    assert sub.num_views == 2
+    np.testing.assert_array_equal(sub.world_from_cam, scene.world_from_cam[[2, 1]])
+    np.testing.assert_array_equal(sub.field_maps, scene.field_maps[[2, 1]])
+    np.testing.assert_array_equal(sub.K, scene.K)
+    for bad in ([], [3], [-1], [0, 0], ["a"]):
+        with pytest.raises(InputError, match="indices"):
+            scene.subset(bad)
+
+
+def test_encode_fits_any_size(rt):
+    """Images of any size go through fit_to_model (centre crop + resize); same scene as fitting
+    them first. Paths and PIL images work too."""
+    from PIL import Image
+    H, W = rt.image_size
+    odd = _images(2, (90, 70), seed=3)
+    fitted = [fit_to_model(a, H, W)[0] for a in odd]
+    a, b = rt.encode(odd), rt.encode([Image.fromarray(odd[0]), fitted[1]])
+    np.testing.assert_array_equal(a.field_maps, b.field_maps)
+    np.testing.assert_array_equal(a.world_from_cam, b.world_from_cam)
+
+
+def test_render_outputs(rt, scene):
+    image = rt.render(scene, _pose(), height=10, width=14)
+    assert image.dtype == np.uint8 and image.shape == (10, 14, 3)
+    res = rt.render(scene, _pose(), height=10, width=14, depth=True)
+    assert isinstance(res, RenderResult)
+    np.testing.assert_array_equal(res.image, image)
+    assert res.image_float.dtype == np.float32 and res.depth.dtype == np.float32
+    np.testing.assert_array_equal(res.image, np.rint(res.image_float * 255).astype(np.uint8))
+    seen = res.depth > 0
+    assert seen.any()
+    assert np.all((res.depth[seen] >= rt.near - 1e-6) & (res.depth[seen] <= rt.far + 1e-6))
+    assert {"rays", "renderer", "total"} <= set(res.timings)
+    # Only a height: the model's aspect ratio is kept.
+    H, W = rt.image_size
+    assert rt.render(scene, 0, height=8).shape == (8, round(8 * W / H), 3)
+
+
+def test_render_from_images_and_int_pose(rt, scene):
+    """One-shot render(images, ...) equals encode + render; pose=i is view i's predicted pose."""
+    images = _images(3, rt.image_size)
+    one_shot = rt.render(images, 1, height=8, width=8, depth=True)
+    assert {"load", "encode"} <= set(one_shot.timings)
+    cached = rt.render(scene, scene.world_from_cam[1], height=8, width=8, depth=True)
+    np.testing.assert_allclose(one_shot.image_float, cached.image_float, atol=1e-6)
+
+
+def test_intrinsics_override(rt, scene):
+    K = scene.intrinsics(12, 12)
+    a = rt.render(scene, _pose(), height=12, width=12, depth=True)
+    b = rt.render(scene, _pose(), height=12, width=12, intrinsics=K, depth=True)
+    np.testing.assert_array_equal(a.image_float, b.image_float)
+    K2 = K.copy()
+    K2[0, 0] *= 2
+    c = rt.render(scene, _pose(), height=12, width=12, intrinsics=K2, depth=True)
+    assert np.abs(c.image_float - a.image_float).max() > 1e-4
+
+
+def test_chunking_and_culling_invariance(model_dir, scene):
+    """Chunk size and culling change only float rounding (<= 1e-6), also with empty rays."""
+    culled = IrisRuntime(model_dir, threads=1)
+    ref = culled.render(scene, SIDEWAYS, height=12, width=16, depth=True)
+    assert (ref.depth == 0).any() and (ref.depth > 0).any()      # partial overlap: empty rays too
+    for chunk in (7, 50):
+        res = culled.render(scene, SIDEWAYS, height=12, width=16, depth=True, chunk_rays=chunk)
+        assert np.abs(res.image_float - ref.image_float).max() <= 1e-6
+        assert np.abs(res.depth - ref.depth).max() <= 1e-6
+    full = IrisRuntime(model_dir, threads=1, cull=False).render(
+        scene, SIDEWAYS, height=12, width=16, depth=True, chunk_rays=64)
+    assert np.abs(full.image_float - ref.image_float).max() <= 1e-6
+    assert np.abs(full.depth - ref.depth).max() <= 1e-6
+
+
+def test_progress_callback(rt, scene):
+    calls = []
+    rt.render(scene, 0, height=6, width=6, chunk_rays=10,
+              progress=lambda done, total: calls.append((done, total)))
+    assert calls[-1] == (36, 36) and [d for d, _ in calls] == sorted(d for d, _ in calls)
+
+
+def test_threads_render_like_serial(model_dir, scene, monkeypatch):
+    """4 threads on a fresh runtime (racing to create the sessions) == serial results."""
+    runtime = IrisRuntime(model_dir, threads=1)
+    created = []
+    original = IrisRuntime._create_session
+    monkeypatch.setattr(IrisRuntime, "_create_session",
+                        lambda self, name: created.append(name) or original(self, name))
+    poses = [_pose(angle=a) for a in (0.0, 0.03, -0.04, 0.05)]
+    results, errors = [None] * 4, []
+    barrier = threading.Barrier(4)
+
+    def work(i):
+        try:
+            barrier.wait()
+            results[i] = runtime.render(scene, poses[i], height=8, width=8, depth=True)
+        except Exception as exc:      # pragma: no cover - reported below
+            errors.append(exc)
+
+    threads = [threading.Thread(target=work, args=(i,)) for i in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not errors
+    assert sorted(created) == ["renderer"]         # created once despite the race
+    for i, pose in enumerate(poses):
+        serial = runtime.render(scene, pose, height=8, width=8, depth=True)
+        np.testing.assert_array_equal(results[i].image_float, serial.image_float)
+        np.testing.assert_array_equal(results[i].depth, serial.depth)
+
+
+# ----------------------------------------------------------------------------------------------
+# Bad input -> typed errors
+# ----------------------------------------------------------------------------------------------
+
+def _mirrored():
+    T = np.eye(4)
+    T[2, 2] = -1
+    return T
+
+
+@pytest.mark.parametrize("pose, match", [
+    (np.eye(3), "shape"),
+    (np.full((4, 4), np.nan), "NaN"),
+    (np.diag([2.0, 2.0, 2.0, 1.0]), "orthonormal"),
+    (_mirrored(), "mirrored"),
+    (np.diag([0.0, 0.0, 0.0, 1.0]), "singular"),
+    (np.array([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 1, 1]], float), "last row"),
+    ("eye", "4x4"),
+    (3, "out of range"),
+    (-1, "out of range"),
+    (True, "4x4"),
+])
+def test_bad_pose(rt, scene, pose, match):
+    with pytest.raises(InputError, match=match) as info:
+        rt.render(scene, pose, height=4, width=4)
+    assert "pose" in str(info.value)
+    assert isinstance(info.value, ValueError) and isinstance(info.value, IrisError)
+
+
+@pytest.mark.parametrize("images, error, match", [
+    ([], InputError, "at least one"),
+    (np.zeros((64, 64, 3), np.uint8), InputError, "wrap it in a list"),
+    ("photo.png", InputError, "wrap it in a list"),
+    ([np.zeros((64, 64, 5), np.uint8)], ImageError, r"images\[0\]"),
+    ([np.zeros((64, 64, 3), np.int64)], ImageError, "dtype"),
+    ([np.full((8, 8, 3), np.nan, np.float32)], ImageError, "NaN"),
+    ([np.zeros((64, 64, 3), np.uint8), "/nonexistent/x.png"], ImageError, "no such file"),
+    (42, InputError, "sequence"),
+])
+def test_bad_images(rt, images, error, match):
+    with pytest.raises(error, match=match):
+        rt.encode(images)
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    ({"height": 0}, "height"), ({"width": 2.5}, "width"), ({"chunk_rays": 0}, "chunk_rays"),
+    ({"intrinsics": np.eye(4)}, "intrinsics"), ({"intrinsics": -np.eye(3)}, "intrinsics"),
+])
+def test_bad_render_arguments(rt, scene, kwargs, match):
+    with pytest.raises(InputError, match=match):
+        rt.render(scene, 0, **kwargs)
+
+
+def test_bad_runtime_arguments(model_dir):
+    with pytest.raises(InputError, match="threads"):
+        IrisRuntime(model_dir, threads=0)
+    with pytest.raises(InputError, match="precision"):
+        IrisRuntime(model_dir, precision="fp16")
+
+
+def test_scene_of_another_model(rt, scene):
+    other = dataclasses.replace(scene, model_id="0" * 64)
+    with pytest.raises(InputError, match="another model"):
+        rt.render(other, 0, height=4, width=4)
+
+
+# ----------------------------------------------------------------------------------------------
+# Model files and manifest
+# ----------------------------------------------------------------------------------------------
+
+@pytest.fixture
+def model_copy(model_dir, tmp_path) -> Path:
+    out = tmp_path / "model"
+    shutil.copytree(model_dir, out)
+    return out
+
+
+def _edit_manifest(d: Path, edit) -> None:
+    doc = json.loads((d / "iris.json").read_text())
+    edit(doc)
+    (d / "iris.json").write_text(json.dumps(doc))
+
+
+def test_tampered_graph(model_copy):
+    data = bytearray((model_copy / "renderer.onnx").read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    (model_copy / "renderer.onnx").write_bytes(bytes(data))
+    with pytest.raises(ModelIntegrityError, match="sha256") as info:
+        IrisRuntime(model_copy)
+    assert isinstance(info.value, ModelFileError) and isinstance(info.value, OSError)
+
+
+def test_graph_replaced_after_check(model_copy):
+    """The session is built from the bytes it hashes: a swap after construction is caught."""
+    runtime = IrisRuntime(model_copy, threads=1)
+    shutil.copy(model_copy / "renderer.onnx", model_copy / "encoder.onnx")
+    with pytest.raises(ModelIntegrityError, match="encoder"):
+        runtime.encode(_images(1, runtime.image_size))
+
+
+@pytest.mark.parametrize("edit, error, match", [
+    (lambda d: d.update(version=2), ModelFormatError, "version 1"),
+    (lambda d: d.update(format="something-else"), ModelFormatError, "iris-model"),
+    (lambda d: d.update(io_spec_version=7), ModelFormatError, "I/O spec"),
+    (lambda d: d["graphs"]["renderer"].update(file="../renderer.onnx"), ManifestError, r"'\.\.'"),
+    (lambda d: d["graphs"]["renderer"].update(file="/etc/passwd"), ManifestError, "relative"),
+    (lambda d: d["graphs"]["encoder"].update(file="sub/../../x.onnx"), ManifestError, r"'\.\.'"),
+    (lambda d: d["graphs"]["renderer"]["inputs"].pop("mask"), ManifestError, "mask"),
+    (lambda d: d["graphs"].pop("encoder"), ManifestError, "encoder"),
+    (lambda d: d["graphs"]["renderer"].update(sha256="xyz"), ManifestError, "sha256"),
+    (lambda d: d.update(near=2.0), ManifestError, "near"),
+])
+def test_bad_manifest(model_copy, edit, error, match):
+    _edit_manifest(model_copy, edit)
+    with pytest.raises(error, match=match):
+        IrisRuntime(model_copy)
+
+
+def test_symlink_escaping_model_dir(model_copy, tmp_path):
+    outside = tmp_path / "outside.onnx"
+    shutil.copy(model_copy / "renderer.onnx", outside)
+    (model_copy / "link.onnx").symlink_to(outside)
+    _edit_manifest(model_copy, lambda d: d["graphs"]["renderer"].update(file="link.onnx"))
+    with pytest.raises(ManifestError, match="outside the model directory"):
+        IrisRuntime(model_copy)
+
+
+def test_missing_files(model_copy, tmp_path):
+    with pytest.raises(ModelFileError, match="no such directory"):
+        IrisRuntime(tmp_path / "nope")
+    (model_copy / "renderer.onnx").unlink()
+    with pytest.raises(ModelFileError, match="missing"):
+        IrisRuntime(model_copy)
+    (model_copy / "iris.json").write_text("{not json")
+    with pytest.raises(ManifestError, match="JSON"):
+        IrisRuntime(model_copy)
+    (model_copy / "iris.json").unlink()
+    with pytest.raises(ManifestError, match="iris.json"):
+        IrisRuntime(model_copy)
+
+
+def test_int8_needs_quantised_export(model_dir):
+    doc = json.loads((Path(model_dir) / "iris.json").read_text())
+    if "renderer_int8" in doc["graphs"]:
+        pytest.skip("this model has an int8 renderer")
+    with pytest.raises(ManifestError, match="int8"):
+        IrisRuntime(model_dir, precision="int8")
+
+
+def test_int8_variant_is_used(model_copy, scene):
+    """precision="int8" runs graphs.renderer_int8 (here: a stand-in pointing at the float graph,
+    so the result must be the float one; a real int8 export differs by ~1e-3)."""
+    _edit_manifest(model_copy, lambda d: d["graphs"].update(
+        renderer_int8=dict(d["graphs"]["renderer"], file="renderer.int8.onnx",
+                           variant_of="renderer", precision="int8")))
+    shutil.copy(model_copy / "renderer.onnx", model_copy / "renderer.int8.onnx")
+    runtime = IrisRuntime(model_copy, threads=1, precision="int8")
+    float_runtime = IrisRuntime(model_copy, threads=1)
+    a = runtime.render(scene, 1, height=6, width=6, depth=True)
+    b = float_runtime.render(scene, 1, height=6, width=6, depth=True)
+    np.testing.assert_array_equal(a.image_float, b.image_float)
+    assert set(runtime._sessions) == {"renderer_int8"}
+
+
+# ----------------------------------------------------------------------------------------------
+# Orbit path
+# ----------------------------------------------------------------------------------------------
+
+def test_orbit_is_closed_smooth_and_looks_at_the_scene():
+    from iris_runtime.orbit import look_at, scene_centre
+    angles = np.linspace(0, 2 * np.pi, 5, endpoint=False)
+    ring = np.stack([look_at(np.array([2 * np.cos(t), 0.3, 2 * np.sin(t)]), np.zeros(3),
+                             np.array([0.0, 1.0, 0.0])) for t in angles])
+    for cams, far in ((ring, 5.0), (np.stack([np.eye(4), _pose(), _pose(angle=-0.1)]), 1.0),
+                      (np.eye(4)[None], 1.0)):
+        path = orbit_poses(cams, 24, near=0.1, far=far)
+        assert path.shape == (24, 4, 4) and all(G.is_rigid(T) for T in path)
+        target = scene_centre(cams, 0.1, far)
+        to_target = target - path[:, :3, 3]
+        to_target /= np.linalg.norm(to_target, axis=1, keepdims=True)
+        np.testing.assert_allclose((to_target * path[:, :3, 2]).sum(1), 1.0, atol=1e-9)
+        steps = np.linalg.norm(np.diff(path[:, :3, 3], axis=0, append=path[:1, :3, 3]), axis=1)
+        assert steps.max() < 1.5 * steps.min() + 1e-12        # closed, no jump back to the start
+    # The ring's path goes through its cameras.
+    path = orbit_poses(ring, 360, near=0.1, far=5.0)
+    dist = np.linalg.norm(path[:, None, :3, 3] - ring[None, :, :3, 3], axis=-1).min(0)
+    assert dist.max() < 0.05
+
+
+# ----------------------------------------------------------------------------------------------
+# Packaging and CLI (subprocesses with torch blocked)
+# ----------------------------------------------------------------------------------------------
+
+_NO_TORCH = "import sys; sys.modules['torch'] = None; "
+
+
+def _python(code: str, *args, cwd=None):
+    env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    return subprocess.run([sys.executable, "-c", _NO_TORCH + code, *map(str, args)], cwd=cwd,
+                          env=env, capture_output=True, text=True, timeout=300)
+
+
+def test_import_and_render_without_torch(model_dir):
+    code = ("import numpy as np, iris_runtime, iris_runtime.cli, iris_runtime.orbit; "
+            "rt = iris_runtime.IrisRuntime(sys.argv[1], threads=1); "
+            "s = rt.encode([np.zeros((64, 64, 3), np.uint8)] * 2); "
+            "assert rt.render(s, 1, height=4, width=4).shape == (4, 4, 3); "
+            "bad = [m for m in sys.modules if m.split('.')[0] in ('torch', 'iris_train', 'export') "
+            "and sys.modules[m] is not None]; "
+            "assert not bad, bad; print('ok')")
+    proc = _python(code, model_dir)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip().endswith("ok")
+
+
+def test_cli_end_to_end(model_dir, tmp_path):
+    import cv2
+    from PIL import Image
+    paths = []
+    for i, size in enumerate([(80, 100), (64, 64)]):
+        paths.append(tmp_path / f"in{i}.png")
+        Image.fromarray(_images(1, size, seed=i)[0]).save(paths[-1])
+    pose_file = tmp_path / "poses.json"
+    pose_file.write_text(json.dumps([_pose().tolist(), np.eye(4).tolist()]))
+    out = tmp_path / "out"
+    code = "from iris_runtime.cli import main; sys.exit(main(sys.argv[1:]))"
+    proc = _python(code, model_dir, *paths, "-o", out, "--view", 1, "--pose", pose_file,
+                   "--orbit", 3, "--size", "8x12", "--threads", 1)
+    assert proc.returncode == 0, proc.stderr
+    assert "transforms.json" in proc.stdout and "renderer" in proc.stdout
+    for name in ("view_001", "pose_000", "pose_001", "orbit_0000", "orbit_0002"):
+        assert Image.open(out / f"{name}.png").size == (12, 8)
+        depth16 = cv2.imread(str(out / f"{name}_depth.png"), cv2.IMREAD_UNCHANGED)
+        assert depth16.dtype == np.uint16 and depth16.shape == (8, 12)
+        depth = np.load(out / f"{name}_depth.npy")
+        np.testing.assert_allclose(depth16, np.rint(np.clip(depth, 0, 1) * 65535), atol=1)
+    assert (out / "orbit.mp4").stat().st_size > 0
+    assert len(json.loads((out / "orbit_poses.json").read_text())) == 3
+    doc = json.loads((out / "transforms.json").read_text())
+    assert [f["file_path"] for f in doc["frames"]] == ["inputs/000.png", "inputs/001.png"]
+    assert all((out / f["file_path"]).is_file() for f in doc["frames"])
+    assert (out / "colmap" / "images.txt").is_file() and (out / "colmap" / "cameras.txt").is_file()
+
+    # Errors: one line on stderr, exit code 2, no traceback, nothing written.
+    (tmp_path / "bad.json").write_text(json.dumps(np.diag([1.0, 1.0, -1.0, 1.0]).tolist()))
+    for args in ([model_dir, paths[0], "-o", tmp_path / "o2", "--pose", tmp_path / "bad.json"],
+                 [tmp_path / "nomodel", paths[0], "-o", tmp_path / "o2"],
+                 [model_dir, tmp_path / "missing.png", "-o", tmp_path / "o2"],
+                 [model_dir, paths[0], "-o", tmp_path / "o2", "--view", 4],
+                 [model_dir, paths[0], "-o", tmp_path / "o2", "--size", "big"]):
+        proc = _python(code, *args)
+        assert proc.returncode == 2, proc.stderr
+        assert "Traceback" not in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
+        assert not (tmp_path / "o2").exists()
