@@ -12,6 +12,12 @@ from __future__ import annotations
 
 IO_SPEC_VERSION = 1
 
+#: ONNX opset of the graphs unless ``--opset`` says otherwise: 20 has ``Gelu`` and the current
+#: ``GridSample``; onnxruntime >= 1.17 runs it.
+DEFAULT_OPSET = 20
+#: The dynamo exporter silently raises lower opsets to 18, so export refuses them instead.
+MIN_OPSET = 18
+
 ENCODER = {
     "file": "encoder.onnx",
     "inputs": {

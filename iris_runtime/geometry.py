@@ -114,8 +114,9 @@ def rays_from_pixels(uv: np.ndarray, K: np.ndarray, world_from_cam: np.ndarray):
     y = (uv[:, 1] - K[1, 2]) / K[1, 1]
     d_cam = np.stack([x, y, np.ones_like(x)], axis=-1).astype(dtype)
     directions = d_cam @ world_from_cam[:3, :3].T.astype(dtype)
-    origins = np.broadcast_to(world_from_cam[:3, 3].astype(dtype), directions.shape)
-    return np.ascontiguousarray(origins), directions
+    # A real (writable) array, not a broadcast view: callers may write into it.
+    origins = np.repeat(world_from_cam[None, :3, 3].astype(dtype), directions.shape[0], axis=0)
+    return origins, directions
 
 
 def sample_depths(near: float, far: float, n_samples: int, n_rays: int = 1,

@@ -12,12 +12,15 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import pickle
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 import torch.nn as nn
+
+from iris_runtime.errors import IrisError
 
 from . import geometry as G
 from .camera_head import CameraHead
@@ -33,8 +36,9 @@ CHECKPOINT_VERSION = 1
 _DENSE_SAMPLING_MAX_CELLS = 1024
 
 
-class CheckpointError(ValueError):
-    """A file that is not a readable IRIS checkpoint (foreign, truncated, corrupt, wrong version)."""
+class CheckpointError(IrisError, ValueError):
+    """A file that is not a readable IRIS checkpoint (foreign, truncated, corrupt, wrong version).
+    An ``IrisError`` (the project's one base class) and a ``ValueError``."""
 
 
 @dataclass(frozen=True)
@@ -175,9 +179,14 @@ def read_checkpoint(path: str | os.PathLike) -> dict:
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:   # truncated zip, foreign pickle, random bytes, empty file...
-        reason = (str(exc).splitlines() or [""])[0]     # an empty file raises EOFError('')
-        raise CheckpointError(f"checkpoint {str(path)!r} is not a readable torch checkpoint "
-                              f"({type(exc).__name__}: {reason[:200]})") from None
+        if isinstance(exc, pickle.UnpicklingError):
+            # torch's own message suggests weights_only=False: never the right advice for a file
+            # we could not vouch for.
+            reason = "it holds objects other than tensors and plain containers; refused unread"
+        else:
+            reason = (str(exc).splitlines() or [""])[0][:200]   # an empty file raises EOFError('')
+        raise CheckpointError(f"checkpoint {str(path)!r} is not a readable IRIS checkpoint "
+                              f"({type(exc).__name__}: {reason})") from None
     if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
         raise CheckpointError(f"checkpoint {str(path)!r} is not an IRIS checkpoint "
                               f"(expected format {CHECKPOINT_FORMAT!r})")

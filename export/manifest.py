@@ -1,0 +1,127 @@
+"""The manifest ``iris.json`` that sits beside the exported graphs.
+
+It is everything the torch-free runtime needs to use the graphs without importing ``export``:
+format name and version, the model config and the numbers derived from it (image size, patch size,
+feature grid, field channels, near/far, samples), the exporter's settings and library versions,
+per graph its file name, sha256, size and I/O spec (from ``export.io_spec``), and the validation
+report (max abs error of ONNX Runtime vs torch per output, tolerances, median times). Layout::
+
+    {
+      "format": "iris-model", "version": 1, "io_spec_version": 1,
+      "created": "2025-01-01T00:00:00Z",
+      "config": {...ModelConfig.to_dict()...},
+      "image_size": [H, W], "patch_size": p, "feature_grid": [h, w], "field_channels": C',
+      "near": 0.1, "far": 1.0, "samples": 64,
+      "dims": {"H": H, "W": W, "h": h, "w": w, "C'": C'},     # values of the spec's fixed axes
+      "export": {"exporter": ..., "opset": 20, "ir_version": 9, "renderer_sampler": "dense",
+                 "versions": {"torch": ..., "onnx": ..., "onnxruntime": ..., "onnxscript": ...}},
+      "source": {"checkpoint": "ckpt.pt", "sha256": ...} | {"checkpoint": null},
+      "graphs": {
+        "encoder":  {"file": "encoder.onnx", "sha256": ..., "bytes": ..., "nodes": ...,
+                     "inputs": {...}, "outputs": {...}, "dynamic_axes": {...}, "tolerance": {...}},
+        "renderer": {...},
+        "renderer_int8": {..., "variant_of": "renderer", "precision": "int8",  # only with --quantize int8
+                          "tolerance": null}     # its error is in "validation", not enforced
+      },
+      "validation": {"quick": false, "encoder": {...}, "renderer": {...}, "renderer_int8": {...}}
+    }
+
+JSON turns the integer axis keys of ``dynamic_axes`` into strings ("0"); non-finite numbers in the
+validation report (an int8 error can be ``inf`` if it produced NaN) are written as strings.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+from datetime import datetime, timezone
+from pathlib import Path
+
+from iris_train.config import ModelConfig
+
+from . import io_spec
+
+FORMAT = "iris-model"
+VERSION = 1
+MANIFEST_NAME = "iris.json"
+
+
+def sha256_file(path: str | os.PathLike, chunk: int = 1 << 20) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(chunk), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def graph_entry(path: str | os.PathLike, spec: dict, nodes: int, **extra) -> dict:
+    """One ``graphs`` entry: file name (relative to the manifest), sha256, size, I/O spec."""
+    path = Path(path)
+    return {"file": path.name, "sha256": sha256_file(path), "bytes": path.stat().st_size,
+            "nodes": nodes, **extra,
+            "inputs": spec["inputs"], "outputs": spec["outputs"],
+            "dynamic_axes": spec["dynamic_axes"], "tolerance": spec["tolerance"]}
+
+
+def versions() -> dict[str, str]:
+    import onnx
+    import onnxruntime
+    import onnxscript
+    import torch
+    return {"torch": torch.__version__, "onnx": onnx.__version__,
+            "onnxruntime": onnxruntime.__version__, "onnxscript": onnxscript.__version__}
+
+
+def build_manifest(cfg: ModelConfig, graphs: dict[str, dict], validation: dict, *, opset: int,
+                   ir_version: int, exporter: str, source: dict, **export_info) -> dict:
+    h, w = cfg.feature_grid
+    return {
+        "format": FORMAT,
+        "version": VERSION,
+        "io_spec_version": io_spec.IO_SPEC_VERSION,
+        "created": datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
+        "config": cfg.to_dict(),
+        "image_size": [cfg.image_height, cfg.image_width],
+        "patch_size": cfg.patch_size,
+        "feature_grid": [h, w],
+        "field_channels": cfg.field_channels,
+        "near": cfg.near,
+        "far": cfg.far,
+        "samples": cfg.samples,
+        "dims": {"H": cfg.image_height, "W": cfg.image_width, "h": h, "w": w,
+                 "C'": cfg.field_channels},
+        "export": {"exporter": exporter, "opset": opset, "ir_version": ir_version, **export_info,
+                   "versions": versions()},
+        "source": source,
+        "graphs": graphs,
+        "validation": validation,
+    }
+
+
+def _json_safe(x):
+    if isinstance(x, float) and not math.isfinite(x):
+        return str(x)
+    if isinstance(x, dict):
+        return {k: _json_safe(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_json_safe(v) for v in x]
+    return x
+
+
+def write_manifest(path: str | os.PathLike, manifest: dict) -> Path:
+    path = Path(path)
+    path.write_text(json.dumps(_json_safe(manifest), indent=2, allow_nan=False) + "\n")
+    return path
+
+
+def read_manifest(path_or_dir: str | os.PathLike) -> dict:
+    """Read ``iris.json`` (given the file or its directory); for tests and tools."""
+    path = Path(path_or_dir)
+    if path.is_dir():
+        path = path / MANIFEST_NAME
+    return json.loads(path.read_text())
+
+
+__all__ = ["FORMAT", "VERSION", "MANIFEST_NAME", "sha256_file", "graph_entry", "build_manifest",
+           "write_manifest", "read_manifest", "versions"]

@@ -1,0 +1,154 @@
+"""``export_model``: checkpoint (or built model) -> validated ``OUT_DIR`` with two graphs + manifest.
+
+Stages: load the checkpoint (``iris_train.load_model``, ``weights_only=True``), export the encoder
+and the renderer (``export.graphs``), optionally quantise the renderer to int8, validate everything
+against torch (``export.validate``), write ``iris.json`` (``export.manifest``). All of it happens
+in a fresh hidden directory next to ``OUT_DIR`` that is renamed to ``OUT_DIR`` only at the end: a
+failure at any stage (bad checkpoint, export error, validation beyond tolerance, Ctrl-C) leaves
+``OUT_DIR`` as it was and removes the temporary directory.
+"""
+from __future__ import annotations
+
+import os
+import shutil
+import sys
+import time
+import uuid
+from pathlib import Path
+
+import onnx
+
+from iris_train.model import CheckpointError, IrisModel, load_model
+
+from . import io_spec
+from .errors import ExportArgumentError, ExportError, OutputExistsError
+from .graphs import DEFAULT_OPSET, EXPORTER, RendererGraph, check_opset, export_graph, quantize_int8
+from .manifest import MANIFEST_NAME, build_manifest, graph_entry, sha256_file, write_manifest
+from .validate import validate
+
+QUANTIZE_CHOICES = ("int8",)
+INT8_FILE = "renderer.int8.onnx"
+
+
+def _load(path: Path) -> IrisModel:
+    try:
+        return load_model(path)
+    except CheckpointError:
+        raise
+    except Exception as exc:    # a well-formed dict whose contents load_model did not foresee
+        raise CheckpointError(f"checkpoint {str(path)!r} could not be loaded: {type(exc).__name__}: "
+                              f"{str(exc).splitlines()[0][:200] if str(exc) else ''}") from None
+
+
+def _publish(tmp: Path, out_dir: Path, force: bool) -> None:
+    """Rename ``tmp`` to ``out_dir``; with ``force`` an existing ``out_dir`` is moved aside first
+    and deleted only once the new one is in place (restored if the rename fails)."""
+    if not out_dir.exists() and not out_dir.is_symlink():
+        os.rename(tmp, out_dir)
+        return
+    if not force:
+        raise OutputExistsError(f"output {str(out_dir)!r} already exists (use --force to replace it)")
+    old = out_dir.with_name(f".{out_dir.name}.old-{uuid.uuid4().hex[:8]}")
+    os.rename(out_dir, old)
+    try:
+        os.rename(tmp, out_dir)
+    except BaseException:
+        os.rename(old, out_dir)
+        raise
+    if old.is_dir() and not old.is_symlink():
+        shutil.rmtree(old)
+    else:
+        old.unlink()
+
+
+def export_model(model_or_ckpt: IrisModel | str | os.PathLike, out_dir: str | os.PathLike, *,
+                 opset: int = DEFAULT_OPSET, quantize: str | None = None, force: bool = False,
+                 progress: bool = True, quick: bool = False, threads: int | None = None) -> Path:
+    """Export ``model_or_ckpt`` to ``out_dir/{encoder.onnx, renderer.onnx, iris.json}``.
+
+    ``model_or_ckpt``: an ``IrisModel`` or a checkpoint path. ``opset``: ONNX opset (>= 18).
+    ``quantize="int8"`` adds ``renderer.int8.onnx`` (dynamic int8; its error is recorded, not
+    enforced). ``force`` replaces an existing ``out_dir``. ``progress`` prints one line per stage
+    to stderr. ``quick`` shrinks the validation probes (tests); ``threads`` sets the intra-op
+    threads of ONNX Runtime and torch during validation (see ``export.validate.validate``).
+    Returns ``out_dir``.
+
+    Raises ``OutputExistsError`` (``out_dir`` exists, no ``force``), ``CheckpointError``
+    (unreadable checkpoint), ``ExportArgumentError``, ``ValidationError`` (ONNX Runtime vs torch
+    beyond tolerance); in every case ``out_dir`` is left untouched.
+    """
+    t0 = time.perf_counter()
+    out_dir = Path(out_dir).absolute()
+    check_opset(opset)
+    if quantize not in (None, *QUANTIZE_CHOICES):
+        raise ExportArgumentError(f"quantize: expected one of {list(QUANTIZE_CHOICES)} or None, "
+                                  f"got {quantize!r}")
+    if threads is not None and (not isinstance(threads, int) or isinstance(threads, bool) or threads < 1):
+        raise ExportArgumentError(f"threads: expected a positive integer or None, got {threads!r}")
+    if (out_dir.exists() or out_dir.is_symlink()) and not force:
+        raise OutputExistsError(f"output {str(out_dir)!r} already exists (use --force to replace it)")
+
+    def say(msg: str) -> None:
+        if progress:
+            print(f"iris-export [{time.perf_counter() - t0:6.1f} s] {msg}", file=sys.stderr, flush=True)
+
+    if not isinstance(model_or_ckpt, (IrisModel, str, os.PathLike)):
+        raise ExportArgumentError(f"model_or_ckpt: expected an IrisModel or a checkpoint path, got "
+                                  f"{type(model_or_ckpt).__name__}")
+    if isinstance(model_or_ckpt, IrisModel):
+        model, source = model_or_ckpt, {"checkpoint": None}
+    else:
+        ckpt = Path(model_or_ckpt)
+        say(f"loading checkpoint {ckpt}")
+        model = _load(ckpt)
+        source = {"checkpoint": ckpt.name, "sha256": sha256_file(ckpt)}
+    was_training = model.training
+    model.eval()
+
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out_dir.with_name(f".{out_dir.name}.tmp-{uuid.uuid4().hex[:8]}")
+    tmp.mkdir()
+    try:
+        files, entries = {}, {}
+        for graph in ("encoder", "renderer"):
+            spec = io_spec.GRAPHS[graph]
+            say(f"exporting {graph} ({EXPORTER}, opset {opset})")
+            result = export_graph(model, graph, tmp / spec["file"], opset)
+            say(f"exported {graph}: {result.nodes} nodes, {result.path.stat().st_size / 1e6:.1f} MB "
+                f"in {result.seconds:.1f} s")
+            files[graph], entries[graph] = result.path, result
+        if quantize == "int8":
+            result = quantize_int8(files["renderer"], tmp / INT8_FILE)
+            say(f"quantised renderer to int8: {result.nodes} nodes, "
+                f"{result.path.stat().st_size / 1e6:.1f} MB in {result.seconds:.1f} s")
+            files["renderer_int8"], entries["renderer_int8"] = result.path, result
+        say(f"validating against torch ({'quick' if quick else 'full'} probes)")
+        report = validate(model, files, quick=quick, threads=threads, progress=say)
+        graphs = {}
+        for name, path in files.items():
+            base = "renderer" if name.startswith("renderer") else name
+            extra = {"variant_of": base, "precision": "int8",
+                     "quantization": "onnxruntime.quantization.quantize_dynamic(weight_type=QInt8)"} \
+                if name != base else {"precision": "float32"}
+            graphs[name] = graph_entry(path, io_spec.GRAPHS[base], entries[name].nodes, **extra)
+            if name != base:          # measured and recorded, but not held to the fp32 tolerance
+                graphs[name]["tolerance"] = None
+        unexpected = sorted({p.name for p in tmp.iterdir()} - {p.name for p in files.values()})
+        if unexpected:     # e.g. a side .data file: the graphs must be self-contained
+            raise ExportError(f"unexpected files next to the graphs: {unexpected}")
+        ir_version = onnx.load_model(str(files["encoder"]), load_external_data=False).ir_version
+        manifest = build_manifest(model.cfg, graphs, report, opset=opset, ir_version=ir_version,
+                                  exporter=EXPORTER, source=source,
+                                  renderer_sampler=RendererGraph(model).sampler)
+        write_manifest(tmp / MANIFEST_NAME, manifest)
+        _publish(tmp, out_dir, force)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    finally:
+        model.train(was_training)
+    say(f"wrote {out_dir} ({', '.join(sorted(p.name for p in out_dir.iterdir()))})")
+    return out_dir
+
+
+__all__ = ["export_model", "QUANTIZE_CHOICES", "INT8_FILE"]

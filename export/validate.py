@@ -1,0 +1,359 @@
+"""Validation of the exported graphs: the ONNX checker, then ONNX Runtime against torch.
+
+``validate(model, files)`` runs, for each graph:
+
+1. ``onnx.checker.check_model(full_check=True)`` (strict shape inference included);
+2. the I/O contract: ONNX Runtime's input/output names, dtypes and axes equal ``export.io_spec``;
+3. probe inputs through ONNX Runtime and through the torch reference, max abs error per output
+   against the spec's tolerance (read from ``io_spec`` at call time). Probes, all seeded:
+
+   * encoder: uniform random images and a *scene* (crops of one smooth random texture, panned
+     across the views: structured, correlated images), for V in {1, 3, 8}; the reference is
+     ``IrisModel.encode``.
+   * renderer, random: random field maps, grid (partly outside the image), unit cues and a random
+     mask in which the first sample of every ray is masked in every view and (R > 1) the last ray
+     has every sample masked; V' in {1, 3, 8}, R in {1, n} and an odd S; the reference is
+     ``RendererGraph`` in torch.
+   * renderer, scene: the scene encoded by torch, rays through random pixels of a novel pose near
+     the last view (plus rays pointing backwards, whose samples lie behind the cameras), inputs
+     built by the torch twin of the runtime's numpy geometry; the reference is
+     ``IrisModel.render_rays`` itself, so these probes also check that the wrapper computes what
+     the model computes.
+
+   Non-finite outputs and wrong shapes count as an infinite error.
+4. the median time of each graph in ONNX Runtime and in torch on a fixed input (renderer: R=1024,
+   S=cfg.samples, V'=4; ``quick`` shrinks probes and timing for tests).
+
+An error above tolerance raises ``ValidationError`` naming the graph, the output, the error reached
+and the tolerance. An int8 renderer (``files["renderer_int8"]``) goes through the same renderer
+probes, but its error is only recorded, never enforced.
+"""
+from __future__ import annotations
+
+import math
+import statistics
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import onnx
+import onnxruntime as ort
+import torch
+import torch.nn.functional as F
+
+from iris_train import geometry as G
+from iris_train.model import IrisModel, Scene
+
+from . import io_spec
+from .errors import ValidationError
+from .graphs import EncoderGraph, RendererGraph, fixed_dims
+
+PROBE_SEED = 0
+VIEW_COUNTS = (1, 3, 8)
+_ORT_TYPES = {"float32": "tensor(float)", "bool": "tensor(bool)"}
+
+
+@dataclass
+class Probe:
+    """One probe input of a graph, its torch reference outputs and a description for the report."""
+    name: str
+    inputs: dict[str, torch.Tensor]
+    reference: dict[str, np.ndarray]
+    info: dict = field(default_factory=dict)
+
+
+# -- probe inputs -------------------------------------------------------------------------------
+def scene_images(n_views: int, height: int, width: int, generator: torch.Generator) -> torch.Tensor:
+    """``[V, 3, H, W]`` in [0, 1]: crops of one smooth random texture, panned across the views."""
+    canvas_h, canvas_w = height + height // 4, 2 * width
+    coarse = F.interpolate(torch.rand(1, 3, 5, 8, generator=generator), size=(canvas_h, canvas_w),
+                           mode="bicubic", align_corners=False)
+    fine = F.interpolate(torch.rand(1, 3, 12, 20, generator=generator), size=(canvas_h, canvas_w),
+                         mode="bicubic", align_corners=False)
+    canvas = (0.75 * coarse + 0.25 * fine).clamp(0.0, 1.0)[0]
+    xs = np.linspace(0, canvas_w - width, n_views).round().astype(int)
+    ys = [(i % 2) * (height // 8) for i in range(n_views)]
+    return torch.stack([canvas[:, y:y + height, x:x + width] for x, y in zip(xs, ys)])
+
+
+def renderer_inputs(scene: Scene, origins: torch.Tensor, directions: torch.Tensor,
+                    depths: torch.Tensor) -> dict[str, torch.Tensor]:
+    """The renderer graph's inputs for rays ``origins, directions [R, 3]`` at depths ``[R, S]``.
+
+    The torch twin of what the runtime computes in numpy (``iris_runtime.geometry``), with exactly
+    the operations of ``IrisModel.render_rays``: project, grid coordinates, cues, view-major layout.
+    """
+    H, W = scene.image_size
+    points = origins[:, None, :] + depths[..., None] * directions[:, None, :]            # [R, S, 3]
+    cam_from_world = G.invert_pose(scene.world_from_cam)
+    uv, _, valid = G.project_points(points, scene.intrinsics(), cam_from_world, H, W)    # [V, R, S, .]
+    cues = G.geometric_cue(points, origins[:, None, :], scene.world_from_cam[:, :3, 3])  # [R, S, V, 4]
+    return {"field_maps": scene.maps, "grid": G.pixels_to_grid(uv, H, W),
+            "cues": cues.permute(2, 0, 1, 3), "mask": valid, "positions": points,
+            "directions": directions}
+
+
+def random_renderer_inputs(model: IrisModel, n_views: int, n_rays: int, n_samples: int,
+                           generator: torch.Generator) -> dict[str, torch.Tensor]:
+    """Random renderer inputs with the edge cases in the mask (see the module docstring)."""
+    g = generator
+    dims = fixed_dims(model.cfg)
+    V, R, S = n_views, n_rays, n_samples
+    unit = torch.randn(V, R, S, 3, generator=g)
+    unit = unit / unit.norm(dim=-1, keepdim=True).clamp_min(1e-6)
+    mask = torch.rand(V, R, S, generator=g) > 0.35
+    mask[:, :, 0] = False                 # a point masked in every view, on every ray
+    if R > 1:
+        mask[:, -1] = False               # a ray with every sample masked
+    return {
+        "field_maps": torch.randn(V, dims["C'"], dims["h"], dims["w"], generator=g),
+        "grid": torch.rand(V, R, S, 2, generator=g) * 2.6 - 1.3,
+        "cues": torch.cat([unit, torch.rand(V, R, S, 1, generator=g) * 2 - 1], dim=-1),
+        "mask": mask,
+        "positions": torch.randn(R, S, 3, generator=g) * 0.5,
+        "directions": torch.randn(R, 3, generator=g),
+    }
+
+
+def _novel_pose(scene: Scene) -> torch.Tensor:
+    """A target pose near the scene's last view: 3 degrees about y, a small translation."""
+    a = math.radians(3.0)
+    delta = torch.tensor([[math.cos(a), 0.0, math.sin(a), 0.02],
+                          [0.0, 1.0, 0.0, -0.01],
+                          [-math.sin(a), 0.0, math.cos(a), 0.01],
+                          [0.0, 0.0, 0.0, 1.0]], dtype=scene.world_from_cam.dtype)
+    return scene.world_from_cam[-1] @ delta
+
+
+def scene_rays(model: IrisModel, scene: Scene, n_rays: int, generator: torch.Generator):
+    """``origins, directions [R, 3]``, bin-centre ``depths [R, S]`` through random pixels of a novel
+    pose; for R >= 8 the last R // 8 rays point backwards (behind the reference cameras)."""
+    cfg = model.cfg
+    H, W = scene.image_size
+    uv = G.pixel_centres(H, W)[torch.randperm(H * W, generator=generator)[:n_rays]]
+    origins, directions = G.rays_from_pixels(uv, scene.intrinsics(), _novel_pose(scene))
+    n_back = n_rays // 8
+    if n_back:
+        directions = torch.cat([directions[:-n_back], -directions[-n_back:]])
+    depths = G.sample_depths(cfg.near, cfg.far, cfg.samples, n_rays, dtype=directions.dtype)
+    return origins.contiguous(), directions.contiguous(), depths
+
+
+def _numpy(x: torch.Tensor) -> np.ndarray:
+    return np.ascontiguousarray(x.detach().cpu().numpy())
+
+
+def _mask_info(mask: torch.Tensor) -> dict:
+    """Shape and edge-case counts of a view-major mask ``[V, R, S]``."""
+    V, R, S = mask.shape
+    any_view = mask.any(0)
+    return {"V": V, "R": R, "S": S, "points_masked_in_every_view": int((~any_view).sum()),
+            "rays_with_every_sample_masked": int((~any_view.any(-1)).sum())}
+
+
+@torch.no_grad()
+def encoder_probes(model: IrisModel, view_counts=VIEW_COUNTS, seed: int = PROBE_SEED) -> list[Probe]:
+    g = torch.Generator().manual_seed(seed)
+    H, W = model.cfg.image_height, model.cfg.image_width
+    probes = []
+    for V in view_counts:
+        for kind, images in (("random", torch.rand(V, 3, H, W, generator=g)),
+                             ("scene", scene_images(V, H, W, g))):
+            scene = model.encode(images)
+            probes.append(Probe(f"{kind} V={V}", {"images": images},
+                                {"field_maps": _numpy(scene.maps),
+                                 "world_from_cam": _numpy(scene.world_from_cam),
+                                 "focal": _numpy(scene.focal)}, {"V": V}))
+    return probes
+
+
+@torch.no_grad()
+def renderer_probes(model: IrisModel, view_counts=VIEW_COUNTS, n_rays: int = 128,
+                    seed: int = PROBE_SEED) -> list[Probe]:
+    cfg = model.cfg
+    g = torch.Generator().manual_seed(seed)
+    wrapper = RendererGraph(model).eval()
+    probes = []
+
+    def add(name, inputs, reference):
+        probes.append(Probe(name, inputs, {"rgb": _numpy(reference[0]), "weights": _numpy(reference[1])},
+                            _mask_info(inputs["mask"])))
+
+    odd_samples = max(3, cfg.samples // 4 + 1)
+    for V in view_counts:
+        shapes = [(1, cfg.samples), (n_rays, cfg.samples), (max(2, n_rays // 4), odd_samples)]
+        for R, S in shapes:
+            inputs = random_renderer_inputs(model, V, R, S, g)
+            add(f"random V'={V} R={R} S={S}", inputs, wrapper(**inputs))
+        scene = model.encode(scene_images(V, cfg.image_height, cfg.image_width, g))
+        for R in (1, n_rays):
+            origins, directions, depths = scene_rays(model, scene, R, g)
+            add(f"scene V'={V} R={R} S={cfg.samples}", renderer_inputs(scene, origins, directions, depths),
+                model.render_rays(scene, origins, directions, depths, need_weights=True))
+    return probes
+
+
+# -- running and comparing ----------------------------------------------------------------------
+def max_abs_error(got: np.ndarray, want: np.ndarray) -> float:
+    """Max abs difference; ``inf`` on a shape mismatch or a non-finite value on either side."""
+    got, want = np.asarray(got), np.asarray(want)
+    if got.shape != want.shape or not (np.isfinite(got).all() and np.isfinite(want).all()):
+        return math.inf
+    if got.size == 0:
+        return 0.0
+    return float(np.max(np.abs(got.astype(np.float64) - want.astype(np.float64))))
+
+
+def session(path: str | Path, graph: str, threads: int | None = None) -> ort.InferenceSession:
+    """A plain CPU session (onnxruntime's default in-memory optimisations, nothing saved)."""
+    options = ort.SessionOptions()
+    options.log_severity_level = 3
+    if threads:
+        options.intra_op_num_threads = threads
+    try:
+        return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+    except Exception as exc:
+        raise ValidationError(f"{graph}: onnxruntime {ort.__version__} cannot load {Path(path).name}: "
+                              f"{str(exc).splitlines()[0][:300]}", graph=graph) from None
+
+
+def check_graph_file(path: str | Path, graph: str) -> None:
+    """``onnx.checker.check_model(full_check=True)``; a failure is a ``ValidationError``."""
+    try:
+        onnx.checker.check_model(str(path), full_check=True)
+    except Exception as exc:
+        raise ValidationError(f"{graph}: onnx checker rejects {Path(path).name}: "
+                              f"{str(exc).splitlines()[0][:300]}", graph=graph) from None
+
+
+def check_io(sess: ort.InferenceSession, spec: dict, dims: dict[str, int], graph: str) -> None:
+    """ONNX Runtime's view of the graph's inputs and outputs equals the spec (names, order,
+    dtypes, fixed axes, dynamic axis names)."""
+    for kind, got in (("inputs", sess.get_inputs()), ("outputs", sess.get_outputs())):
+        want = spec[kind]
+        if [a.name for a in got] != list(want):
+            raise ValidationError(f"{graph}: {kind} {[a.name for a in got]} differ from the I/O spec "
+                                  f"{list(want)}", graph=graph)
+        for arg in got:
+            entry = want[arg.name]
+            shape = [dims.get(d, d) for d in entry["shape"]]
+            if arg.type != _ORT_TYPES[entry["dtype"]] or list(arg.shape) != shape:
+                raise ValidationError(f"{graph}: {arg.name} is {arg.type} {arg.shape}, the I/O spec says "
+                                      f"{entry['dtype']} {shape}", graph=graph, output=arg.name)
+
+
+def run_probes(sess: ort.InferenceSession, probes: list[Probe]) -> list[dict]:
+    names = [o.name for o in sess.get_outputs()]
+    rows = []
+    for probe in probes:
+        outputs = sess.run(names, {k: _numpy(v) for k, v in probe.inputs.items()})
+        errors = {n: max_abs_error(o, probe.reference[n]) for n, o in zip(names, outputs)}
+        rows.append({"probe": probe.name, **probe.info, "max_abs_error": errors})
+    return rows
+
+
+def summarise(graph: str, rows: list[dict], tolerance: dict[str, float], enforce: bool) -> dict:
+    """Worst error per output over the probes, compared with the tolerance; raise if enforced."""
+    worst, worst_probe = {}, {}
+    for row in rows:
+        for out, err in row["max_abs_error"].items():
+            if out not in worst or not err <= worst[out]:       # NaN-proof
+                worst[out], worst_probe[out] = err, row["probe"]
+    passed = all(worst[o] <= tol for o, tol in tolerance.items())
+    if enforce and not passed:
+        out = max(tolerance, key=lambda o: math.inf if not worst[o] <= tolerance[o] else -1.0)
+        err, tol = worst[out], tolerance[out]
+        raise ValidationError(f"{graph} output {out!r}: max abs error {err:.3g} exceeds the tolerance "
+                              f"{tol:.3g} (probe {worst_probe[out]!r}); nothing was written",
+                              graph=graph, output=out, error=err, tolerance=tol,
+                              probe=worst_probe[out])
+    return {"max_abs_error": worst, "tolerance": dict(tolerance), "passed": passed,
+            "enforced": enforce, "probes": rows}
+
+
+def median_time(fn: Callable[[], object], runs: int) -> float:
+    """Median wall time of ``runs`` calls after one warm-up call (the first run is 1.3-3x slower)."""
+    fn()
+    times = []
+    for _ in range(runs):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
+
+
+def time_graph(sess: ort.InferenceSession, torch_fn: Callable, inputs: dict[str, torch.Tensor],
+               runs: int, t_torch: float | None = None) -> dict:
+    """Median times of the session and of the torch reference (unless ``t_torch`` is known)."""
+    feed = {k: _numpy(v) for k, v in inputs.items()}
+    t_ort = median_time(lambda: sess.run(None, feed), runs)
+    if t_torch is None:
+        with torch.no_grad():
+            t_torch = median_time(lambda: torch_fn(**inputs), runs)
+    return {"inputs": {k: list(v.shape) for k, v in inputs.items()}, "runs": runs,
+            "onnxruntime_median_s": round(t_ort, 6), "torch_median_s": round(t_torch, 6),
+            "ort_over_torch": round(t_ort / t_torch, 4)}
+
+
+def validate(model: IrisModel, files: dict[str, str | Path], *, quick: bool = False,
+             threads: int | None = None, progress: Callable[[str], None] | None = None) -> dict:
+    """Validate ``files`` (``{"encoder": path, "renderer": path[, "renderer_int8": path]}``)
+    exported from ``model``; return the report for the manifest, or raise ``ValidationError``.
+
+    ``threads``: intra-op threads of ONNX Runtime and torch while validating (default: each
+    library's own default). On a machine shared with other jobs, 1 is much faster: both libraries
+    spin-wait for their worker threads, measured 10-50x slower torch eager at 2 threads on 2 busy
+    cores.
+    """
+    torch_threads, was_training = torch.get_num_threads(), model.training
+    if threads:
+        torch.set_num_threads(threads)
+    try:
+        return _validate(model.eval(), files, quick=quick, threads=threads, progress=progress)
+    finally:
+        torch.set_num_threads(torch_threads)
+        model.train(was_training)
+
+
+def _validate(model, files, *, quick, threads, progress) -> dict:
+    say = progress or (lambda msg: None)
+    cfg = model.cfg
+    dims = fixed_dims(cfg)
+    n_rays = 16 if quick else 128
+    runs = 2 if quick else 5
+    timing = {"encoder": {"images": scene_images(4, cfg.image_height, cfg.image_width,
+                                                 torch.Generator().manual_seed(PROBE_SEED))},
+              "renderer": random_renderer_inputs(model, 4, 64 if quick else 1024, cfg.samples,
+                                                 torch.Generator().manual_seed(PROBE_SEED))}
+    torch_fns = {"encoder": EncoderGraph(model).eval(), "renderer": RendererGraph(model).eval()}
+    report = {"quick": quick, "probe_seed": PROBE_SEED, "torch_threads": torch.get_num_threads(),
+              "onnxruntime_threads": threads or "default"}
+    probes: dict[str, list[Probe]] = {}
+    for graph in files:
+        base = "renderer" if graph.startswith("renderer") else "encoder"
+        spec = io_spec.GRAPHS[base]
+        start = time.perf_counter()
+        check_graph_file(files[graph], graph)
+        sess = session(files[graph], graph, threads)
+        check_io(sess, spec, dims, graph)
+        if base not in probes:
+            probes[base] = (encoder_probes(model) if base == "encoder"
+                            else renderer_probes(model, n_rays=n_rays))
+        enforce = graph == base
+        entry = summarise(graph, run_probes(sess, probes[base]), spec["tolerance"], enforce)
+        known = report[base]["time"]["torch_median_s"] if base in report else None
+        entry["time"] = time_graph(sess, torch_fns[base], timing[base], runs, known)
+        report[graph] = entry
+        errors = ", ".join(f"{o} {e:.2g}" for o, e in entry["max_abs_error"].items())
+        say(f"validated {graph}: {len(probes[base])} probes, max abs error {errors}"
+            f"{'' if enforce else ' (recorded, not enforced)'}; onnxruntime "
+            f"{entry['time']['onnxruntime_median_s'] * 1e3:.1f} ms vs torch "
+            f"{entry['time']['torch_median_s'] * 1e3:.1f} ms ({time.perf_counter() - start:.1f} s)")
+    return report
+
+
+__all__ = ["validate", "ValidationError", "Probe", "scene_images", "renderer_inputs",
+           "random_renderer_inputs", "scene_rays", "encoder_probes", "renderer_probes",
+           "max_abs_error", "check_graph_file", "check_io", "session", "median_time", "VIEW_COUNTS"]

@@ -1,0 +1,48 @@
+"""Shared fixtures: one exported model per test session.
+
+``model_dir`` is ``IRIS_TEST_MODEL_DIR`` (an ``iris-export`` output directory) when set, which is
+how the runtime tests run in the environment without torch; otherwise, when torch is installed, a
+random tiny model (``torch.manual_seed(0); build_model(preset("tiny"))``) exported once per
+session (``torch_export``). Tests that compare with ``IrisModel`` use ``torch_export`` directly.
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+
+def has_torch() -> bool:
+    try:
+        import torch  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+@pytest.fixture(scope="session")
+def torch_export(tmp_path_factory):
+    """(model_dir, IrisModel): a random tiny model and its export (needs torch and onnx)."""
+    torch = pytest.importorskip("torch")
+    pytest.importorskip("onnx")
+    import iris_train
+    from export.pipeline import export_model
+
+    torch.manual_seed(0)
+    model = iris_train.build_model(iris_train.preset("tiny")).eval()
+    if os.environ.get("_IRIS_DEV_EXPORT"):  # DEVREMOVE
+        return Path(os.environ["_IRIS_DEV_EXPORT"]), model  # DEVREMOVE
+    out = tmp_path_factory.mktemp("iris_model") / "tiny"
+    export_model(model, out, quick=True, progress=False, threads=1)
+    return out, model
+
+
+@pytest.fixture(scope="session")
+def model_dir(request) -> Path:
+    env = os.environ.get("IRIS_TEST_MODEL_DIR")
+    if env:
+        return Path(env)
+    if not has_torch():
+        pytest.skip("no IRIS_TEST_MODEL_DIR and no torch to export a model")
+    return request.getfixturevalue("torch_export")[0]

@@ -1,0 +1,401 @@
+"""iris-export: the two ONNX graphs, their validation, the manifest, and every failure path.
+
+The random ``tiny`` model of conftest's ``torch_export`` (exported once per session by
+``export_model``) is also saved as a checkpoint and run through the CLI (``--quick`` probes,
+``--quantize int8``, one thread: the machine is shared). What is checked:
+
+* the files: manifest fields, sha256 of every graph, self-contained graphs (no ``.data`` file),
+  I/O spec as ONNX Runtime sees it, validation report within tolerance;
+* round trip like the runtime does it: ORT encoder -> numpy geometry (``iris_runtime.geometry``)
+  -> ORT renderer, against torch ``IrisModel.encode`` + ``render_rays`` on fresh random rays,
+  within 1e-4, for V' in {1, 2, 5} and several (R, S) (dynamic axes, exported once);
+* masking: points masked in every view and rays with every sample masked stay finite and match;
+* the wrappers compute exactly what the model computes;
+* failures: existing OUT_DIR without --force (and --force replacing it), corrupt / truncated /
+  foreign checkpoints, tolerance exceeded -> ``ValidationError``; OUT_DIR untouched each time, no
+  temporary directory left behind; ``iris-export --help``.
+
+Everything after the session's one real export reuses its graphs (``export_graph`` patched to
+copy them): a dynamo export costs 15 s on an idle machine and 1-2 min on a busy one.
+"""
+from __future__ import annotations
+
+import json
+import pickle
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+F = torch.nn.functional
+onnx = pytest.importorskip("onnx")
+ort = pytest.importorskip("onnxruntime")
+
+from iris_runtime import geometry as RG                                    # noqa: E402
+from iris_train.config import preset                                        # noqa: E402
+from iris_train.model import CheckpointError, save_checkpoint              # noqa: E402
+
+from export import io_spec, pipeline                                        # noqa: E402
+from export.cli import main as cli_main                                     # noqa: E402
+from export.errors import ExportArgumentError, OutputExistsError, ValidationError  # noqa: E402
+from export.graphs import EncoderGraph, GraphFile, RendererGraph, sample_dense  # noqa: E402
+from export.manifest import FORMAT, MANIFEST_NAME, VERSION, read_manifest, sha256_file  # noqa: E402
+from export.pipeline import export_model                                    # noqa: E402
+from export.validate import renderer_inputs, scene_images, scene_rays      # noqa: E402
+
+pytestmark = pytest.mark.torch
+
+ROOT = Path(__file__).resolve().parents[1]
+CFG = preset("tiny")
+H, W = CFG.image_height, CFG.image_width
+TOL = 1e-4
+
+
+# -- fixtures ------------------------------------------------------------------------------------
+@pytest.fixture(scope="module", autouse=True)
+def one_thread():
+    """Torch eager at 2 threads on 2 busy cores is 10-50x slower than at 1 (spin-waiting)."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+@pytest.fixture(scope="module")
+def model(torch_export):
+    """The random tiny model (``torch.manual_seed(0)``) that conftest exported once per session."""
+    return torch_export[1]
+
+
+@pytest.fixture(scope="module")
+def checkpoint(model, tmp_path_factory):
+    path = tmp_path_factory.mktemp("ckpt") / "tiny.pt"
+    save_checkpoint(path, model, step=0)
+    return path
+
+
+def _copy_graphs_from(src_dir: Path):
+    """An ``export_graph`` stand-in that copies already exported graphs (same weights)."""
+    def fake_export_graph(model, graph, path, opset=io_spec.DEFAULT_OPSET):
+        src = Path(src_dir) / io_spec.GRAPHS[graph]["file"]
+        shutil.copyfile(src, path)
+        return GraphFile(graph, Path(path), len(onnx.load(str(src)).graph.node), 0.0)
+    return fake_export_graph
+
+
+@pytest.fixture(scope="module")
+def exported(torch_export, checkpoint, tmp_path_factory):
+    """``iris-export CKPT OUT --quantize int8`` on the checkpoint of the session's model.
+
+    The dynamo export itself ran once for the whole session (conftest ``torch_export``:
+    ``export_model(model, ...)``, 15-40 s); here the CLI loads the checkpoint, reuses those graphs,
+    quantises, validates the checkpoint's weights against them and writes the manifest.
+    """
+    out = tmp_path_factory.mktemp("export") / "model"
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(pipeline, "export_graph", _copy_graphs_from(torch_export[0]))
+        rc = cli_main([str(checkpoint), str(out), "--quick", "--quantize", "int8", "--threads", "1", "-q"])
+    assert rc == 0
+    return out
+
+
+def _session(path):
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = 1
+    return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+
+
+@pytest.fixture(scope="module")
+def sessions(exported):
+    return {"encoder": _session(exported / "encoder.onnx"),
+            "renderer": _session(exported / "renderer.onnx")}
+
+
+@pytest.fixture
+def copy_graphs(monkeypatch, exported):
+    """Make ``export_model`` reuse the module's graphs instead of exporting again."""
+    monkeypatch.setattr(pipeline, "export_graph", _copy_graphs_from(exported))
+
+
+def _siblings(path: Path) -> list[str]:
+    return sorted(p.name for p in path.parent.iterdir())
+
+
+# -- files and manifest --------------------------------------------------------------------------
+def test_output_files_are_exactly_the_graphs_and_manifest(exported, torch_export):
+    assert sorted(p.name for p in exported.iterdir()) == \
+        ["encoder.onnx", "iris.json", "renderer.int8.onnx", "renderer.onnx"]
+    assert _siblings(exported) == ["model"]           # no temporary directory left behind
+    plain = torch_export[0]                           # the real export_model(model) output
+    assert sorted(p.name for p in plain.iterdir()) == ["encoder.onnx", "iris.json", "renderer.onnx"]
+    assert not list(exported.rglob("*.data")) and not list(plain.rglob("*.data"))
+    assert read_manifest(plain)["source"] == {"checkpoint": None}
+
+
+def test_manifest_content(exported, model, checkpoint):
+    m = read_manifest(exported)
+    assert (m["format"], m["version"], m["io_spec_version"]) == (FORMAT, VERSION, io_spec.IO_SPEC_VERSION)
+    assert m["config"] == model.cfg.to_dict()
+    assert m["image_size"] == [H, W] and m["patch_size"] == CFG.patch_size
+    assert m["feature_grid"] == list(CFG.feature_grid) and m["field_channels"] == CFG.field_channels
+    assert (m["near"], m["far"], m["samples"]) == (CFG.near, CFG.far, CFG.samples)
+    assert m["export"]["opset"] == io_spec.DEFAULT_OPSET and m["export"]["renderer_sampler"] == "dense"
+    assert set(m["export"]["versions"]) >= {"torch", "onnx", "onnxruntime"}
+    assert m["source"] == {"checkpoint": checkpoint.name, "sha256": sha256_file(checkpoint)}
+    for name, spec in io_spec.GRAPHS.items():
+        entry = m["graphs"][name]
+        assert entry["file"] == spec["file"]
+        # The spec travels through JSON (integer axis keys become strings).
+        assert entry["inputs"] == json.loads(json.dumps(spec["inputs"]))
+        assert entry["outputs"] == json.loads(json.dumps(spec["outputs"]))
+        assert entry["dynamic_axes"] == json.loads(json.dumps(spec["dynamic_axes"]))
+        report = m["validation"][name]
+        assert report["passed"] and report["enforced"]
+        for out, tol in spec["tolerance"].items():
+            assert 0 <= report["max_abs_error"][out] <= tol
+        assert report["time"]["onnxruntime_median_s"] > 0 and report["time"]["torch_median_s"] > 0
+    # Probes covered the edge cases and the view counts.
+    probes = m["validation"]["renderer"]["probes"]
+    assert {p["V"] for p in probes} == {1, 3, 8} and 1 in {p["R"] for p in probes}
+    assert any(p["rays_with_every_sample_masked"] for p in probes)
+    assert any(p["points_masked_in_every_view"] for p in probes)
+    # int8: its own file, hash and recorded error, not enforced.
+    int8 = m["graphs"]["renderer_int8"]
+    assert int8["file"] == "renderer.int8.onnx" and int8["variant_of"] == "renderer"
+    rep8 = m["validation"]["renderer_int8"]
+    assert rep8["enforced"] is False and 0 < rep8["max_abs_error"]["rgb"] < 0.05
+
+
+def test_sha256_in_manifest_matches_files(exported):
+    m = read_manifest(exported / MANIFEST_NAME)
+    assert len(m["graphs"]) == 3
+    for entry in m["graphs"].values():
+        path = exported / entry["file"]
+        assert entry["sha256"] == sha256_file(path) and entry["bytes"] == path.stat().st_size
+
+
+def test_graph_files_are_self_contained_and_valid(exported):
+    max_ir = onnx.helper.find_min_ir_version_for([onnx.helper.make_opsetid("", io_spec.DEFAULT_OPSET)])
+    for name in ("encoder.onnx", "renderer.onnx", "renderer.int8.onnx"):
+        proto = onnx.load(str(exported / name), load_external_data=False)
+        assert all(t.data_location != onnx.TensorProto.EXTERNAL for t in proto.graph.initializer)
+        assert proto.ir_version <= max_ir
+        onnx.checker.check_model(proto, full_check=True)
+
+
+def test_io_names_match_spec(sessions):
+    for graph, sess in sessions.items():
+        spec = io_spec.GRAPHS[graph]
+        assert [i.name for i in sess.get_inputs()] == list(spec["inputs"])
+        assert [o.name for o in sess.get_outputs()] == list(spec["outputs"])
+        for arg in sess.get_inputs():
+            for axis, name in spec["dynamic_axes"].get(arg.name, {}).items():
+                assert arg.shape[axis] == name
+    mask = next(i for i in sessions["renderer"].get_inputs() if i.name == "mask")
+    assert mask.type == "tensor(bool)"
+
+
+# -- numbers -------------------------------------------------------------------------------------
+def _runtime_render(sessions, images, pose, uv, depths, reverse=0):
+    """What the runtime does: ORT encoder, numpy geometry in float32, ORT renderer."""
+    maps, world_from_cam, focal = sessions["encoder"].run(None, {"images": images})
+    K = RG.intrinsics_from_focal(focal, H, W)
+    origins, directions = RG.rays_from_pixels(uv, K, pose)
+    if reverse:
+        directions[-reverse:] *= -1
+    points = origins[:, None, :] + depths[..., None] * directions[:, None, :]          # [R, S, 3]
+    uvp, _, valid = RG.project_points(points, K, RG.invert_pose(world_from_cam), H, W)  # [V, R, S, .]
+    cues = RG.geometric_cue(points, origins[:, None, :], world_from_cam[:, :3, 3])     # [R, S, V, 4]
+    feed = {"field_maps": maps, "grid": RG.pixels_to_grid(uvp, H, W).astype(np.float32),
+            "cues": np.ascontiguousarray(np.moveaxis(cues, 2, 0), dtype=np.float32),
+            "mask": valid, "positions": points.astype(np.float32),
+            "directions": directions.astype(np.float32)}
+    rgb, weights = sessions["renderer"].run(None, feed)
+    return rgb, weights, origins, directions, valid
+
+
+@pytest.mark.parametrize("V,R,S", [(1, 1, 64), (2, 37, 64), (5, 50, 23), (2, 8, 1)])
+def test_round_trip_against_torch_render_rays(model, sessions, V, R, S):
+    rng = np.random.default_rng(100 * V + R + S)
+    images = scene_images(V, H, W, torch.Generator().manual_seed(V)).numpy()
+    # A fresh random target pose near view 0 and random pixels; some rays point backwards.
+    angle = rng.uniform(-0.1, 0.1, 3)
+    rot = RG.rotation_from_6d(np.concatenate([[1, angle[2], -angle[1]], [-angle[2], 1, angle[0]]]))
+    pose = np.eye(4, dtype=np.float32)
+    pose[:3, :3], pose[:3, 3] = rot, rng.uniform(-0.05, 0.05, 3)
+    uv = RG.pixel_centres(H, W, dtype=np.float32)[rng.choice(H * W, R, replace=False)]
+    depths = RG.sample_depths(CFG.near, CFG.far, S, R, stratified=True, rng=rng, dtype=np.float32)
+    reverse = R // 8
+    rgb, weights, origins, directions, valid = _runtime_render(sessions, images, pose, uv, depths, reverse)
+
+    with torch.no_grad():
+        scene = model.encode(torch.from_numpy(images))
+        rgb_ref, w_ref = model.render_rays(scene, torch.tensor(origins), torch.tensor(directions),
+                                           torch.tensor(depths))
+    assert rgb.shape == (R, 3) and weights.shape == (R, S)
+    assert np.isfinite(rgb).all() and np.isfinite(weights).all()
+    np.testing.assert_allclose(rgb, rgb_ref.numpy(), rtol=0, atol=TOL)
+    np.testing.assert_allclose(weights, w_ref.numpy(), rtol=0, atol=TOL)
+    if reverse:       # backward rays: every sample masked in every view -> zero weights
+        assert not valid[:, -reverse:].any() and np.all(weights[-reverse:] == 0)
+
+
+def _random_feed(V, R, S, seed):
+    g = torch.Generator().manual_seed(seed)
+    h, w = CFG.feature_grid
+    return {"field_maps": torch.randn(V, CFG.field_channels, h, w, generator=g),
+            "grid": torch.rand(V, R, S, 2, generator=g) * 2.4 - 1.2,
+            "cues": torch.randn(V, R, S, 4, generator=g),
+            "mask": torch.rand(V, R, S, generator=g) > 0.5,
+            "positions": torch.randn(R, S, 3, generator=g),
+            "directions": torch.randn(R, 3, generator=g)}
+
+
+@pytest.mark.parametrize("case", ["all", "point", "ray"])
+def test_fully_masked_points_and_rays_stay_finite(model, sessions, case):
+    V, R, S = 3, 4, 9
+    feed = _random_feed(V, R, S, seed=7)
+    if case == "all":
+        feed["mask"][:] = False
+    elif case == "point":
+        feed["mask"][:, :, 2] = False          # sample 2 of every ray masked in every view
+    else:
+        feed["mask"][:, 1] = False             # ray 1: every sample masked
+    rgb, weights = sessions["renderer"].run(None, {k: v.numpy() for k, v in feed.items()})
+    with torch.no_grad():
+        rgb_ref, w_ref = RendererGraph(model)(**feed)
+    assert np.isfinite(rgb).all() and np.isfinite(weights).all()
+    np.testing.assert_allclose(rgb, rgb_ref.numpy(), rtol=0, atol=TOL)
+    np.testing.assert_allclose(weights, w_ref.numpy(), rtol=0, atol=TOL)
+    empty = ~feed["mask"].numpy().any(0)                                   # [R, S]
+    assert np.all(weights[empty] == 0)
+    if case == "all":
+        assert np.allclose(rgb, rgb[0])                                    # rgb = head(0) everywhere
+    else:
+        live = ~empty.all(-1)
+        np.testing.assert_allclose(weights[live].sum(-1), 1.0, atol=1e-5)
+
+
+def test_wrappers_compute_what_the_model_computes(model):
+    g = torch.Generator().manual_seed(3)
+    with torch.no_grad():
+        images = scene_images(3, H, W, g)
+        scene = model.encode(images)
+        maps, world_from_cam, focal = EncoderGraph(model)(images)
+        assert torch.equal(maps, scene.maps) and torch.equal(world_from_cam, scene.world_from_cam)
+        assert torch.equal(focal, scene.focal)
+        origins, directions, depths = scene_rays(model, scene, 24, g)
+        rgb, weights = RendererGraph(model)(**renderer_inputs(scene, origins, directions, depths))
+        rgb_ref, w_ref = model.render_rays(scene, origins, directions, depths)
+    # render_rays samples this small grid with a dense matmul, the graph with grid_sample.
+    torch.testing.assert_close(rgb, rgb_ref, rtol=0, atol=1e-6)
+    torch.testing.assert_close(weights, w_ref, rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_dense_sampler_equals_grid_sample(model, seed):
+    g = torch.Generator().manual_seed(seed)
+    maps = torch.randn(3, 5, 4, 7, generator=g)
+    grid = torch.rand(3, 200, 2, generator=g) * 3.0 - 1.5           # inside, border band, outside
+    grid[0, :4] = torch.tensor([[-1.0, -1.0], [1.0, 1.0], [2.0, -2.0], [0.0, 0.0]])
+    ref = F.grid_sample(maps, grid[:, None], mode="bilinear", padding_mode="border",
+                        align_corners=False)[:, :, 0].transpose(1, 2)
+    torch.testing.assert_close(sample_dense(maps, grid), ref, rtol=1e-5, atol=1e-6)
+    feed = _random_feed(2, 5, 6, seed)
+    with torch.no_grad():
+        dense = RendererGraph(model, "dense")(**feed)
+        gs = RendererGraph(model, "grid_sample")(**feed)
+    for a, b in zip(dense, gs):
+        torch.testing.assert_close(a, b, rtol=0, atol=1e-6)
+
+
+# -- failure paths -------------------------------------------------------------------------------
+def test_existing_out_dir_is_refused_without_force(checkpoint, tmp_path, capsys):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "keep.txt").write_text("mine")
+    with pytest.raises(OutputExistsError, match="already exists"):
+        export_model(checkpoint, out, progress=False)
+    rc = cli_main([str(checkpoint), str(out), "-q"])
+    err = capsys.readouterr().err
+    assert rc == 2 and err.count("\n") == 1 and "already exists" in err and "Traceback" not in err
+    assert [p.name for p in out.iterdir()] == ["keep.txt"] and _siblings(out) == ["out"]
+
+
+def test_force_replaces_existing_out_dir(checkpoint, tmp_path, copy_graphs):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "stale.txt").write_text("old")
+    export_model(checkpoint, out, force=True, progress=False, quick=True, threads=1)
+    assert sorted(p.name for p in out.iterdir()) == ["encoder.onnx", "iris.json", "renderer.onnx"]
+    assert _siblings(out) == ["out"]
+
+
+def _truncated(path, src):
+    data = src.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+
+
+class _Foreign:
+    pass
+
+
+BAD_CHECKPOINTS = {
+    "random_bytes": lambda p, src: p.write_bytes(np.random.default_rng(0).bytes(4096)),
+    "truncated": _truncated,
+    "empty": lambda p, src: p.write_bytes(b""),
+    "foreign_state_dict": lambda p, src: torch.save({"state_dict": {"w": torch.zeros(2)}}, p),
+    "foreign_pickle": lambda p, src: p.write_bytes(pickle.dumps(_Foreign())),
+    "wrong_weights": lambda p, src: torch.save({**torch.load(src, weights_only=True),
+                                                "model": {"w": torch.zeros(2)}}, p),
+    "missing": lambda p, src: None,
+}
+
+
+@pytest.mark.filterwarnings("ignore:Detected pickle protocol")
+@pytest.mark.parametrize("kind", sorted(BAD_CHECKPOINTS))
+def test_bad_checkpoint_gives_one_line_error(kind, checkpoint, tmp_path, capsys):
+    bad = tmp_path / f"{kind}.pt"
+    BAD_CHECKPOINTS[kind](bad, checkpoint)
+    out = tmp_path / "out"
+    with pytest.raises(CheckpointError):
+        export_model(bad, out, progress=False)
+    rc = cli_main([str(bad), str(out), "-q"])
+    err = capsys.readouterr().err
+    assert rc == 2 and err.count("\n") == 1 and str(bad) in err and "Traceback" not in err
+    assert not out.exists() and not any(n.startswith(".out") for n in _siblings(out))
+
+
+def test_tolerance_exceeded_raises_and_writes_nothing(checkpoint, tmp_path, monkeypatch, copy_graphs,
+                                                      capsys):
+    monkeypatch.setitem(io_spec.RENDERER["tolerance"], "rgb", 1e-12)
+    out = tmp_path / "out"
+    with pytest.raises(ValidationError) as info:
+        export_model(checkpoint, out, progress=False, quick=True, threads=1)
+    exc = info.value
+    assert (exc.graph, exc.output, exc.tolerance) == ("renderer", "rgb", 1e-12)
+    assert exc.error > 1e-12 and "'rgb'" in str(exc) and "1e-12" in str(exc)
+    assert not out.exists() and _siblings(out) == []
+    rc = cli_main([str(checkpoint), str(out), "-q", "--quick", "--threads", "1"])
+    err = capsys.readouterr().err
+    assert rc == 1 and err.count("\n") == 1 and "validation failed" in err
+    assert not out.exists() and _siblings(out) == []
+
+
+@pytest.mark.parametrize("kwargs", [{"opset": 17}, {"opset": 1000}, {"quantize": "int4"}, {"threads": 0}])
+def test_bad_arguments_are_refused(checkpoint, tmp_path, kwargs):
+    with pytest.raises(ExportArgumentError):
+        export_model(checkpoint, tmp_path / "out", progress=False, **kwargs)
+    assert not (tmp_path / "out").exists()
+
+
+def test_cli_help():
+    res = subprocess.run([sys.executable, "-m", "export.cli", "--help"], cwd=ROOT,
+                         capture_output=True, text=True, timeout=60)
+    assert res.returncode == 0
+    for flag in ("CKPT", "OUT_DIR", "--opset", "--quantize", "--force"):
+        assert flag in res.stdout
