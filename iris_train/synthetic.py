@@ -1,8 +1,8 @@
 """Synthetic multi-view scenes rendered with pyrender (OpenGL rasterisation, headless through EGL).
 
 Why pyrender: see ``docs/DATA.md`` (measured with ``benchmarks/renderer_choice.py``): it renders a
-64x64 view with depth in a few milliseconds, where Mitsuba 3 (``scalar_rgb``) needs tens of
-milliseconds per view and per scene load at comparable (noise-free) quality.
+64x64 view, 3x3 supersampled, with exact z-depth in ~8 ms, where Mitsuba 3 (``scalar_rgb``) needs
+~190 ms per view (64 samples per pixel) to get its Monte-Carlo noise down to ~36 dB PSNR.
 
 **Environment.** PyOpenGL reads ``PYOPENGL_PLATFORM`` when it is first imported. This module sets
 it to ``"egl"`` (headless GPU-less rendering through Mesa's EGL + llvmpipe) unless it is already
@@ -16,9 +16,9 @@ is camera-to-world with the camera axes as rotation columns; ``K`` is in pixels 
 The world frame is z-up (floor at z = 0); it is *not* view 0's frame: use
 ``relative_to_first`` in ``iris_train.data`` to get the canonical frame.
 
-**Scale.** Cameras sit 0.55-0.65 units from the point they look at and all objects lie within
+**Scale.** Cameras sit 0.55-0.65 (rooms 0.5-0.6) from the point they look at, objects lie within
 about 0.3 of it, so visible geometry is at camera depth ~0.25-0.95 (the model samples [0.1, 1.0]);
-room walls behind the objects may reach ~1.1.
+room walls behind the objects may reach ~1.25 in corners (96% of room pixels lie in 0.25-0.95).
 
 **Rendering.** Each view is rendered at ``SUPERSAMPLE`` x the output size without MSAA and
 reduced with an area filter (``cv2.INTER_AREA``). The factor is odd so that the centre sub-pixel of
@@ -41,6 +41,8 @@ os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
+from iris_runtime.errors import InputError  # noqa: E402
+
 __all__ = ["SceneData", "SceneSpec", "MeshSpec", "LightSpec", "KINDS", "GENERATOR_VERSION",
            "SUPERSAMPLE", "build_scene_spec", "render_spec", "render_scene", "look_at",
            "GL_FROM_CV"]
@@ -51,8 +53,9 @@ GENERATOR_VERSION = 1
 KINDS = ("turntable", "room")
 #: Supersampling factor per axis (odd: see the module docstring). 3 -> 9 samples per pixel.
 SUPERSAMPLE = 3
-#: Marker colours (RGB, emissive, so they render exactly this colour when fully covered).
-MARKER_COLORS = ((255, 0, 255), (0, 255, 255), (255, 255, 0), (255, 128, 0))
+#: Marker colours (RGB, emissive on black metal: a fully covered pixel has this colour to within a
+#: few levels; channels are 0 or 255 because pyrender applies a gamma curve to emissive values).
+MARKER_COLORS = ((255, 0, 255), (0, 255, 255), (255, 255, 0), (0, 255, 0))
 #: Marker sphere radius in scene units (~1.3-1.8 px at 64x64 and depth 0.6).
 MARKER_RADIUS = 0.015
 #: Icosphere subdivisions of markers: its faces lie at least 0.993 r from the centre.
@@ -77,8 +80,8 @@ class SceneData:
                                          not euclidean distance); 0 where there is no geometry
     meta:           dict                 JSON-serialisable facts (seed, kind, fov, markers, ...);
                                          with ``markers=True`` also ``marker_coverage`` float32
-                                         [V, M, H, W] (a numpy array, fraction of each pixel covered
-                                         by marker m, occlusion ignored)
+                                         [V, M, H, W] (a numpy array: fraction of each pixel covered
+                                         by marker m drawn alone, i.e. ignoring occlusion)
     """
 
     images: np.ndarray
@@ -279,7 +282,7 @@ def _object_mesh(rng: np.random.Generator, centre_xy: np.ndarray, radius: float,
     mesh, smooth, name = _random_primitive(rng, radius)
     R = _random_rotation(rng, upright=rng.random() < 0.6)
     v = np.asarray(mesh.vertices, dtype=np.float64) @ R.T
-    v[:, :2] += centre_xy - 0.0
+    v[:, :2] += centre_xy
     v[:, 2] += floor_z - v[:, 2].min()                   # rest on the floor
     faces = np.asarray(mesh.faces, dtype=np.int64)
     pos, nrm, uv, f = _triplanar_mesh(v, faces, smooth, tex_scale=rng.uniform(0.05, 0.2),
@@ -367,12 +370,13 @@ def look_at(eye: np.ndarray, target: np.ndarray, up=(0.0, 0.0, 1.0), roll: float
 
 
 def _arc_cameras(rng: np.random.Generator, n_views: int, target: np.ndarray, az_centre: float,
-                 elev_range: tuple[float, float]) -> tuple[np.ndarray, dict]:
+                 elev_range: tuple[float, float], dist_range: tuple[float, float] = (0.55, 0.65)
+                 ) -> tuple[np.ndarray, dict]:
     """Cameras ordered along an arc around ``target``; arc span 10-90 degrees, slight jitter."""
     span = math.radians(rng.uniform(10.0, 90.0))
     elev0 = math.radians(rng.uniform(*elev_range))
     elev_drift = math.radians(rng.uniform(-8.0, 8.0))        # the arc may climb or descend
-    dist = rng.uniform(0.55, 0.65)
+    dist = rng.uniform(*dist_range)
     direction = 1.0 if rng.random() < 0.5 else -1.0
     t = np.linspace(-0.5, 0.5, n_views) if n_views > 1 else np.zeros(1)
     poses = []
@@ -413,7 +417,7 @@ def _build_turntable(rng: np.random.Generator, n_views: int) -> tuple[list, list
     meshes = []
     ground_r = rng.uniform(0.36, 0.44)
     meshes.append(_disc(ground_r, _make_texture(rng), tex_scale=rng.uniform(0.1, 0.4)))
-    placed = _place_discs(rng, int(rng.integers(3, 7)), region_radius=0.17, r_lo=0.04, r_hi=0.085)
+    placed = _place_discs(rng, int(rng.integers(3, 7)), region_radius=0.18, r_lo=0.05, r_hi=0.1)
     for c, r in placed:
         meshes.append(_object_mesh(rng, c, r))
     target = np.array([0.0, 0.0, rng.uniform(0.03, 0.07)])
@@ -430,7 +434,7 @@ def _build_room(rng: np.random.Generator, n_views: int):
     """A box room (floor z = 0) seen from inside; the objects stand near the back wall (+y)."""
     meshes = []
     half_w = rng.uniform(0.55, 0.75)                 # room spans x in [-half_w, half_w]
-    gap = rng.uniform(0.25, 0.35)                    # objects' centre to the back wall
+    gap = rng.uniform(0.26, 0.32)                    # objects' centre to the back wall
     y_back = gap
     y_front = -(0.65 + 0.25)                         # cameras (<= 0.65 away) stay inside
     height = rng.uniform(0.55, 0.8)
@@ -460,13 +464,14 @@ def _build_room(rng: np.random.Generator, n_views: int):
     side = -1 if rng.random() < 0.5 else 1
     meshes.append(_object_mesh(rng, np.array([side * (half_w - 0.08), rng.uniform(-0.2, 0.1)]), 0.07))
     # The object cluster, centred at (0, 0) on the floor.
-    placed = _place_discs(rng, int(rng.integers(3, 6)), region_radius=0.14, r_lo=0.04, r_hi=0.08)
+    placed = _place_discs(rng, int(rng.integers(3, 6)), region_radius=0.14, r_lo=0.05, r_hi=0.09)
     for c, r in placed:
         meshes.append(_object_mesh(rng, c, r))
     target = np.array([0.0, 0.0, rng.uniform(0.04, 0.09)])
     # Cameras on the -y side looking towards the back wall (azimuth -90 deg +- arc / 2).
+    # Closer than on the turntable (0.5-0.6) so that the back wall stays near depth 1.
     world_from_cam, info = _arc_cameras(rng, n_views, target, -np.pi / 2 + rng.uniform(-0.15, 0.15),
-                                        (8.0, 35.0))
+                                        (8.0, 35.0), dist_range=(0.5, 0.6))
     # Point lights under the ceiling, plus ambient.
     lights = []
     for _ in range(int(rng.integers(1, 3))):
@@ -483,16 +488,16 @@ def build_scene_spec(seed: int, n_views: int = 8, size: tuple[int, int] = (64, 6
                      kind: str | None = None, markers: bool = False) -> SceneSpec:
     """The random scene of ``seed`` as a renderer-neutral description (deterministic per seed)."""
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
-        raise ValueError(f"seed: expected a non-negative int, got {seed!r}")
+        raise InputError(f"seed: expected a non-negative int, got {seed!r}")
     if not isinstance(n_views, (int, np.integer)) or n_views < 1:
-        raise ValueError(f"n_views: expected a positive int, got {n_views!r}")
+        raise InputError(f"n_views: expected a positive int, got {n_views!r}")
     if (len(size) != 2 or not all(isinstance(s, (int, np.integer)) and s > 0 for s in size)):
-        raise ValueError(f"size: expected (height, width) positive ints, got {size!r}")
+        raise InputError(f"size: expected (height, width) positive ints, got {size!r}")
     rng = np.random.default_rng([int(seed), 0x1815])
     kind_drawn = KINDS[int(rng.integers(len(KINDS)))]     # drawn always, so streams do not shift
     kind = kind_drawn if kind is None else kind
     if kind not in KINDS:
-        raise ValueError(f"kind: expected one of {KINDS} or None, got {kind!r}")
+        raise InputError(f"kind: expected one of {KINDS} or None, got {kind!r}")
     yfov = math.radians(rng.uniform(40.0, 70.0))
     build = _build_turntable if kind == "turntable" else _build_room
     meshes, lights, ambient, background, world_from_cam, marker_pts, info = build(rng, int(n_views))
@@ -557,8 +562,10 @@ def _pyrender_scene(spec: SceneSpec):
     marker_nodes = {}
     for m in spec.meshes:
         if m.emissive is not None:
+            # Black metal reflects (almost) nothing: no diffuse, specular f0 = base colour = 0,
+            # only Schlick's Fresnel term at grazing angles adds a few levels of 255.
             mat = pyrender.MetallicRoughnessMaterial(baseColorFactor=[0.0, 0.0, 0.0, 1.0],
-                                                     metallicFactor=0.0, roughnessFactor=1.0,
+                                                     metallicFactor=1.0, roughnessFactor=1.0,
                                                      emissiveFactor=list(m.emissive))
         else:
             tex = None
@@ -595,7 +602,7 @@ def render_spec(spec: SceneSpec, supersample: int = SUPERSAMPLE) -> SceneData:
     import pyrender
 
     if supersample < 1 or supersample % 2 == 0:
-        raise ValueError(f"supersample: expected an odd positive int, got {supersample}")
+        raise InputError(f"supersample: expected an odd positive int, got {supersample}")
     h, w = spec.size
     s = supersample
     scene, marker_nodes = _pyrender_scene(spec)
@@ -618,9 +625,10 @@ def render_spec(spec: SceneSpec, supersample: int = SUPERSAMPLE) -> SceneData:
             images[v] = cv2.resize(colour, (w, h), interpolation=cv2.INTER_AREA) if s > 1 else colour
             depth[v] = z[s // 2::s, s // 2::s]             # the sub-pixel at each pixel centre
             if coverage is not None:
-                seg, _ = renderer.render(scene, flags=pyrender.RenderFlags.SEG,
-                                         seg_node_map=seg_colours)
+                # One segmentation pass per marker, drawn alone: markers never hide each other.
                 for i, node in marker_nodes.items():
+                    seg, _ = renderer.render(scene, flags=pyrender.RenderFlags.SEG,
+                                             seg_node_map={node: seg_colours[node]})
                     hit = np.all(seg == seg_colours[node], axis=-1).astype(np.float32)
                     coverage[v, i] = hit.reshape(h, s, w, s).mean(axis=(1, 3))
     meta = dict(spec.meta)

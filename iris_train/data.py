@@ -1,0 +1,385 @@
+"""Data for training and evaluation: cached synthetic scenes and users' folders of photos.
+
+- ``SyntheticScenes``: scenes of ``iris_train.synthetic`` by seed, rendered on first use and cached
+  as one ``.npz`` per scene (written atomically) under ``default_cache_dir(size)``
+  = ``$IRIS_CACHE_DIR/synthetic/<H>x<W>/`` (``IRIS_CACHE_DIR`` defaults to ``~/.cache/iris``).
+  ``pregenerate`` fills the cache with several processes.
+- ``TRAIN_SEEDS`` / ``HELDOUT_SEEDS``: the fixed, disjoint seed splits.
+- ``load_scene_folder`` / ``load_dataset_folder``: photos of any size (sorted by file name = Seq
+  order) brought to model resolution with ``iris_runtime.images.fit_to_model``, with optional
+  cameras from nerfstudio ``transforms.json`` or COLMAP text files, intrinsics adjusted for the crop.
+
+``SceneData`` is a dataclass, which torch's default collate does not batch: use a ``collate_fn``
+(or index one scene per step, as the training loop draws V views of *one* scene).
+"""
+from __future__ import annotations
+
+import io
+import json
+import multiprocessing as mp
+import os
+import tempfile
+import time
+import warnings
+import zipfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterable, Sequence
+
+import numpy as np
+
+from iris_runtime.camera_io import CameraSet, read_colmap_text, read_transforms_json
+from iris_runtime.errors import ImageError, InputError
+from iris_runtime.images import CropResize, fit_to_model, load_image
+
+from .synthetic import GENERATOR_VERSION, SceneData, render_scene
+
+__all__ = ["TRAIN_SEEDS", "HELDOUT_SEEDS", "IMAGE_SUFFIXES", "default_cache_dir", "SyntheticScenes",
+           "pregenerate", "main", "save_scene", "load_scene", "FolderScene", "load_scene_folder",
+           "load_dataset_folder", "relative_to_first"]
+
+# Fixed seed splits. Training draws only from TRAIN_SEEDS; HELDOUT_SEEDS lie far outside that
+# range so that no training run, whatever its length, ever sees a held-out scene. The held-out
+# scenes are the evaluation set for NVS (PSNR/SSIM) and pose (RPA) numbers.
+TRAIN_SEEDS = range(0, 100_000)
+HELDOUT_SEEDS = tuple(range(1_000_000, 1_000_016))
+assert min(HELDOUT_SEEDS) > TRAIN_SEEDS[-1]
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
+
+
+# ----------------------------------------------------------------------------------------------
+# Synthetic scenes, cached
+# ----------------------------------------------------------------------------------------------
+
+def default_cache_dir(size: tuple[int, int] = (64, 64)) -> Path:
+    """``$IRIS_CACHE_DIR/synthetic/<H>x<W>`` with ``IRIS_CACHE_DIR`` defaulting to ``~/.cache/iris``."""
+    root = Path(os.environ.get("IRIS_CACHE_DIR", Path.home() / ".cache" / "iris"))
+    return root / "synthetic" / f"{int(size[0])}x{int(size[1])}"
+
+
+def _cache_path(cache_dir: Path, seed: int, n_views: int) -> Path:
+    return Path(cache_dir) / f"scene_{int(seed):07d}_v{int(n_views)}.npz"
+
+
+def save_scene(path: Path, scene: SceneData) -> None:
+    """Write ``scene`` to ``path`` (.npz, compressed) atomically: temp file + ``os.replace``.
+
+    ``meta`` is stored as JSON; numpy arrays inside ``meta`` (marker coverage) are not stored.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    meta = {k: v for k, v in scene.meta.items() if not isinstance(v, np.ndarray)}
+    buf = io.BytesIO()
+    np.savez_compressed(buf, images=scene.images, world_from_cam=scene.world_from_cam, K=scene.K,
+                        depth=scene.depth, meta=np.array(json.dumps(meta)),
+                        generator_version=np.array(GENERATOR_VERSION))
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(buf.getbuffer())
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        raise
+
+
+def load_scene(path: Path) -> SceneData:
+    """Read a scene written by ``save_scene``. Raises ``InputError`` if unreadable or stale."""
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            version = int(z["generator_version"])
+            if version != GENERATOR_VERSION:
+                raise InputError(f"{path}: generator version {version}, expected {GENERATOR_VERSION}")
+            return SceneData(images=z["images"], world_from_cam=z["world_from_cam"], K=z["K"],
+                             depth=z["depth"], meta=json.loads(str(z["meta"])))
+    except InputError:
+        raise
+    except (OSError, KeyError, ValueError, zipfile.BadZipFile, EOFError) as e:
+        raise InputError(f"{path}: not a readable cached scene ({type(e).__name__}: {e})") from None
+
+
+class SyntheticScenes:
+    """Synthetic scenes by seed, generated on first access and cached on disk.
+
+    ``SyntheticScenes(seeds, n_views=8, size=(64, 64), cache_dir=None)[i]`` is the ``SceneData``
+    of ``seeds[i]`` (images uint8 [V, H, W, 3], world_from_cam [V, 4, 4], K [3, 3], depth
+    [V, H, W]). A map-style dataset: works with ``torch.utils.data.DataLoader`` given a collate_fn.
+    """
+
+    def __init__(self, seeds: Sequence[int], n_views: int = 8, size: tuple[int, int] = (64, 64),
+                 cache_dir: Path | None = None, kind: str | None = None):
+        self.seeds = seeds
+        self.n_views = int(n_views)
+        self.size = (int(size[0]), int(size[1]))
+        self.cache_dir = Path(cache_dir) if cache_dir is not None else default_cache_dir(self.size)
+        self.kind = kind
+        if kind is not None and self.cache_dir == default_cache_dir(self.size):
+            # The default cache holds mixed kinds; keep single-kind scenes apart.
+            self.cache_dir = self.cache_dir / kind
+
+    def __len__(self) -> int:
+        return len(self.seeds)
+
+    def path(self, seed: int) -> Path:
+        return _cache_path(self.cache_dir, seed, self.n_views)
+
+    def __getitem__(self, i: int) -> SceneData:
+        if not -len(self) <= i < len(self):
+            raise IndexError(f"index {i} out of range for {len(self)} scenes")
+        return self.get_seed(int(self.seeds[i]))
+
+    def get_seed(self, seed: int) -> SceneData:
+        p = self.path(seed)
+        if p.exists():
+            try:
+                scene = load_scene(p)
+                if scene.images.shape[:3] == (self.n_views, *self.size):
+                    return scene
+            except InputError as e:
+                warnings.warn(f"regenerating cached scene: {e}", stacklevel=2)
+        scene = render_scene(seed, self.n_views, self.size, kind=self.kind)
+        save_scene(p, scene)
+        return scene
+
+    def is_cached(self, seed: int) -> bool:
+        return self.path(seed).exists()
+
+
+def _pool_init() -> None:
+    # Each worker renders on one core; llvmpipe would otherwise start one thread per core in
+    # every worker and the workers would fight over the same cores.
+    os.environ.setdefault("LP_NUM_THREADS", "1")
+
+
+def _same_scene(a: SceneData, b: SceneData) -> bool:
+    return all(np.array_equal(getattr(a, f), getattr(b, f))
+               for f in ("images", "world_from_cam", "K", "depth"))
+
+
+def _generate(args: tuple) -> bool:
+    """Render one scene into the cache; with ``verify``, re-render a cached one and replace it
+    if it differs. Returns True when a stale cached file was replaced."""
+    seed, n_views, size, cache_dir, kind, verify = args
+    ds = SyntheticScenes([seed], n_views, size, cache_dir, kind)
+    if verify and ds.is_cached(seed):
+        try:
+            old = load_scene(ds.path(seed))
+        except InputError:
+            old = None
+        new = render_scene(seed, ds.n_views, ds.size, kind=kind)
+        if old is not None and _same_scene(old, new):
+            return False
+        save_scene(ds.path(seed), new)
+        return True
+    ds.get_seed(seed)
+    return False
+
+
+def pregenerate(seeds: Iterable[int], n_views: int = 8, size: tuple[int, int] = (64, 64),
+                cache_dir: Path | None = None, workers: int = 2, kind: str | None = None,
+                progress: bool = True, verify: bool = False) -> dict:
+    """Render and cache every scene of ``seeds`` not yet cached, with ``workers`` processes.
+
+    ``verify=True`` also re-renders the cached scenes and replaces those that differ from what
+    the current code renders (use it after changing the generator without bumping
+    ``GENERATOR_VERSION``). Returns ``{"generated": n, "cached": n, "replaced": n, "seconds": t,
+    "cache_dir": str}``. Workers are started with the "spawn" method: a forked child would
+    inherit the parent's OpenGL context.
+    """
+    ds = SyntheticScenes(list(seeds), n_views, size, cache_dir, kind)
+    todo = [s for s in ds.seeds if not ds.is_cached(s)]
+    work = list(ds.seeds) if verify else todo
+    t0 = time.perf_counter()
+    jobs = [(s, ds.n_views, ds.size, ds.cache_dir, kind, verify) for s in work]
+    replaced = 0
+    bar = None
+    if progress and work:
+        from tqdm import tqdm
+        bar = tqdm(total=len(work), desc=f"rendering scenes into {ds.cache_dir}", unit="scene")
+    if workers <= 1 or len(work) <= 1:
+        results = map(_generate, jobs)
+        for r in results:
+            replaced += int(r)
+            if bar:
+                bar.update(1)
+    else:
+        with mp.get_context("spawn").Pool(workers, initializer=_pool_init) as pool:
+            for r in pool.imap_unordered(_generate, jobs, chunksize=4):
+                replaced += int(r)
+                if bar:
+                    bar.update(1)
+    if bar:
+        bar.close()
+    return {"generated": len(todo), "cached": len(ds.seeds) - len(todo), "replaced": replaced,
+            "seconds": time.perf_counter() - t0, "cache_dir": str(ds.cache_dir)}
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    """``python -m iris_train.data --train 3000 --heldout [--verify]``: fill the default cache."""
+    import argparse
+
+    ap = argparse.ArgumentParser(description="Pre-generate the synthetic scene cache.")
+    ap.add_argument("--train", type=int, default=0, help="first N training seeds (0..N-1)")
+    ap.add_argument("--heldout", action="store_true", help="the 16 held-out seeds")
+    ap.add_argument("--views", type=int, default=8)
+    ap.add_argument("--size", type=int, nargs=2, default=(64, 64), metavar=("H", "W"))
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--cache-dir", type=Path, default=None)
+    ap.add_argument("--verify", action="store_true",
+                    help="re-render cached scenes and replace those that differ")
+    a = ap.parse_args(argv)
+    for name, seeds in (("train", TRAIN_SEEDS[:a.train]), ("heldout", HELDOUT_SEEDS if a.heldout else ())):
+        if len(seeds):
+            r = pregenerate(seeds, a.views, tuple(a.size), a.cache_dir, a.workers, verify=a.verify)
+            print(json.dumps({"split": name, **r}))
+
+
+if __name__ == "__main__":
+    main()
+
+
+def relative_to_first(world_from_cam: np.ndarray) -> np.ndarray:
+    """Poses ``[V, 4, 4]`` re-expressed in view 0's camera frame (so that result[0] == I)."""
+    T = np.asarray(world_from_cam, dtype=np.float64)
+    R0, c0 = T[0, :3, :3], T[0, :3, 3]
+    cam0_from_world = np.eye(4)
+    cam0_from_world[:3, :3] = R0.T
+    cam0_from_world[:3, 3] = -R0.T @ c0
+    out = cam0_from_world @ T
+    out[0] = np.eye(4)
+    return out
+
+
+# ----------------------------------------------------------------------------------------------
+# Users' folders of photos
+# ----------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class FolderScene:
+    """Photos of one scene brought to model resolution (SceneData-like).
+
+    images:         uint8   [V, H, W, 3]   in file-name order (= Seq order)
+    world_from_cam: float64 [V, 4, 4] | None  OpenCV camera-to-world, None without camera files
+    K:              float64 [V, 3, 3] | None  per view, in pixels of the *output* images
+                                              (adjusted for the crop/resize of each photo)
+    depth:          None (photos have no depth)
+    names:          file names relative to the scene folder
+    crops:          the CropResize of each photo (source size, crop box, scales)
+    meta:           {"path": ..., "camera_source": path of the camera file or None}
+    """
+
+    images: np.ndarray
+    world_from_cam: np.ndarray | None
+    K: np.ndarray | None
+    names: tuple[str, ...]
+    crops: tuple[CropResize, ...]
+    meta: dict = field(default_factory=dict)
+    depth: None = None
+
+    @property
+    def n_views(self) -> int:
+        return int(self.images.shape[0])
+
+
+def _image_files(folder: Path) -> list[Path]:
+    return sorted((p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES
+                   and not p.name.startswith(".")), key=lambda p: p.name)
+
+
+def _find_images(folder: Path) -> list[Path]:
+    """Images directly in ``folder``, else in ``folder/images`` (nerfstudio / COLMAP layout)."""
+    files = _image_files(folder)
+    if not files and (folder / "images").is_dir():
+        files = _image_files(folder / "images")
+    return files
+
+
+def _find_cameras(folder: Path, image_size) -> CameraSet | None:
+    if (folder / "transforms.json").is_file():
+        return read_transforms_json(folder / "transforms.json", image_size=image_size)
+    for d in (folder, folder / "sparse" / "0", folder / "sparse", folder / "colmap"):
+        if (d / "cameras.txt").is_file() and (d / "images.txt").is_file():
+            return read_colmap_text(d)
+    return None
+
+
+def load_scene_folder(path, size: tuple[int, int] = (64, 64)) -> FolderScene:
+    """Load a folder of photos (.png/.jpg/.jpeg, any size) as one scene at model resolution.
+
+    Images are taken from ``path`` or, if it holds none, from ``path/images``, sorted by file
+    name. Cameras are read from ``path/transforms.json`` or COLMAP text files (``path``,
+    ``path/sparse/0``, ``path/sparse`` or ``path/colmap``) when present; every image must then
+    have a camera. Raises ``InputError`` (folder, cameras) or ``ImageError`` (a photo), naming the
+    file.
+    """
+    folder = Path(path)
+    if not folder.is_dir():
+        raise InputError(f"path: {folder} is not a folder")
+    height, width = int(size[0]), int(size[1])
+    files = _find_images(folder)
+    if not files:
+        raise InputError(f"{folder}: no images ({', '.join(IMAGE_SUFFIXES)}) in the folder or in "
+                         "its images/ subfolder")
+    names = tuple(p.relative_to(folder).as_posix() for p in files)
+
+    def image_size(file_path: str) -> tuple[int, int]:
+        """(h, w) of an image a camera file names without giving its size (instant-ngp)."""
+        from PIL import Image
+
+        cands = [folder / file_path, folder / (file_path + ".png")]
+        for c in cands:
+            if c.is_file():
+                try:
+                    with Image.open(c) as im:
+                        return im.height, im.width
+                except OSError as e:
+                    raise ImageError(f"{c}: not a readable image ({e})") from None
+        i = next((k for k, n in enumerate(names) if Path(n).stem == Path(file_path).stem), None)
+        if i is None:
+            raise InputError(f"{folder}: camera file names {file_path!r}, which is not in the folder")
+        return image_size(names[i])
+
+    cams = _find_cameras(folder, image_size)
+    images, crops, Ks, poses = [], [], [], []
+    for p, name in zip(files, names):
+        img = load_image(p, name=str(p))
+        out, plan = fit_to_model(img, height, width)
+        images.append(out)
+        crops.append(plan)
+        if cams is None:
+            continue
+        idx = cams.index_of(name)
+        if idx is None:
+            raise InputError(f"{p}: no camera for this image in {cams.source} "
+                             "(or several cameras match its name)")
+        K = cams.K[idx].copy()
+        ch, cw = (int(x) for x in cams.sizes[idx])
+        ih, iw = img.shape[:2]
+        if (ch, cw) != (ih, iw):
+            # Cameras computed on a resized copy of the photo: rescale when the aspect agrees.
+            if abs(cw / ch - iw / ih) > 0.01 * (iw / ih):
+                raise InputError(f"{p}: image is {iw}x{ih} but {cams.source} describes it as "
+                                 f"{cw}x{ch} (different aspect ratio)")
+            K = np.diag([iw / cw, ih / ch, 1.0]) @ K
+        Ks.append(plan.adjust_intrinsics(K))
+        poses.append(cams.world_from_cam[idx])
+    return FolderScene(
+        images=np.stack(images), world_from_cam=np.stack(poses) if cams is not None else None,
+        K=np.stack(Ks) if cams is not None else None, names=names, crops=tuple(crops),
+        meta={"path": str(folder), "camera_source": cams.source if cams is not None else None})
+
+
+def load_dataset_folder(path, size: tuple[int, int] = (64, 64)) -> list[FolderScene]:
+    """Every scene folder (a sub-folder holding images) of ``path``, sorted by name."""
+    root = Path(path)
+    if not root.is_dir():
+        raise InputError(f"path: {root} is not a folder")
+    scenes = [load_scene_folder(d, size) for d in sorted(p for p in root.iterdir() if p.is_dir())
+              if _find_images(d)]
+    if not scenes:
+        raise InputError(f"{root}: no scene folders (sub-folders with images) inside")
+    return scenes
