@@ -193,7 +193,7 @@ def run(args: argparse.Namespace) -> int:
     from .errors import InputError
     from .images import fit_to_model, load_image
     from .orbit import orbit_poses
-    from .runtime import IrisRuntime
+    from .runtime import MAX_CHUNK_SAMPLES, IrisRuntime
 
     say = (lambda *a: None) if args.quiet else (lambda *a: print("iris-render:", *a, flush=True))
     t_all = time.perf_counter()
@@ -202,6 +202,15 @@ def run(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     rt = IrisRuntime(args.model_dir, threads=args.threads, precision=args.precision)
     H, W = rt.image_size
+    # Request limits (runtime.MAX_OUTPUT_PIXELS, max_views, MAX_CHUNK_SAMPLES) before any work.
+    size = rt.check_output_size(*args.size) if args.size else (H, W)
+    if len(args.images) > rt.max_views:
+        raise InputError(f"IMAGES: {len(args.images)} images, at most {rt.max_views} for this "
+                         f"model (the encoder's memory grows with the square of the views)")
+    if args.chunk_rays and (min(args.chunk_rays, size[0] * size[1]) * rt.samples
+                            * len(args.images) > MAX_CHUNK_SAMPLES):
+        raise InputError(f"--chunk-rays {args.chunk_rays}: rays x samples x views per call exceeds "
+                         f"MAX_CHUNK_SAMPLES = {MAX_CHUNK_SAMPLES}")
     inputs = [fit_to_model(load_image(p, p), H, W)[0] for p in args.images]
     V = len(inputs)
     bad = [i for i in args.view if i >= V]
@@ -242,7 +251,6 @@ def run(args: argparse.Namespace) -> int:
         (out / "orbit_poses.json").write_text(json.dumps(orbit.tolist()) + "\n")
 
     # 4. Render.
-    size = args.size or (H, W)
     progress = _Progress(total=len(jobs) * size[0] * size[1], enabled=not args.quiet)
     totals = {"rays": 0.0, "renderer": 0.0, "write": 0.0}
     t_render = time.perf_counter()

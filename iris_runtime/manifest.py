@@ -12,7 +12,13 @@ Checks, each failing with a typed ``ModelFileError`` that names the file and wha
   directory, or an I/O spec that lacks a name the runtime feeds or reads;
 - ``ModelFormatError``: format name other than ``"iris-model"`` or a version other than 1;
 - ``ModelIntegrityError``: a graph file whose sha256 differs from the manifest's (tampered,
-  truncated or replaced); a missing graph file is a plain ``ModelFileError``.
+  truncated or replaced); a missing graph file is a plain ``ModelFileError``;
+- external data: iris-export writes self-contained graphs. A graph whose tensors refer to ONNX
+  external data is refused before onnxruntime sees it (``check_self_contained``): a location that
+  is absolute, contains ``..`` or resolves outside the model directory is a ``ManifestError``, any
+  other one a ``ModelFileError``. (The runtime builds sessions from the checked bytes, and for a
+  model loaded from bytes onnxruntime resolves external data against the process's working
+  directory, not the model's, and older releases do not confine it at all.)
 """
 from __future__ import annotations
 
@@ -104,7 +110,135 @@ def read_graph_bytes(entry: GraphEntry) -> bytes:
     except OSError as exc:
         raise ModelFileError(f"{entry.path}: cannot read the {entry.name} graph: {exc}") from None
     _check_digest(entry, hashlib.sha256(data).hexdigest())
+    check_self_contained(entry, data)
     return data
+
+
+# -- external data ------------------------------------------------------------------------------
+# A minimal reader of the protobuf wire format, enough to find every TensorProto of an ONNX model
+# (torch-free and onnx-free: the runtime depends on neither). Field numbers are onnx.proto3's.
+_MODEL_GRAPH, _MODEL_FUNCTIONS = 7, 25
+_GRAPH_NODE, _GRAPH_INITIALIZER, _GRAPH_SPARSE_INITIALIZER = 1, 5, 15
+_FUNCTION_NODE = 7
+_NODE_ATTRIBUTE = 5
+_ATTR_T, _ATTR_G, _ATTR_TENSORS, _ATTR_GRAPHS, _ATTR_SPARSE, _ATTR_SPARSES = 5, 6, 10, 11, 22, 23
+_SPARSE_VALUES, _SPARSE_INDICES = 1, 2
+_TENSOR_EXTERNAL_DATA = 13
+_ENTRY_KEY, _ENTRY_VALUE = 1, 2
+
+
+def _varint(buf: memoryview, i: int) -> tuple[int, int]:
+    value = shift = 0
+    while True:
+        b = buf[i]
+        i += 1
+        value |= (b & 0x7F) << shift
+        if b < 0x80:
+            return value, i
+        shift += 7
+        if shift > 63:
+            raise ValueError("varint too long")
+
+
+def _fields(buf: memoryview):
+    """(field number, payload) of each length-delimited field of one message; others skipped."""
+    i, n = 0, len(buf)
+    while i < n:
+        key, i = _varint(buf, i)
+        number, wire = key >> 3, key & 7
+        if wire == 0:
+            _, i = _varint(buf, i)
+        elif wire == 1:
+            i += 8
+        elif wire == 5:
+            i += 4
+        elif wire == 2:
+            length, i = _varint(buf, i)
+            if i + length > n:
+                raise ValueError("truncated field")
+            yield number, buf[i:i + length]
+            i += length
+        else:
+            raise ValueError(f"unsupported wire type {wire}")
+
+
+def _tensor_locations(tensor: memoryview, out: list) -> None:
+    external, location = False, ""
+    for number, payload in _fields(tensor):
+        if number == _TENSOR_EXTERNAL_DATA:
+            external = True
+            entry = dict(_fields(payload))
+            if bytes(entry.get(_ENTRY_KEY, b"")) == b"location":
+                location = bytes(entry.get(_ENTRY_VALUE, b"")).decode("utf-8", "replace")
+    if external:
+        out.append(location)
+
+
+def _graph_locations(graph: memoryview, out: list, depth: int = 0) -> None:
+    if depth > 64:
+        raise ValueError("graphs nested too deeply")
+    for number, payload in _fields(graph):
+        if number == _GRAPH_INITIALIZER:
+            _tensor_locations(payload, out)
+        elif number == _GRAPH_SPARSE_INITIALIZER:
+            _sparse_locations(payload, out)
+        elif number == _GRAPH_NODE:
+            _node_locations(payload, out, depth)
+
+
+def _sparse_locations(sparse: memoryview, out: list) -> None:
+    for number, payload in _fields(sparse):
+        if number in (_SPARSE_VALUES, _SPARSE_INDICES):
+            _tensor_locations(payload, out)
+
+
+def _node_locations(node: memoryview, out: list, depth: int) -> None:
+    for number, payload in _fields(node):
+        if number != _NODE_ATTRIBUTE:
+            continue
+        for a_number, a_payload in _fields(payload):
+            if a_number in (_ATTR_T, _ATTR_TENSORS):
+                _tensor_locations(a_payload, out)
+            elif a_number in (_ATTR_G, _ATTR_GRAPHS):
+                _graph_locations(a_payload, out, depth + 1)
+            elif a_number in (_ATTR_SPARSE, _ATTR_SPARSES):
+                _sparse_locations(a_payload, out)
+
+
+def external_data_locations(data: bytes) -> list[str] | None:
+    """Locations of the external data that the tensors of the ONNX model ``data`` refer to (``[]``
+    for a self-contained model), or None when ``data`` is not a parseable protobuf message."""
+    out: list[str] = []
+    try:
+        for number, payload in _fields(memoryview(data)):
+            if number == _MODEL_GRAPH:
+                _graph_locations(payload, out)
+            elif number == _MODEL_FUNCTIONS:
+                for f_number, f_payload in _fields(payload):
+                    if f_number == _FUNCTION_NODE:
+                        _node_locations(f_payload, out, 0)
+    except (IndexError, ValueError):
+        return None                 # not protobuf: onnxruntime refuses it with its own error
+    return out
+
+
+def check_self_contained(entry: GraphEntry, data: bytes) -> None:
+    """Refuse a graph whose tensors refer to external data (see the module docstring)."""
+    locations = external_data_locations(data)
+    if not locations:
+        return
+    root = entry.path.parent
+    for location in locations:
+        posix, windows = PurePosixPath(location), PureWindowsPath(location)
+        escapes = (posix.is_absolute() or windows.is_absolute() or bool(windows.drive)
+                   or ".." in posix.parts or ".." in windows.parts
+                   or not (root / location).resolve().is_relative_to(root))
+        if escapes:
+            raise ManifestError(f"{entry.path}: the {entry.name} graph refers to external data "
+                                f"{location!r}, which points outside the model directory {root}")
+    raise ModelFileError(f"{entry.path}: the {entry.name} graph refers to external data "
+                         f"{locations[0]!r}; expected a self-contained graph (as iris-export "
+                         f"writes it)")
 
 
 def read_manifest(model_dir: str | os.PathLike, *, verify_hashes: bool = True) -> Manifest:
@@ -195,7 +329,9 @@ def read_manifest(model_dir: str | os.PathLike, *, verify_hashes: bool = True) -
             if not entry.path.is_file():
                 raise ModelFileError(f"{entry.path}: {entry.name} graph file is missing "
                                      f"(listed in {path})")
-            _check_digest(entry, sha256_file(entry.path))
+            data = entry.path.read_bytes()
+            _check_digest(entry, hashlib.sha256(data).hexdigest())
+            check_self_contained(entry, data)
     return manifest
 
 

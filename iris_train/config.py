@@ -4,6 +4,8 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 
+from iris_runtime.errors import InputError    # an IrisError and a ValueError
+
 
 @dataclass(frozen=True)
 class ModelConfig:
@@ -33,14 +35,14 @@ class ModelConfig:
 
     def __post_init__(self):
         if self.image_height % self.patch_size or self.image_width % self.patch_size:
-            raise ValueError(f"image size {self.image_height}x{self.image_width} must be a multiple "
+            raise InputError(f"image size {self.image_height}x{self.image_width} must be a multiple "
                              f"of patch_size {self.patch_size}")
         if self.encoder_width % self.encoder_heads or self.field_width % self.field_heads:
-            raise ValueError("widths must be divisible by their head counts")
+            raise InputError("widths must be divisible by their head counts")
         if not 0 < self.near < self.far:
-            raise ValueError(f"need 0 < near < far, got near={self.near}, far={self.far}")
+            raise InputError(f"need 0 < near < far, got near={self.near}, far={self.far}")
         if not 0 < self.focal_min < self.focal_max:
-            raise ValueError("need 0 < focal_min < focal_max")
+            raise InputError("need 0 < focal_min < focal_max")
 
     @property
     def feature_grid(self) -> tuple[int, int]:
@@ -63,7 +65,7 @@ class ModelConfig:
         known = {f.name for f in dataclasses.fields(cls)}
         unknown = set(d) - known
         if unknown:
-            raise ValueError(f"unknown ModelConfig fields: {sorted(unknown)}")
+            raise InputError(f"unknown ModelConfig fields: {sorted(unknown)}")
         return cls(**d)
 
 
@@ -81,4 +83,4 @@ def preset(name: str) -> ModelConfig:
     try:
         return PRESETS[name]
     except KeyError:
-        raise ValueError(f"unknown preset {name!r}; expected one of {sorted(PRESETS)}") from None
+        raise InputError(f"unknown preset {name!r}; expected one of {sorted(PRESETS)}") from None

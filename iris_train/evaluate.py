@@ -430,8 +430,9 @@ def load_evaluable(path: str | os.PathLike, threads: int | None = None):
     path = Path(path)
     if path.is_dir():
         if not (path / "iris.json").is_file():
-            raise FileNotFoundError(f"MODEL {str(path)!r} is a directory without iris.json "
-                                    "(expected an exported model directory or a .pt checkpoint)")
+            from iris_runtime.errors import ManifestError
+            raise ManifestError(f"MODEL {str(path)!r} is a directory without iris.json "
+                                "(expected an exported model directory or a .pt checkpoint)")
         from iris_runtime import IrisRuntime      # lazily: the runtime is optional here
         return IrisRuntime(path, threads=threads)
     from .model import load_model
@@ -447,11 +448,12 @@ def load_scenes(data: str, image_size: tuple[int, int], views: int = DEFAULT_VIE
         # Rendered on first use and cached on disk (iris_train.data.default_cache_dir).
         scenes = SyntheticScenes(list(HELDOUT_SEEDS)[:limit], n_views=views, size=tuple(image_size))
         return (scenes[i] for i in range(len(scenes))), len(scenes)
+    from iris_runtime.errors import InputError
     if data.startswith("synthetic:"):
-        raise ValueError(f"DATA {data!r}: the only synthetic set is 'synthetic:heldout'")
+        raise InputError(f"DATA {data!r}: the only synthetic set is 'synthetic:heldout'")
     path = Path(data)
     if not path.is_dir():
-        raise FileNotFoundError(f"DATA {data!r}: not 'synthetic:heldout' and not a folder")
+        raise InputError(f"DATA {data!r}: not 'synthetic:heldout' and not a folder")
     from .data import load_dataset_folder
     scenes = load_dataset_folder(path, size=tuple(image_size))[:limit]
     return scenes, len(scenes)

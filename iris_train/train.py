@@ -30,6 +30,7 @@ import torch
 import torch.distributed as dist
 import torch.nn as nn
 
+from iris_runtime.errors import InputError
 from iris_runtime.geometry import sample_depths
 
 from . import geometry as G
@@ -234,7 +235,10 @@ def main(argv: list[str] | None = None) -> int:
                             default=field.default, help=f"(default: {field.default})")
     args = parser.parse_args(argv)
     cfg = TrainConfig(**{f.name: getattr(args, f.name) for f in dataclasses.fields(TrainConfig)})
-    preset(cfg.preset)   # fail early on a bad preset name
+    try:
+        preset(cfg.preset)   # fail early on a bad preset name
+    except InputError as exc:
+        parser.error(str(exc))
     path = train(cfg, args.out, resume=args.resume, threads=args.threads,
                  max_seconds=None if args.max_minutes is None else 60 * args.max_minutes)
     if int(os.environ.get("RANK", "0")) == 0:

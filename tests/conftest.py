@@ -31,8 +31,6 @@ def torch_export(tmp_path_factory):
 
     torch.manual_seed(0)
     model = iris_train.build_model(iris_train.preset("tiny")).eval()
-    if os.environ.get("_IRIS_DEV_EXPORT"):  # DEVREMOVE
-        return Path(os.environ["_IRIS_DEV_EXPORT"]), model  # DEVREMOVE
     out = tmp_path_factory.mktemp("iris_model") / "tiny"
     export_model(model, out, quick=True, progress=False, threads=1)
     return out, model

@@ -31,42 +31,11 @@ from iris_runtime.orbit import orbit_poses
 REPO = Path(__file__).resolve().parents[1]
 
 
-def _has_torch() -> bool:
-    try:
-        import torch  # noqa: F401
-    except ImportError:
-        return False
-    return True
-
-
 # ----------------------------------------------------------------------------------------------
 # Fixtures
 # ----------------------------------------------------------------------------------------------
 
-@pytest.fixture(scope="session")
-def torch_export(tmp_path_factory):
-    """(model_dir, IrisModel): a random tiny model and its export (needs torch and onnx)."""
-    torch = pytest.importorskip("torch")
-    pytest.importorskip("onnx")
-    import iris_train
-    from export.pipeline import export_model
-
-    torch.manual_seed(0)
-    model = iris_train.build_model(iris_train.preset("tiny")).eval()
-    out = tmp_path_factory.mktemp("iris_model") / "tiny"
-    export_model(model, out, quick=True, progress=False, threads=1)
-    return out, model
-
-
-@pytest.fixture(scope="session")
-def model_dir(request) -> Path:
-    env = os.environ.get("IRIS_TEST_MODEL_DIR")
-    if env:
-        return Path(env)
-    if not _has_torch():
-        pytest.skip("no IRIS_TEST_MODEL_DIR and no torch to export a model")
-    return request.getfixturevalue("torch_export")[0]
-
+# ``torch_export`` and ``model_dir`` (one exported model per session) live in tests/conftest.py.
 
 @pytest.fixture(scope="session")
 def rt(model_dir) -> IrisRuntime:
