@@ -1,0 +1,26 @@
+#!/usr/bin/env bash
+# The main job on a fresh machine: set up .venv, export the shipped default model to ONNX, and run
+# the torch-free runtime on a held-out sample scene (cameras, novel views, a path video, depth).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+PY=${PYTHON:-python3}
+MODEL=${IRIS_MODEL:-models/iris-tiny.pt}
+SCENE=${IRIS_SCENE:-samples/heldout-1000003}
+OUT=${IRIS_OUT:-out}
+
+if [ ! -x .venv/bin/python ]; then
+  echo "== setting up .venv (torch pinned to the CPU build: an unpinned torch pulls a CUDA build)"
+  $PY -m venv .venv
+  .venv/bin/pip install -q --disable-pip-version-check torch==2.13.0
+  .venv/bin/pip install -q --disable-pip-version-check -e ".[train]"
+fi
+
+echo "== 1/2 export $MODEL -> $OUT/model (two ONNX graphs + iris.json, validated against torch)"
+.venv/bin/iris-export "$MODEL" "$OUT/model" --force
+
+echo "== 2/2 render $SCENE with the torch-free runtime"
+# Re-render frames 1, 4 and 6 from their predicted poses, plus a 24-frame orbit video.
+.venv/bin/iris-render "$OUT/model" "$SCENE"/frame_*.png -o "$OUT/render" \
+  --view 1 --view 4 --view 6 --orbit 24
+echo
+echo "outputs: $OUT/model (graphs + manifest), $OUT/render (PNGs, depth, orbit.mp4, transforms.json, colmap/)"
