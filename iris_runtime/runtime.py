@@ -37,12 +37,17 @@ import numpy as np
 import onnxruntime as ort
 
 from . import geometry as G
+from . import quality as Q
 from .errors import InputError, ManifestError, ModelFileError
 from .images import fit_to_model, load_image
 from .manifest import MANIFEST_NAME, Manifest, read_graph_bytes, read_manifest
 
 __all__ = ["IrisRuntime", "Scene", "RenderResult", "check_pose", "RENDER_BUDGET", "MAX_CHUNK_RAYS",
-           "PRECISIONS"]
+           "MAX_OUTPUT_PIXELS", "MAX_ENCODER_TOKENS", "MAX_CHUNK_SAMPLES", "render_memory_bound",
+           "PRECISIONS", "RenderSettings", "QUALITY_PRESETS"]
+
+RenderSettings = Q.RenderSettings
+QUALITY_PRESETS = Q.QUALITY_PRESETS
 
 #: Rays per renderer call: ``min(MAX_CHUNK_RAYS, RENDER_BUDGET // (S * V))``, V the scene's
 #: reference views (the worst case of the culled V'): 256 rays for 1-2 views, 128 for 4, 64 for 8
@@ -55,6 +60,32 @@ __all__ = ["IrisRuntime", "Scene", "RenderResult", "check_pose", "RENDER_BUDGET"
 #: 1.5-2.5 GB for no gain; this budget keeps a chunk near 0.1-0.35 GB.
 RENDER_BUDGET = 32 * 1024
 MAX_CHUNK_RAYS = 256
+
+# -- Request limits (checked before anything is allocated; exceeding one raises InputError) --------
+#: Output pixels per render (4096 x 4096). The output is assembled whole: float32 rgb + depth, the
+#: uint8 image and the clipping temporaries take ~31 bytes per pixel, 0.5 GB at this limit (and
+#: the render itself ~1-2 ms of CPU per ray: hours). Larger views: render tiles with ``intrinsics``.
+MAX_OUTPUT_PIXELS = 4096 * 4096
+#: Encoder tokens per ``encode`` call: views x (patches per view + 1 camera token). Cross-view
+#: attention memory grows with the square of the tokens (tiny model, 64 tokens + 1 per view,
+#: measured peak RSS over the runtime's: 32 views +0.22 GB, 128 views +2.5 GB; ONNX-NOTES.md: 8192
+#: tokens 4.1 GB). 4160 tokens (64 views of the tiny model, 16 of the paper preset) stay under
+#: ~0.7 GB. ``IrisRuntime.max_views`` is this limit in views of the model at hand.
+MAX_ENCODER_TOKENS = 4160
+#: Rays x samples x views per renderer call when ``chunk_rays`` is given explicitly (8 x the default
+#: budget): ONNX Runtime's peak grows linearly with it (``render_memory_bound``), ~1 GB here.
+MAX_CHUNK_SAMPLES = 8 * RENDER_BUDGET
+
+
+def render_memory_bound(num_views: int, chunk_rays: int, samples: int = 64,
+                        concurrent: int = 1) -> int:
+    """Documented bound (bytes) of the memory that ``concurrent`` renders in flight add to a warm
+    runtime: per renderer call (1.2 + 0.1 V) MB per ray at S = 64 samples, scaled by S / 64 (the
+    measurements of ``RENDER_BUDGET``'s comment, rounded up to 1.5 + 0.15 V), plus 64 MB of numpy
+    geometry and allocator slack per call. The 8-thread load test of tests/test_stability.py
+    checks it."""
+    per_ray = (1.5 + 0.15 * num_views) * 2 ** 20 * samples / 64
+    return int(concurrent * (chunk_rays * per_ray + 64 * 2 ** 20))
 
 #: Renderer graph per precision: "int8" is the dynamically quantised variant iris-export writes with
 #: --quantize int8 (its error vs torch is in the manifest's validation report). Dynamic quantisation
@@ -129,10 +160,17 @@ class Scene:
     model_id: str = ""
 
     def __post_init__(self):
-        maps = _readonly(self.field_maps, np.float32)
-        poses = _readonly(self.world_from_cam, np.float64)
-        focal = _readonly(self.focal, np.float64)
-        K = _readonly(self.K, np.float64)
+        arrays = {}
+        for name, dtype in (("field_maps", np.float32), ("world_from_cam", np.float64),
+                            ("focal", np.float64), ("K", np.float64)):
+            try:
+                arrays[name] = _readonly(getattr(self, name), dtype)
+            except (TypeError, ValueError):
+                raise InputError(f"{name}: expected an array of numbers, got "
+                                 f"{type(getattr(self, name)).__name__}") from None
+            if not np.all(np.isfinite(arrays[name])):
+                raise InputError(f"{name}: contains NaN or inf")
+        maps, poses, focal, K = (arrays[k] for k in ("field_maps", "world_from_cam", "focal", "K"))
         if maps.ndim != 4 or maps.shape[0] == 0:
             raise InputError(f"field_maps: expected [V, C', h, w] with V >= 1, got {maps.shape}")
         V = maps.shape[0]
@@ -140,6 +178,12 @@ class Scene:
             raise InputError(f"world_from_cam: expected [{V}, 4, 4], got {poses.shape}")
         if focal.shape != (2,) or K.shape != (3, 3):
             raise InputError(f"focal, K: expected [2] and [3, 3], got {focal.shape} and {K.shape}")
+        if not np.all(focal > 0) or K[0, 0] <= 0 or K[1, 1] <= 0:
+            raise InputError(f"focal, K: expected positive focal lengths, got focal "
+                             f"{focal.tolist()} and K diagonal {np.diag(K).tolist()}")
+        for i in range(V):
+            if not G.is_rigid(poses[i]):
+                check_pose(poses[i], f"world_from_cam[{i}]")   # raises, saying what is wrong
         size = tuple(int(s) for s in self.image_size)
         if len(size) != 2 or min(size) <= 0:
             raise InputError(f"image_size: expected (H, W) positive, got {self.image_size!r}")
@@ -160,7 +204,11 @@ class Scene:
     def subset(self, indices: Sequence[int]) -> "Scene":
         """A scene keeping only views ``indices`` (in that order) as references, in the same
         camera frame (poses are not re-based: view 0 of the original stays the world frame)."""
-        idx = np.asarray(list(indices) if not isinstance(indices, np.ndarray) else indices)
+        try:
+            idx = np.asarray(list(indices) if not isinstance(indices, np.ndarray) else indices)
+        except (TypeError, ValueError):
+            raise InputError(f"indices: expected a non-empty sequence of view indices (ints), "
+                             f"got {indices!r}") from None
         V = self.num_views
         if idx.ndim != 1 or idx.size == 0 or not (np.issubdtype(idx.dtype, np.integer)):
             raise InputError(f"indices: expected a non-empty sequence of view indices (ints), "
@@ -187,12 +235,18 @@ class RenderResult:
     depth:       float32 [H, W]    soft camera depth sum_m w_m z_m in model units, within
                                    [near, far]; 0 where no sample sees any reference view
     timings:     seconds per stage (``load``/``encode`` when images were given, ``rays``: numpy
-                 geometry, ``renderer``: ONNX Runtime, ``total``)
+                 geometry, ``renderer``: ONNX Runtime, ``upsample`` when scale < 1, ``total``)
+    work:        what the renderer graph was given: ``calls``, and over the calls the sums of
+                 R (``rays``), R*S (``points``), R*S*V' (``point_views``) and R*S^2
+                 (``ray_pairs``), R/S/V' the rays, samples and views of a call (FLOP counts)
+    settings:    the ``RenderSettings`` used
     """
     image: np.ndarray
     image_float: np.ndarray
     depth: np.ndarray
     timings: dict = field(default_factory=dict)
+    work: dict = field(default_factory=dict)
+    settings: "Q.RenderSettings | None" = None
 
 
 class IrisRuntime:
@@ -202,18 +256,27 @@ class IrisRuntime:
     physical core). ``precision``: "float32" (default) or "int8" (the quantised renderer, when
     the model was exported with ``--quantize int8``). ``cull``: skip samples, views and rays
     that see no reference view (exact, see the module docstring; False only to check that).
+    ``workers``: renderer calls in flight at once within one render (Python threads over blocks of
+    rays, exact: the same calls, only concurrent); with ``workers > 1`` each renderer session
+    runs ``max(1, threads // workers)`` intra-op threads (``threads`` None: the usable CPUs), so
+    ``workers=2`` on 2 cores is data-parallel instead of ORT's op-parallel threading.
     Construction reads and checks ``iris.json`` and the sha256 of both graphs; sessions are
     created on first use (and the graph bytes hashed again, so the graph that runs is the one
     that was checked). Safe to share between threads.
     """
 
     def __init__(self, model_dir: str | os.PathLike, threads: int | None = None, *,
-                 precision: str = "float32", cull: bool = True):
-        if precision not in PRECISIONS:
+                 precision: str = "float32", cull: bool = True, workers: int = 1):
+        if isinstance(workers, bool) or not isinstance(workers, (int, np.integer)) or workers < 1:
+            raise InputError(f"workers: expected a positive integer, got {workers!r}")
+        if not isinstance(precision, str) or precision not in PRECISIONS:
             raise InputError(f"precision: expected one of {list(PRECISIONS)}, got {precision!r}")
-        if threads is not None and (isinstance(threads, bool) or threads < 1
-                                    or not isinstance(threads, (int, np.integer))):
+        if threads is not None and (isinstance(threads, bool)
+                                    or not isinstance(threads, (int, np.integer)) or threads < 1):
             raise InputError(f"threads: expected a positive integer or None, got {threads!r}")
+        if not isinstance(model_dir, (str, os.PathLike)):
+            raise InputError(f"model_dir: expected a path to an iris-export output directory, got "
+                             f"{type(model_dir).__name__}")
         self.manifest: Manifest = read_manifest(model_dir)
         self.model_dir: Path = self.manifest.model_dir
         self.threads = None if threads is None else int(threads)
@@ -223,9 +286,10 @@ class IrisRuntime:
             raise ManifestError(f"{self.model_dir / MANIFEST_NAME}: no {precision} renderer "
                                 f"(graphs.{self._renderer}); export with --quantize int8 for it")
         self.cull = bool(cull)
+        self.workers = int(workers)
         self._sessions: dict[str, ort.InferenceSession] = {}
         self._lock = threading.Lock()
-        self._empty_rgb: np.ndarray | None = None
+        self._empty_rgb: dict[str, np.ndarray] = {}       # per renderer graph
 
     # -- model facts ------------------------------------------------------------------------
     @property
@@ -250,9 +314,18 @@ class IrisRuntime:
         return (f"IrisRuntime({str(self.model_dir)!r}, image_size={H}x{W}, samples={self.samples}, "
                 f"threads={self.threads})")
 
-    def default_chunk_rays(self, num_views: int) -> int:
+    @property
+    def max_views(self) -> int:
+        """Most images one ``encode`` accepts: ``MAX_ENCODER_TOKENS`` // (patches per view + 1)."""
+        H, W = self.image_size
+        p = self.manifest.config.get("patch_size", 8)
+        p = p if isinstance(p, int) and not isinstance(p, bool) and p > 0 else 8
+        return MAX_ENCODER_TOKENS // ((H // p) * (W // p) + 1)
+
+    def default_chunk_rays(self, num_views: int, samples: int | None = None) -> int:
         """Rays per renderer call: R * S * V near ``RENDER_BUDGET``, at most ``MAX_CHUNK_RAYS``."""
-        return min(MAX_CHUNK_RAYS, max(1, RENDER_BUDGET // (self.samples * max(1, num_views))))
+        S = samples or self.samples
+        return min(MAX_CHUNK_RAYS, max(1, RENDER_BUDGET // (S * max(1, num_views))))
 
     # -- sessions ---------------------------------------------------------------------------
     def _session(self, name: str) -> ort.InferenceSession:
@@ -271,6 +344,9 @@ class IrisRuntime:
         data = read_graph_bytes(entry)
         opts = ort.SessionOptions()
         opts.intra_op_num_threads = self.threads or 0
+        if self.workers > 1 and name != "encoder":
+            total = self.threads or len(os.sched_getaffinity(0))
+            opts.intra_op_num_threads = max(1, total // self.workers)
         opts.inter_op_num_threads = 1
         opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
         # Optimise in memory at load; never write the optimised graph (ONNX-NOTES: optimised files
@@ -306,6 +382,10 @@ class IrisRuntime:
                              f"{type(images).__name__}") from None
         if not items:
             raise InputError("images: expected at least one image, got an empty sequence")
+        if len(items) > self.max_views:
+            raise InputError(f"images: {len(items)} images, at most {self.max_views} per encode "
+                             f"for this model (MAX_ENCODER_TOKENS = {MAX_ENCODER_TOKENS}: the "
+                             f"encoder's memory grows with the square of the views)")
         H, W = self.image_size
         batch = np.empty((len(items), 3, H, W), dtype=np.float32)
         for i, item in enumerate(items):
@@ -337,6 +417,10 @@ class IrisRuntime:
                                  f"field_maps {maps.shape}, world_from_cam {world_from_cam.shape}, "
                                  f"focal {focal.shape} for {V} views; expected [V, C', h, w], "
                                  f"[V, 4, 4], [2]")
+        if not (np.all(np.isfinite(maps)) and np.all(np.isfinite(world_from_cam))
+                and np.all(np.isfinite(focal))):
+            raise ModelFileError(f"{self.manifest.graphs['encoder'].path}: the encoder returned NaN "
+                                 f"or inf for finite images in [0, 1] (broken weights?)")
         H, W = self.image_size
         focal64 = focal.astype(np.float64)
         return Scene(maps, world_from_cam.astype(np.float64), focal64,
@@ -346,7 +430,11 @@ class IrisRuntime:
     # -- rendering --------------------------------------------------------------------------
     def render(self, images_or_scene, pose, *, height: int | None = None, width: int | None = None,
                intrinsics=None, depth: bool = False, chunk_rays: int | None = None,
-               progress: Callable[[int, int], None] | None = None):
+               progress: Callable[[int, int], None] | None = None,
+               quality: "str | Q.RenderSettings | None" = None, samples: int | None = None,
+               top_k: int | None = None, top_k_by: str | None = None,
+               scale: float | None = None, upsample: str | None = None,
+               precision: str | None = None):
         """Render one view.
 
         images_or_scene: a ``Scene`` from ``encode`` or the reference images (encoded first).
@@ -363,31 +451,77 @@ class IrisRuntime:
                     bounded by it whatever the output size.
         progress:   called as ``progress(rays_done, rays_total)`` after each chunk.
 
+        Speed/quality (``iris_runtime.quality``; measured error and time in docs/PERFORMANCE.md):
+        quality:    a preset, "exact" (default: the full render), "balanced" or "fast"
+                    (``QUALITY_PRESETS``), or a ``RenderSettings``; the keywords below override
+                    single fields of it.
+        samples:    samples per ray (default the model's, 64): bin centres in [near, far].
+        top_k:      keep at most this many reference views per point (largest cue t.s among the
+                    valid views); ``top_k_by`` "ray" (one set of views per ray, so renderer calls
+                    shrink to top_k views) or "point".
+        scale:      render at (H, W) * scale and resize to (H, W) (``upsample`` "linear"/"cubic").
+        precision:  "float32" or "int8" renderer for this call (default: the runtime's).
+
         Returns uint8 [H, W, 3] RGB, or a ``RenderResult`` with ``depth=True``.
         """
         t_start = time.perf_counter()
         timings: dict[str, float] = {}
+        settings = Q.resolve_settings(quality, samples=samples, top_k=top_k, top_k_by=top_k_by,
+                                      scale=scale, upsample=upsample, precision=precision)
+        graph = PRECISIONS[settings.precision or self.precision]
+        if graph not in self.manifest.graphs:
+            raise ManifestError(f"{self.model_dir / MANIFEST_NAME}: no {settings.precision} "
+                                f"renderer (graphs.{graph}); export with --quantize int8 for it")
+        height, width = self._check_size(height, width)        # before encoding or allocating
+        if progress is not None and not callable(progress):
+            raise InputError(f"progress: expected a callable progress(done, total) or None, got "
+                             f"{type(progress).__name__}")
         if isinstance(images_or_scene, Scene):
             scene = images_or_scene
             self._check_scene(scene)
         else:
             scene = self._encode(images_or_scene, timings)
         world_from_cam = self._check_pose(pose, scene)
-        height, width = self._check_size(height, width)
         K = self._check_intrinsics(intrinsics, scene, height, width)
+        S = settings.samples or self.samples
+        by_ray = settings.top_k is not None and settings.top_k_by == "ray"
         if chunk_rays is None:
-            chunk_rays = self.default_chunk_rays(scene.num_views)
+            views = min(scene.num_views, settings.top_k) if by_ray else scene.num_views
+            chunk_rays = self.default_chunk_rays(views, S)
         elif isinstance(chunk_rays, bool) or not isinstance(chunk_rays, (int, np.integer)) \
                 or chunk_rays < 1:
             raise InputError(f"chunk_rays: expected a positive integer, got {chunk_rays!r}")
-        rgb, z = self._render_rays(scene, world_from_cam, K, height, width, int(chunk_rays),
-                                   timings, progress)
-        image_float = rgb.reshape(height, width, 3)
+        elif min(int(chunk_rays), height * width) * S * scene.num_views > MAX_CHUNK_SAMPLES:
+            raise InputError(f"chunk_rays: {int(chunk_rays)} rays x {S} samples x "
+                             f"{scene.num_views} views per renderer call exceeds "
+                             f"MAX_CHUNK_SAMPLES = {MAX_CHUNK_SAMPLES} (memory grows with it); "
+                             f"use at most {max(1, MAX_CHUNK_SAMPLES // (S * scene.num_views))}")
+        h, w = height, width
+        if settings.scale != 1.0:
+            h = max(1, int(round(height * settings.scale)))
+            w = max(1, int(round(width * settings.scale)))
+            if h * w > MAX_OUTPUT_PIXELS:
+                raise InputError(f"scale: renders {h}x{w} pixels, more than MAX_OUTPUT_PIXELS = "
+                                 f"{MAX_OUTPUT_PIXELS}")
+            K = G.scale_intrinsics(K, (height, width), (h, w))
+        work: dict[str, int] = {}
+        rgb, z = self._render_rays(scene, world_from_cam, K, h, w, int(chunk_rays),
+                                   timings, progress, settings, graph, work)
+        image_float = rgb.reshape(h, w, 3)
+        z = z.reshape(h, w)
+        if (h, w) != (height, width):
+            t0 = time.perf_counter()
+            import cv2                         # only needed for scale < 1
+            interp = cv2.INTER_CUBIC if settings.upsample == "cubic" else cv2.INTER_LINEAR
+            image_float = np.clip(cv2.resize(image_float, (width, height), interpolation=interp),
+                                  0.0, 1.0)
+            z = cv2.resize(z, (width, height), interpolation=cv2.INTER_LINEAR)
+            timings["upsample"] = time.perf_counter() - t0
         image = np.rint(np.clip(image_float, 0.0, 1.0) * 255.0).astype(np.uint8)
         timings["total"] = time.perf_counter() - t_start
         if not depth:
             return image
-        return RenderResult(image, image_float, z.reshape(height, width), timings)
+        return RenderResult(image, image_float, z, timings, work, settings)
 
     # .. argument checks ......................................................................
     def _check_scene(self, scene: Scene) -> None:
@@ -412,19 +546,31 @@ class IrisRuntime:
             return scene.world_from_cam[int(pose)].copy()
         return check_pose(pose)
 
-    def _check_size(self, height, width) -> tuple[int, int]:
+    def check_output_size(self, height=None, width=None) -> tuple[int, int]:
+        """The (height, width) that ``render`` would produce (None: the model's, or the model's
+        aspect for one given side), or ``InputError`` for non-positive / non-integer sizes and for
+        more than ``MAX_OUTPUT_PIXELS`` pixels. Allocates nothing (iris-render checks with it
+        before writing anything)."""
         Hm, Wm = self.image_size
         for name, v in (("height", height), ("width", width)):
             if v is not None and (isinstance(v, bool) or not isinstance(v, (int, np.integer))
                                   or v < 1):
                 raise InputError(f"{name}: expected a positive integer or None, got {v!r}")
         if height is None and width is None:
-            return Hm, Wm
-        if height is None:
-            return max(1, round(width * Hm / Wm)), int(width)
-        if width is None:
-            return int(height), max(1, round(height * Wm / Hm))
-        return int(height), int(width)
+            h, w = Hm, Wm
+        elif height is None:
+            h, w = max(1, round(width * Hm / Wm)), int(width)
+        elif width is None:
+            h, w = int(height), max(1, round(height * Wm / Hm))
+        else:
+            h, w = int(height), int(width)
+        if h * w > MAX_OUTPUT_PIXELS:
+            raise InputError(f"height, width: {h}x{w} = {h * w} output pixels exceeds "
+                             f"MAX_OUTPUT_PIXELS = {MAX_OUTPUT_PIXELS} (the output is held in "
+                             f"memory whole, ~31 bytes per pixel); render tiles with intrinsics")
+        return h, w
+
+    _check_size = check_output_size
 
     @staticmethod
     def _check_intrinsics(intrinsics, scene: Scene, height: int, width: int) -> np.ndarray:
@@ -444,10 +590,11 @@ class IrisRuntime:
         return K
 
     # .. the ray loop ........................................................................
-    def _empty_ray_rgb(self, scene: Scene) -> np.ndarray:
+    def _empty_ray_rgb(self, scene: Scene, graph: str | None = None) -> np.ndarray:
         """The renderer's colour for a ray with no valid sample (a constant of the model: every
-        input is masked, so nothing of the scene reaches it). Asked of the graph once."""
-        rgb = self._empty_rgb
+        input is masked, so nothing of the scene reaches it). Asked of each graph once."""
+        graph = graph or self._renderer
+        rgb = self._empty_rgb.get(graph)
         if rgb is None:
             _, C, h, w = scene.field_maps.shape
             feed = {"field_maps": np.zeros((1, C, h, w), np.float32),
@@ -456,84 +603,164 @@ class IrisRuntime:
                     "mask": np.zeros((1, 1, 1), bool),
                     "positions": np.zeros((1, 1, 3), np.float32),
                     "directions": np.array([[0, 0, 1]], np.float32)}
-            rgb = self._session(self._renderer).run(["rgb"], feed)[0][0]
+            rgb = self._session(graph).run(["rgb"], feed)[0][0]
             rgb.setflags(write=False)
-            self._empty_rgb = rgb              # idempotent: a race computes the same value twice
+            self._empty_rgb[graph] = rgb       # idempotent: a race computes the same value twice
         return rgb
 
     def _render_rays(self, scene: Scene, world_from_cam: np.ndarray, K: np.ndarray,
                      height: int, width: int, chunk_rays: int, timings: dict,
-                     progress: Callable[[int, int], None] | None):
-        """-> rgb float32 [H*W, 3], depth float32 [H*W] (rows of pixels, row-major)."""
-        f32 = np.float32
-        Hm, Wm = scene.image_size
-        S = self.samples
-        n = height * width
-        session = self._session(self._renderer)
-        K_ref = scene.K.astype(f32)
-        cam_from_world = G.invert_pose(scene.world_from_cam).astype(f32)    # [V, 4, 4]
-        centres = scene.world_from_cam[:, :3, 3].astype(f32)                 # [V, 3]
-        pose = world_from_cam.astype(f32)
-        K_out = K.astype(f32)
-        origin = pose[:3, 3]
-        z_bins = G.sample_depths(self.near, self.far, S, 1, dtype=f32)[0]    # [S] bin centres
-        all_views = np.arange(scene.num_views)
-        cull = self.cull
-        maps_key, maps = all_views.tobytes(), scene.field_maps    # maps of the last view subset
+                     progress: Callable[[int, int], None] | None,
+                     settings: "Q.RenderSettings | None" = None, graph: str | None = None,
+                     work: dict | None = None):
+        """-> rgb float32 [H*W, 3], depth float32 [H*W] (rows of pixels, row-major).
 
-        rgb = np.empty((n, 3), f32)
-        depth = np.zeros(n, f32)
-        t_rays = t_ort = 0.0
-        for start in range(0, n, chunk_rays):
-            t0 = time.perf_counter()
-            pix = np.arange(start, min(n, start + chunk_rays))
-            uv = np.stack([pix % width, pix // width], axis=-1).astype(f32) + f32(0.5)
-            _, directions = G.rays_from_pixels(uv, K_out, pose)              # [R, 3]
-            points = origin + z_bins[None, :, None] * directions[:, None, :]  # [R, S, 3]
-            uv_ref, _, valid = G.project_points(points, K_ref, cam_from_world, Hm, Wm)  # [V, R, S]
-            rays, views, z = slice(None), all_views, np.broadcast_to(z_bins, (len(pix), S))
-            if cull:
-                sample_valid = valid.any(axis=0)                             # [R, S]
-                n_valid = sample_valid.sum(axis=1)
-                rgb[pix] = self._empty_ray_rgb(scene)
-                rays = np.flatnonzero(n_valid)
-                if rays.size == 0:                  # nothing of the scene on these rays
-                    t_rays += time.perf_counter() - t0
+        Per block of pixels: rays, samples and their projection into every reference view
+        (numpy); then one renderer call per (rays, views) group: the whole block when every view
+        is kept, or (``top_k_by="ray"``) one call per set of kept views, at most ``chunk_rays``
+        rays each. With culling, each call is packed to its rays' valid samples and its views.
+        Blocks run on ``self.workers`` threads; each writes its own rows.
+        """
+        f32 = np.float32
+        settings = settings or Q.RenderSettings()
+        graph = graph or self._renderer
+        work = work if work is not None else {}
+        S = settings.samples or self.samples
+        k = settings.top_k
+        V = scene.num_views
+        by_ray = k is not None and settings.top_k_by == "ray" and k < V
+        n = height * width
+        pose = world_from_cam.astype(f32)
+        ctx = {"session": self._session(graph), "scene": scene, "S": S, "k": k, "by_ray": by_ray,
+               "K_ref": scene.K.astype(f32),
+               "cam_from_world": G.invert_pose(scene.world_from_cam).astype(f32),   # [V, 4, 4]
+               "centres": scene.world_from_cam[:, :3, 3].astype(f32),               # [V, 3]
+               "pose": pose, "K_out": K.astype(f32), "origin": pose[:3, 3],
+               "z_bins": G.sample_depths(self.near, self.far, S, 1, dtype=f32)[0],  # bin centres
+               "empty": self._empty_ray_rgb(scene, graph) if self.cull else None,
+               "width": width, "n": n, "chunk_rays": chunk_rays,
+               "rgb": np.empty((n, 3), f32), "depth": np.zeros(n, f32)}
+        # With per-ray view sets the geometry block spans several calls (same numpy memory as one
+        # all-view call); calls then hold at most chunk_rays rays.
+        block = chunk_rays * max(1, V // k) if by_ray else chunk_rays
+        starts = range(0, n, block)
+        stats = {"rays_s": 0.0, "renderer_s": 0.0, "calls": 0, "rays": 0, "points": 0,
+                 "point_views": 0, "ray_pairs": 0}
+
+        def add(part: dict) -> None:
+            for key, value in part.items():
+                stats[key] += value
+
+        if self.workers == 1 or len(starts) == 1:
+            for start in starts:
+                add(self._render_block(ctx, start, block))
+                if progress is not None:
+                    progress(min(n, start + block), n)
+        else:
+            from concurrent.futures import ThreadPoolExecutor
+            with ThreadPoolExecutor(self.workers, thread_name_prefix="iris-render") as pool:
+                for start, part in zip(starts, pool.map(
+                        lambda st: self._render_block(ctx, st, block), starts)):
+                    add(part)
                     if progress is not None:
-                        progress(int(pix[-1]) + 1, n)
-                    continue
-                views = np.flatnonzero(valid[:, rays].reshape(len(valid), -1).any(axis=1))
-                s_max = int(n_valid.max())
-                points, directions = points[rays], directions[rays]
-                uv_ref, valid = uv_ref[np.ix_(views, rays)], valid[np.ix_(views, rays)]
+                        progress(min(n, start + block), n)
+        for key in ("calls", "rays", "points", "point_views", "ray_pairs"):
+            work[key] = work.get(key, 0) + stats[key]
+        # Summed over blocks (thread time when workers > 1).
+        timings["rays"] = timings.get("rays", 0.0) + stats["rays_s"]
+        timings["renderer"] = timings.get("renderer", 0.0) + stats["renderer_s"]
+        return ctx["rgb"], ctx["depth"]
+
+    def _render_block(self, ctx: dict, start: int, block: int) -> dict:
+        """Render pixels ``start .. start + block`` into ``ctx["rgb"]``, ``ctx["depth"]``."""
+        f32 = np.float32
+        t0 = time.perf_counter()
+        scene, S, k, by_ray = ctx["scene"], ctx["S"], ctx["k"], ctx["by_ray"]
+        origin, z_bins, centres = ctx["origin"], ctx["z_bins"], ctx["centres"]
+        rgb, depth, width = ctx["rgb"], ctx["depth"], ctx["width"]
+        Hm, Wm = scene.image_size
+        V = scene.num_views
+        cull = self.cull
+        stats = {"rays_s": 0.0, "renderer_s": 0.0, "calls": 0, "rays": 0, "points": 0,
+                 "point_views": 0, "ray_pairs": 0}
+        pix = np.arange(start, min(ctx["n"], start + block))
+        uv = np.stack([pix % width, pix // width], axis=-1).astype(f32) + f32(0.5)
+        _, directions = G.rays_from_pixels(uv, ctx["K_out"], ctx["pose"])    # [R, 3]
+        points = origin + z_bins[None, :, None] * directions[:, None, :]      # [R, S, 3]
+        uv_ref, _, valid = G.project_points(points, ctx["K_ref"], ctx["cam_from_world"],
+                                            Hm, Wm)                           # [V, R, S]
+        vsel = np.arange(V)
+        if cull:
+            rgb[pix] = ctx["empty"]
+            vsel = np.flatnonzero(valid.reshape(V, -1).any(axis=1))          # views seeing the block
+            uv_ref, valid = uv_ref[vsel], valid[vsel]
+        cues = None                              # [R, S, V'', 4] over vsel, when needed early
+        sets = None
+        if k is not None and len(vsel) > k:
+            cues = G.geometric_cue(points, origin, centres[vsel])
+            dot = np.moveaxis(cues[..., 3], 2, 0)                              # [V'', R, S]
+            if by_ray:
+                sets = Q.ray_view_sets(valid, dot, k)                           # [V'', R]
+                valid = valid & sets[:, :, None]
+            else:
+                valid = valid & Q.top_k_mask(valid, dot, k)
+        # (rays, views) of each renderer call, as indices into the block's rays and vsel.
+        if cull:
+            live = np.flatnonzero(valid.any(axis=(0, 2)))
+            if live.size == 0:                   # nothing of the scene on these rays
+                calls = []
+            elif sets is not None:
+                calls = [(live[r], v) for r, v in Q.group_rays(sets[:, live], k, ctx["chunk_rays"])]
+            else:
+                seen = np.flatnonzero(valid[:, live].reshape(len(vsel), -1).any(axis=1))
+                calls = [(live, seen)] if live.size else []
+        else:
+            calls = [(np.arange(len(pix)), np.arange(len(vsel)))]
+        stats["rays_s"] += time.perf_counter() - t0
+        maps_key, maps = None, None
+        for rays, views in calls:
+            t0 = time.perf_counter()
+            val = valid[np.ix_(views, rays)]                                   # [v, r, S]
+            uvc = uv_ref[np.ix_(views, rays)]
+            pts = points[rays]
+            z = np.broadcast_to(z_bins, (len(rays), S))
+            cue = None if cues is None else cues[rays][:, :, views]           # [r, S, v, 4]
+            if cull:
+                sample_valid = val.any(axis=0)                                  # [r, S]
+                s_max = int(sample_valid.sum(axis=1).max())
                 if s_max < S:
                     # Valid samples first, in depth order (stable), cut to the longest ray.
-                    order = np.argsort(~sample_valid[rays], axis=1, kind="stable")[:, :s_max]
-                    points = np.take_along_axis(points, order[..., None], axis=1)
-                    uv_ref = np.take_along_axis(uv_ref, order[None, ..., None], axis=2)
-                    valid = np.take_along_axis(valid, order[None], axis=2)
+                    order = np.argsort(~sample_valid, axis=1, kind="stable")[:, :s_max]
+                    pts = np.take_along_axis(pts, order[..., None], axis=1)
+                    uvc = np.take_along_axis(uvc, order[None, ..., None], axis=2)
+                    val = np.take_along_axis(val, order[None], axis=2)
                     z = z_bins[order]
-                else:
-                    z = z[rays]
-            if views.tobytes() != maps_key:       # neighbouring chunks mostly see the same views
-                maps_key, maps = views.tobytes(), np.ascontiguousarray(scene.field_maps[views])
-            grid = G.pixels_to_grid(uv_ref, Hm, Wm)                          # [V', R', S', 2]
-            cues = G.geometric_cue(points, origin, centres[views])            # [R', S', V', 4]
-            feed = {"field_maps": maps, "grid": grid,
-                    "cues": np.ascontiguousarray(np.moveaxis(cues, 2, 0)),    # view-major
-                    "mask": np.ascontiguousarray(valid), "positions": points,
-                    "directions": directions}
+                    if cue is not None:
+                        cue = np.take_along_axis(cue, order[..., None, None], axis=1)
+            gviews = vsel[views]
+            if maps is None or gviews.tobytes() != maps_key:   # neighbouring calls share views
+                maps_key = gviews.tobytes()
+                maps = scene.field_maps if len(gviews) == V and cull is False \
+                    else np.ascontiguousarray(scene.field_maps[gviews])
+            if cue is None:
+                cue = G.geometric_cue(pts, origin, centres[gviews])            # [r, s, v, 4]
+            feed = {"field_maps": maps, "grid": G.pixels_to_grid(uvc, Hm, Wm),
+                    "cues": np.ascontiguousarray(np.moveaxis(cue, 2, 0)),      # view-major
+                    "mask": np.ascontiguousarray(val), "positions": pts,
+                    "directions": directions[rays]}
             t1 = time.perf_counter()
-            out_rgb, weights = session.run(["rgb", "weights"], feed)
+            out_rgb, weights = ctx["session"].run(["rgb", "weights"], feed)
             t2 = time.perf_counter()
             rows = pix[rays]
             rgb[rows] = out_rgb
             depth[rows] = (weights * z).sum(axis=1)
             t3 = time.perf_counter()
-            t_rays += (t1 - t0) + (t3 - t2)
-            t_ort += t2 - t1
-            if progress is not None:
-                progress(int(pix[-1]) + 1, n)
-        timings["rays"] = t_rays
-        timings["renderer"] = t_ort
-        return rgb, depth
+            stats["rays_s"] += (t1 - t0) + (t3 - t2)
+            stats["renderer_s"] += t2 - t1
+            v_, r_, s_ = val.shape
+            stats["calls"] += 1
+            stats["rays"] += r_
+            stats["points"] += r_ * s_
+            stats["point_views"] += r_ * s_ * v_
+            stats["ray_pairs"] += r_ * s_ * s_
+        return stats

@@ -1,0 +1,195 @@
+"""Speed/quality knobs of ``IrisRuntime.render`` and the named presets (``quality=``).
+
+Exact work-skipping (output unchanged up to float rounding, <= 1e-6) is always on: the encoder's
+output is cached in a ``Scene``; per chunk of rays the runtime drops the samples that project
+validly into no reference view, the views into which no sample of the chunk projects and the
+rays without any valid sample (``IrisRuntime(cull=True)``, the default; the renderer masks all of
+them out of every attention, pool and weight, so dropping them is exact).
+
+Lossy knobs, opt-in (``RenderSettings`` fields, also accepted as ``render`` keywords):
+
+- ``top_k``: keep, per sample point, only the ``top_k`` valid reference views whose direction
+  from the point is closest to the target ray's (largest cue dot t.s), masking the others.
+  ``top_k_by="point"`` is that rule literally; the renderer graph feeds one field map per view
+  slot to all points of a call, so a per-point choice cannot shrink the graph's view axis below
+  the union of the chunk's choices. ``top_k_by="ray"`` keeps, per ray, the ``top_k`` views most
+  often chosen by its points (ties: larger summed t.s) and groups rays with the same views into
+  one renderer call, so every call sees at most ``top_k`` views whatever the scene's count.
+- ``samples``: samples per ray (bin centres of ``samples`` equal bins in [near, far]; the model
+  was trained with the manifest's count, 64).
+- ``scale``: render at ``round(H * scale) x round(W * scale)`` pixels and resize to H x W with
+  OpenCV (``upsample``: "linear" or "cubic"; depth always linear).
+- ``precision``: "int8" runs the dynamically quantised renderer (``iris-export --quantize int8``).
+
+The presets' settings and their measured error and speed are in ``QUALITY_PRESETS`` and
+docs/PERFORMANCE.md (numbers from benchmarks/error_vs_time.py, results in benchmarks/results/).
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import InputError
+
+__all__ = ["RenderSettings", "QUALITY_PRESETS", "QUALITIES", "TOP_K_BY", "UPSAMPLERS",
+           "resolve_settings", "top_k_mask", "ray_view_sets", "group_rays"]
+
+TOP_K_BY = ("point", "ray")
+UPSAMPLERS = ("linear", "cubic")
+
+
+@dataclass(frozen=True)
+class RenderSettings:
+    """How to trade error for time in one render (``None``: the model's / runtime's default).
+
+    samples:   samples per ray (None: the manifest's, 64 for the shipped model)
+    top_k:     views kept per point (None: all valid views)
+    top_k_by:  "point" (choose per sample point) or "ray" (per ray; lets calls shrink to top_k views)
+    scale:     render resolution relative to the output (1.0: full; 0.5: half, then upsampled)
+    upsample:  "linear" or "cubic" (cv2.resize interpolation for scale < 1)
+    precision: "float32" or "int8" (None: the runtime's ``precision``)
+    """
+    samples: int | None = None
+    top_k: int | None = None
+    top_k_by: str = "ray"
+    scale: float = 1.0
+    upsample: str = "linear"
+    precision: str | None = None
+
+    def __post_init__(self):
+        for name in ("samples", "top_k"):
+            v = getattr(self, name)
+            if v is not None and (isinstance(v, bool) or not isinstance(v, (int, np.integer))
+                                  or v < 1):
+                raise InputError(f"{name}: expected a positive integer or None, got {v!r}")
+        if self.top_k_by not in TOP_K_BY:
+            raise InputError(f"top_k_by: expected one of {list(TOP_K_BY)}, got {self.top_k_by!r}")
+        if self.upsample not in UPSAMPLERS:
+            raise InputError(f"upsample: expected one of {list(UPSAMPLERS)}, got {self.upsample!r}")
+        s = self.scale
+        if isinstance(s, bool) or not isinstance(s, (int, float, np.integer, np.floating)) \
+                or not np.isfinite(s) or not 0.0 < s <= 1.0:
+            raise InputError(f"scale: expected a number in (0, 1], got {s!r}")
+        if self.precision is not None and self.precision not in ("float32", "int8"):
+            raise InputError(f"precision: expected 'float32', 'int8' or None, got "
+                             f"{self.precision!r}")
+
+    @property
+    def is_exact(self) -> bool:
+        return (self.samples is None and self.top_k is None and self.scale == 1.0
+                and self.precision in (None, "float32"))
+
+
+#: Named presets. "exact" is the full render; the others were chosen from the measured error/time
+#: table (benchmarks/results/error_vs_time.md), see docs/PERFORMANCE.md for their numbers.
+QUALITY_PRESETS: dict[str, RenderSettings] = {
+    "exact": RenderSettings(),
+    "balanced": RenderSettings(samples=32, top_k=4, top_k_by="ray"),
+    "fast": RenderSettings(samples=16, top_k=2, top_k_by="ray", scale=0.5),
+}
+QUALITIES = tuple(QUALITY_PRESETS)
+
+
+def resolve_settings(quality: str | RenderSettings | None = None, **overrides) -> RenderSettings:
+    """The settings of preset ``quality`` (default "exact") with the non-None ``overrides``."""
+    if quality is None:
+        base = QUALITY_PRESETS["exact"]
+    elif isinstance(quality, RenderSettings):
+        base = quality
+    elif isinstance(quality, str) and quality in QUALITY_PRESETS:
+        base = QUALITY_PRESETS[quality]
+    else:
+        raise InputError(f"quality: expected one of {list(QUALITY_PRESETS)} or a RenderSettings, "
+                         f"got {quality!r}")
+    changes = {k: v for k, v in overrides.items() if v is not None}
+    unknown = set(changes) - {f.name for f in dataclasses.fields(RenderSettings)}
+    if unknown:
+        raise InputError(f"unknown render settings {sorted(unknown)}")
+    return dataclasses.replace(base, **changes) if changes else base
+
+
+# ----------------------------------------------------------------------------------------------
+# View selection (numpy; view axis first, as the runtime's projection produces it)
+# ----------------------------------------------------------------------------------------------
+
+def top_k_mask(valid: np.ndarray, score: np.ndarray, k: int) -> np.ndarray:
+    """Per point, the ``k`` valid views of largest ``score``.
+
+    ``valid`` bool [V, ...], ``score`` float [V, ...] -> bool [V, ...] (a subset of ``valid``;
+    points with fewer than k valid views keep them all). Ties go to the lower view index.
+    """
+    V = valid.shape[0]
+    if k >= V:
+        return valid.copy()
+    s = np.where(valid, score, -np.inf)
+    # Stable descending order: sort -s (ties keep view order); only the first k matter.
+    idx = np.argsort(-s, axis=0, kind="stable")[:k]
+    chosen = np.zeros(valid.shape, dtype=bool)
+    np.put_along_axis(chosen, idx, True, axis=0)
+    return chosen & valid
+
+
+def ray_view_sets(valid: np.ndarray, score: np.ndarray, k: int) -> np.ndarray:
+    """Per ray, the ``k`` views most often among its points' ``top_k_mask`` choices.
+
+    ``valid``, ``score`` [V, R, S] -> bool [V, R]. Ties between views chosen equally often go to
+    the larger summed score of those choices (score in [-1, 1], the cue's t.s), then to the lower
+    index. Views chosen by no point of the ray are never kept.
+    """
+    V, R, S = valid.shape
+    if k >= V:
+        return valid.any(axis=2)
+    point = top_k_mask(valid, score, k)
+    count = point.sum(axis=2).astype(np.float64)                             # [V, R]
+    tie = np.where(point, score.astype(np.float64) + 1.0, 0.0).sum(axis=2) / (2.0 * S + 1.0)
+    return top_k_mask(count > 0, count + tie, k)
+
+
+def group_rays(sets: np.ndarray, max_views: int, max_rays: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Split rays into renderer calls by their view sets.
+
+    ``sets`` bool [V, R] (the views each ray keeps) -> ``[(rays, views), ...]``: index arrays of
+    the rays of one call and the union of their views. Rays with the same set go together; whole
+    sets are merged greedily while the union stays within ``max_views`` views, and calls hold at
+    most ``max_rays`` rays. Every ray appears in exactly one call.
+    """
+    V, R = sets.shape
+    if R == 0:
+        return []
+    keys, inverse = np.unique(sets.T, axis=0, return_inverse=True)           # [G, V], [R]
+    inverse = inverse.reshape(-1)
+    order = np.argsort(inverse, kind="stable")
+    bounds = np.searchsorted(inverse[order], np.arange(len(keys) + 1))
+    # Largest sets first so that their subsets merge into them.
+    sizes = keys.sum(axis=1)
+    calls: list[tuple[np.ndarray, np.ndarray]] = []
+    cur_rays: list[np.ndarray] = []
+    cur_union = np.zeros(V, dtype=bool)
+    cur_n = 0
+
+    def flush():
+        nonlocal cur_rays, cur_union, cur_n
+        if cur_rays:
+            calls.append((np.sort(np.concatenate(cur_rays)), np.flatnonzero(cur_union)))
+        cur_rays, cur_union, cur_n = [], np.zeros(V, dtype=bool), 0
+
+    for g in sorted(range(len(keys)), key=lambda g: (-int(sizes[g]), keys[g].tobytes())):
+        rays = order[bounds[g]:bounds[g + 1]]
+        union = cur_union | keys[g]
+        if cur_rays and int(union.sum()) > max_views:
+            flush()
+            union = keys[g].copy()
+        cur_union = union
+        while len(rays):
+            room = max_rays - cur_n
+            if room <= 0:
+                flush()
+                cur_union = keys[g].copy()
+                room = max_rays
+            cur_rays.append(rays[:room])
+            cur_n += len(rays[:room])
+            rays = rays[room:]
+    flush()
+    return calls

@@ -1,0 +1,255 @@
+"""Tests of the runtime's speed/quality knobs (iris_runtime.quality, IrisRuntime.render keywords).
+
+- exact knobs (culling, the Scene cache, data-parallel workers, chunking, top_k >= views) leave the
+  output unchanged within 1e-6 of the full render;
+- lossy knobs (top_k, samples, scale, int8) give finite output of the right shape, and the error
+  against the full render shrinks as k / samples grow;
+- the presets exist and map to their documented settings.
+
+Model: ``IRIS_TEST_MODEL_DIR`` (an iris-export output; how these run without torch) or, with torch
+installed, a random tiny model exported once per session (with its int8 renderer). Renders are
+small (16x16 or 24x24 pixels).
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from iris_runtime import InputError, IrisRuntime
+from iris_runtime import quality as Q
+from iris_runtime.runtime import QUALITY_PRESETS, RenderSettings
+
+
+def _has_torch() -> bool:
+    try:
+        import torch  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+@pytest.fixture(scope="session")
+def knob_export(tmp_path_factory):
+    """(model_dir, IrisModel): a random tiny model exported with its int8 renderer."""
+    torch = pytest.importorskip("torch")
+    pytest.importorskip("onnx")
+    import iris_train
+    from export.pipeline import export_model
+
+    torch.manual_seed(0)
+    model = iris_train.build_model(iris_train.preset("tiny")).eval()
+    out = tmp_path_factory.mktemp("iris_knobs") / "tiny"
+    export_model(model, out, quick=True, progress=False, threads=1, quantize="int8")
+    return out, model
+
+
+@pytest.fixture(scope="session")
+def model_dir(request) -> Path:
+    env = os.environ.get("IRIS_TEST_MODEL_DIR")
+    if env:
+        return Path(env)
+    if not _has_torch():
+        pytest.skip("no IRIS_TEST_MODEL_DIR and no torch to export a model")
+    return request.getfixturevalue("knob_export")[0]
+
+
+@pytest.fixture(scope="session")
+def rt(model_dir) -> IrisRuntime:
+    return IrisRuntime(model_dir, threads=1)
+
+
+@pytest.fixture(scope="session")
+def scene(rt):
+    """A 6-view scene of smooth random images (so that views disagree but not wildly)."""
+    import cv2
+    rng = np.random.default_rng(3)
+    H, W = rt.image_size
+    images = [cv2.resize(rng.integers(0, 256, (8, 8, 3), dtype=np.uint8), (W, H),
+                         interpolation=cv2.INTER_CUBIC) for _ in range(6)]
+    return rt.encode(images)
+
+
+def _pose(scene):
+    """A target between views 0 and 1 (so that every view matters)."""
+    T = scene.world_from_cam[0].copy()
+    T[:3, 3] = 0.5 * (scene.world_from_cam[0, :3, 3] + scene.world_from_cam[1, :3, 3]) + 0.01
+    return T
+
+
+@pytest.fixture(scope="session")
+def full(rt, scene):
+    return rt.render(scene, _pose(scene), height=16, width=16, depth=True)
+
+
+def _err(a, b) -> float:
+    return float(np.abs(a.image_float - b.image_float).max())
+
+
+# ----------------------------------------------------------------------------------------------
+# Settings and presets (no model)
+# ----------------------------------------------------------------------------------------------
+
+def test_presets_exist_and_map_to_documented_settings():
+    assert set(QUALITY_PRESETS) == {"exact", "balanced", "fast"}
+    assert QUALITY_PRESETS["exact"] == RenderSettings() and QUALITY_PRESETS["exact"].is_exact
+    assert QUALITY_PRESETS["balanced"] == RenderSettings(samples=32, top_k=4, top_k_by="ray")
+    assert QUALITY_PRESETS["fast"] == RenderSettings(samples=16, top_k=2, top_k_by="ray",
+                                                     scale=0.5)
+    for name in ("balanced", "fast"):
+        assert not QUALITY_PRESETS[name].is_exact
+        assert name in (Q.__doc__ or "") or name in (IrisRuntime.render.__doc__ or "")
+
+
+def test_resolve_settings_overrides_and_rejects():
+    assert Q.resolve_settings() == RenderSettings()
+    s = Q.resolve_settings("balanced", samples=48)
+    assert s.samples == 48 and s.top_k == QUALITY_PRESETS["balanced"].top_k
+    assert Q.resolve_settings("fast", scale=None) == QUALITY_PRESETS["fast"]
+    for bad in (dict(quality="fastest"), dict(samples=0), dict(top_k=-1), dict(top_k=2.5),
+                dict(top_k_by="pixel"), dict(scale=0.0), dict(scale=1.5), dict(scale=float("nan")),
+                dict(upsample="lanczos"), dict(precision="fp16"), dict(samples=True)):
+        quality = bad.pop("quality", None)
+        with pytest.raises(InputError):
+            Q.resolve_settings(quality, **bad)
+
+
+def test_top_k_mask_keeps_the_k_best_valid_views():
+    rng = np.random.default_rng(0)
+    valid = rng.random((6, 50, 7)) > 0.3
+    score = rng.uniform(-1, 1, (6, 50, 7))
+    for k in (1, 2, 4, 6, 9):
+        m = Q.top_k_mask(valid, score, k)
+        assert not (m & ~valid).any()
+        np.testing.assert_array_equal(m.sum(0), np.minimum(valid.sum(0), k))
+        # every kept view scores at least as high as every valid dropped one
+        kept_min = np.where(m, score, np.inf).min(0)
+        dropped_max = np.where(valid & ~m, score, -np.inf).max(0)
+        assert (kept_min >= dropped_max).all()
+
+
+def test_ray_view_sets_and_grouping_cover_every_ray_once():
+    rng = np.random.default_rng(1)
+    valid = rng.random((8, 300, 5)) > 0.4
+    score = rng.uniform(-1, 1, valid.shape)
+    for k in (1, 2, 3):
+        sets = Q.ray_view_sets(valid, score, k)
+        assert (sets.sum(0) <= k).all()
+        assert not (sets & ~valid.any(2)).any()
+        assert (sets.any(0) == valid.any((0, 2))).all()
+        calls = Q.group_rays(sets, k, 64)
+        rays = np.concatenate([r for r, _ in calls])
+        np.testing.assert_array_equal(np.sort(rays), np.arange(300))
+        for r, v in calls:
+            assert len(r) <= 64 and len(v) <= k
+            assert not (sets[:, r] & ~np.isin(np.arange(8), v)[:, None]).any()
+
+
+# ----------------------------------------------------------------------------------------------
+# Exact knobs: unchanged within 1e-6
+# ----------------------------------------------------------------------------------------------
+
+def test_culling_is_exact(model_dir, scene, full):
+    nocull = IrisRuntime(model_dir, threads=1, cull=False)
+    res = nocull.render(scene, _pose(scene), height=16, width=16, depth=True)
+    assert _err(res, full) <= 1e-6
+    assert np.abs(res.depth - full.depth).max() <= 1e-6
+
+
+def test_culling_skips_work_off_the_views(rt, scene):
+    # Looking away from the scene: nothing projects anywhere -> no renderer call at all.
+    T = scene.world_from_cam[0].copy()
+    T[:3, :3] = T[:3, :3] @ np.diag([-1.0, 1.0, -1.0])
+    res = rt.render(scene, T, height=8, width=8, depth=True)
+    assert res.work["calls"] == 0 and np.isfinite(res.image_float).all()
+    assert (res.depth == 0).all()
+
+
+def test_workers_chunking_and_scene_cache_are_exact(model_dir, rt, scene, full):
+    par = IrisRuntime(model_dir, threads=2, workers=2)
+    assert _err(par.render(scene, _pose(scene), height=16, width=16, depth=True,
+                           chunk_rays=40), full) <= 1e-6
+    assert _err(rt.render(scene, _pose(scene), height=16, width=16, depth=True, chunk_rays=7),
+                full) <= 1e-6
+    assert _err(rt.render(scene, _pose(scene), height=16, width=16, depth=True,
+                          quality="exact"), full) <= 1e-6
+    # top_k not below the number of views keeps every view: the full render
+    for by in ("point", "ray"):
+        res = rt.render(scene, _pose(scene), height=16, width=16, depth=True,
+                        top_k=scene.num_views, top_k_by=by)
+        assert _err(res, full) <= 1e-6
+
+
+@pytest.mark.parametrize("by", ["point", "ray"])
+def test_dropping_views_under_top_k_is_exact(model_dir, rt, scene, by):
+    """With top_k, the views/samples/rays a call drops are exactly the masked ones."""
+    nocull = IrisRuntime(model_dir, threads=1, cull=False)
+    a = rt.render(scene, _pose(scene), height=16, width=16, depth=True, top_k=2, top_k_by=by)
+    b = nocull.render(scene, _pose(scene), height=16, width=16, depth=True, top_k=2, top_k_by=by)
+    assert _err(a, b) <= 1e-6
+    if by == "ray":
+        assert a.work["point_views"] <= 2 * a.work["points"]
+
+
+# ----------------------------------------------------------------------------------------------
+# Lossy knobs
+# ----------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("kw", [
+    dict(samples=16), dict(samples=33), dict(top_k=1, top_k_by="point"), dict(top_k=2),
+    dict(scale=0.5), dict(scale=0.5, upsample="cubic"), dict(scale=0.3),
+    dict(quality="balanced"), dict(quality="fast"), dict(quality="fast", samples=8)])
+def test_lossy_knobs_give_finite_output_of_the_right_shape(rt, scene, kw):
+    res = rt.render(scene, _pose(scene), height=16, width=24, depth=True, **kw)
+    assert res.image.shape == (16, 24, 3) and res.image.dtype == np.uint8
+    assert res.image_float.shape == (16, 24, 3) and np.isfinite(res.image_float).all()
+    assert res.depth.shape == (16, 24) and np.isfinite(res.depth).all()
+    assert (res.image_float >= 0).all() and (res.image_float <= 1).all()
+    assert res.settings == Q.resolve_settings(kw.pop("quality", None), **kw)
+    img = rt.render(scene, _pose(scene), height=16, width=24, **res.settings.__dict__)
+    assert img.shape == (16, 24, 3)
+
+
+def test_error_shrinks_with_more_views_per_point(rt, scene, full):
+    errs = [_err(rt.render(scene, _pose(scene), height=16, width=16, depth=True, top_k=k), full)
+            for k in (1, 3, scene.num_views)]
+    assert errs[0] > errs[1] > errs[2] and errs[2] <= 1e-6
+    calls = [rt.render(scene, _pose(scene), height=16, width=16, depth=True, top_k=k).work
+             for k in (1, 3)]
+    assert calls[0]["point_views"] < calls[1]["point_views"] < full.work["point_views"]
+
+
+def test_error_shrinks_with_more_samples(rt, scene, full):
+    errs = [_err(rt.render(scene, _pose(scene), height=16, width=16, depth=True, samples=s), full)
+            for s in (4, 16, rt.samples)]
+    assert errs[0] > errs[1] > errs[2] and errs[2] <= 1e-6
+
+
+def test_int8_precision_per_call(rt, scene, full):
+    if "renderer_int8" not in rt.manifest.graphs:
+        pytest.skip("model exported without --quantize int8")
+    res = rt.render(scene, _pose(scene), height=16, width=16, depth=True, precision="int8")
+    assert np.isfinite(res.image_float).all()
+    assert 0 < _err(res, full) < 0.1
+
+
+# ----------------------------------------------------------------------------------------------
+# Against torch
+# ----------------------------------------------------------------------------------------------
+
+@pytest.mark.torch
+def test_exact_parallel_path_matches_torch(knob_export):
+    import torch
+    model_dir, model = knob_export
+    rt = IrisRuntime(model_dir, threads=2, workers=2)
+    rng = np.random.default_rng(5)
+    images = rng.integers(0, 256, (4, 64, 64, 3), dtype=np.uint8)
+    scene = rt.encode(list(images))
+    res = rt.render(scene, 1, height=16, width=16, depth=True)
+    with torch.no_grad():
+        ts = model.encode(torch.from_numpy(images).permute(0, 3, 1, 2).float() / 255.0)
+        rgb, depth = model.render(ts, ts.world_from_cam[[1]], 16, 16)
+    assert np.abs(res.image_float - rgb[0].numpy()).max() <= 1e-4
+    assert np.abs(res.depth - depth[0].numpy()).max() <= 1e-4
