@@ -165,6 +165,9 @@ def save_checkpoint(path: str | os.PathLike, model: IrisModel, **extra) -> None:
     os.close(fd)
     try:
         torch.save(payload, tmp)
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)      # mkstemp's 0600 would make shared checkpoints unreadable
         os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):
