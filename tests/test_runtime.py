@@ -523,3 +523,45 @@ def test_cli_end_to_end(model_dir, tmp_path):
         assert proc.returncode == 2, proc.stderr
         assert "Traceback" not in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
         assert not (tmp_path / "o2").exists()
+
+
+# ----------------------------------------------------------------------------------------------
+# Parity on the shipped, trained model and the committed held-out sample scene
+# ----------------------------------------------------------------------------------------------
+
+REPO = Path(__file__).resolve().parents[1]
+SHIPPED = REPO / "models" / "iris-tiny.pt"
+SAMPLE = REPO / "samples" / "heldout-1000003"
+
+
+@pytest.fixture(scope="session")
+def shipped_pair(tmp_path_factory):
+    """(runtime, runtime scene, IrisModel, torch scene) for the trained default model."""
+    pytest.importorskip("torch")
+    pytest.importorskip("onnx")
+    if not SHIPPED.is_file():
+        pytest.skip("no shipped model")
+    from export.pipeline import export_model
+    from iris_train import load_model
+    out = export_model(SHIPPED, tmp_path_factory.mktemp("shipped") / "model", quick=True,
+                       progress=False, threads=1)
+    runtime = IrisRuntime(out, threads=1)
+    paths = sorted(SAMPLE.glob("frame_*.png"))
+    scene = runtime.encode(paths)
+    from iris_runtime.images import load_image
+    model = load_model(SHIPPED)
+    return runtime, scene, model, _torch_scene(model, [load_image(p) for p in paths])
+
+
+@pytest.mark.torch
+def test_trained_model_runtime_matches_torch(shipped_pair):
+    runtime, scene, model, tscene = shipped_pair
+    assert np.abs(scene.world_from_cam - tscene.world_from_cam.double().numpy()).max() <= 1e-5
+    assert np.abs(scene.focal - tscene.focal.double().numpy()).max() <= 1e-5
+    refs = [0, 2, 3, 5, 7]
+    for target in (1, 4, 6):
+        pose = tscene.world_from_cam[target].double().numpy()
+        res = runtime.render(scene.subset(refs), pose, depth=True)
+        rgb, depth = _torch_render(model, tscene.subset(refs), pose, *runtime.image_size)
+        assert np.abs(res.image_float - rgb).max() <= 1e-4
+        assert np.abs(res.depth - depth).max() <= 1e-4
