@@ -12,6 +12,8 @@ torch blocked).
 from .errors import (ImageError, InputError, IrisError, ManifestError, ModelFileError,
                      ModelFormatError, ModelIntegrityError)
 from .runtime import IrisRuntime, RenderResult, Scene
+from .quality import QUALITY_PRESETS, RenderSettings
 
-__all__ = ["IrisRuntime", "Scene", "RenderResult", "IrisError", "InputError", "ImageError",
-           "ModelFileError", "ManifestError", "ModelFormatError", "ModelIntegrityError"]
+__all__ = ["IrisRuntime", "Scene", "RenderResult", "RenderSettings", "QUALITY_PRESETS",
+           "IrisError", "InputError", "ImageError", "ModelFileError", "ManifestError",
+           "ModelFormatError", "ModelIntegrityError"]

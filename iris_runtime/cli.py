@@ -109,6 +109,10 @@ def build_parser() -> argparse.ArgumentParser:
                      help="rays per renderer call (default: chosen from the number of views)")
     out.add_argument("--precision", choices=["float32", "int8"], default="float32",
                      help="renderer graph: float32, or int8 if exported with --quantize int8")
+    out.add_argument("--quality", choices=["exact", "balanced", "fast"], default="exact",
+                     help="speed/error preset (measured in docs/PERFORMANCE.md): exact = the full "
+                          "render; balanced = 32 samples, <= 8 views per ray; fast = 16 samples, "
+                          "2 views per ray, half resolution")
     out.add_argument("-q", "--quiet", action="store_true", help="print nothing but errors")
     return p
 
@@ -260,7 +264,7 @@ def run(args: argparse.Namespace) -> int:
         for k, (name, pose) in enumerate(jobs):
             progress.frame(k * size[0] * size[1])
             res = rt.render(scene, pose, height=size[0], width=size[1], depth=True,
-                            chunk_rays=args.chunk_rays, progress=progress)
+                            chunk_rays=args.chunk_rays, progress=progress, quality=args.quality)
             totals["rays"] += res.timings["rays"]
             totals["renderer"] += res.timings["renderer"]
             t0 = time.perf_counter()

@@ -694,11 +694,9 @@ class IrisRuntime:
             rgb[pix] = ctx["empty"]
             vsel = np.flatnonzero(valid.reshape(V, -1).any(axis=1))          # views seeing the block
             uv_ref, valid = uv_ref[vsel], valid[vsel]
-        cues = None                              # [R, S, V'', 4] over vsel, when needed early
         sets = None
         if k is not None and len(vsel) > k:
-            cues = G.geometric_cue(points, origin, centres[vsel])
-            dot = np.moveaxis(cues[..., 3], 2, 0)                              # [V'', R, S]
+            dot = Q.cue_dot(points, origin, centres[vsel])                      # [V'', R, S]
             if by_ray:
                 sets = Q.ray_view_sets(valid, dot, k)                           # [V'', R]
                 valid = valid & sets[:, :, None]
@@ -724,7 +722,6 @@ class IrisRuntime:
             uvc = uv_ref[np.ix_(views, rays)]
             pts = points[rays]
             z = np.broadcast_to(z_bins, (len(rays), S))
-            cue = None if cues is None else cues[rays][:, :, views]           # [r, S, v, 4]
             if cull:
                 sample_valid = val.any(axis=0)                                  # [r, S]
                 s_max = int(sample_valid.sum(axis=1).max())
@@ -735,15 +732,12 @@ class IrisRuntime:
                     uvc = np.take_along_axis(uvc, order[None, ..., None], axis=2)
                     val = np.take_along_axis(val, order[None], axis=2)
                     z = z_bins[order]
-                    if cue is not None:
-                        cue = np.take_along_axis(cue, order[..., None, None], axis=1)
             gviews = vsel[views]
             if maps is None or gviews.tobytes() != maps_key:   # neighbouring calls share views
                 maps_key = gviews.tobytes()
                 maps = scene.field_maps if len(gviews) == V and cull is False \
                     else np.ascontiguousarray(scene.field_maps[gviews])
-            if cue is None:
-                cue = G.geometric_cue(pts, origin, centres[gviews])            # [r, s, v, 4]
+            cue = G.geometric_cue(pts, origin, centres[gviews])                # [r, s, v, 4]
             feed = {"field_maps": maps, "grid": G.pixels_to_grid(uvc, Hm, Wm),
                     "cues": np.ascontiguousarray(np.moveaxis(cue, 2, 0)),      # view-major
                     "mask": np.ascontiguousarray(val), "positions": pts,

@@ -95,9 +95,9 @@ def _err(a, b) -> float:
 def test_presets_exist_and_map_to_documented_settings():
     assert set(QUALITY_PRESETS) == {"exact", "balanced", "fast"}
     assert QUALITY_PRESETS["exact"] == RenderSettings() and QUALITY_PRESETS["exact"].is_exact
-    assert QUALITY_PRESETS["balanced"] == RenderSettings(samples=32, top_k=4, top_k_by="ray")
+    assert QUALITY_PRESETS["balanced"] == RenderSettings(samples=32, top_k=8, top_k_by="ray")
     assert QUALITY_PRESETS["fast"] == RenderSettings(samples=16, top_k=2, top_k_by="ray",
-                                                     scale=0.5)
+                                                     scale=0.5, upsample="cubic")
     for name in ("balanced", "fast"):
         assert not QUALITY_PRESETS[name].is_exact
         assert name in (Q.__doc__ or "") or name in (IrisRuntime.render.__doc__ or "")
