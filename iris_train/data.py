@@ -18,7 +18,6 @@ import io
 import json
 import multiprocessing as mp
 import os
-import tempfile
 import time
 import warnings
 import zipfile
@@ -28,7 +27,7 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
-from iris_runtime.camera_io import CameraSet, read_colmap_text, read_transforms_json
+from iris_runtime.camera_io import CameraSet, atomic_write_bytes, read_colmap_text, read_transforms_json
 from iris_runtime.errors import ImageError, InputError
 from iris_runtime.images import CropResize, fit_to_model, load_image
 
@@ -74,17 +73,7 @@ def save_scene(path: Path, scene: SceneData) -> None:
     np.savez_compressed(buf, images=scene.images, world_from_cam=scene.world_from_cam, K=scene.K,
                         depth=scene.depth, meta=np.array(json.dumps(meta)),
                         generator_version=np.array(GENERATOR_VERSION))
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(buf.getbuffer())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
+    atomic_write_bytes(path, buf.getvalue())
 
 
 def load_scene(path: Path) -> SceneData:
