@@ -37,10 +37,30 @@ def torch_export(tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
-def model_dir(request) -> Path:
+def torch_export_int8(tmp_path_factory):
+    """Like ``torch_export``, also with the int8 renderer (``--quantize int8``)."""
+    torch = pytest.importorskip("torch")
+    pytest.importorskip("onnx")
+    import iris_train
+    from export.pipeline import export_model
+
+    torch.manual_seed(0)
+    model = iris_train.build_model(iris_train.preset("tiny")).eval()
+    out = tmp_path_factory.mktemp("iris_model_int8") / "tiny"
+    export_model(model, out, quick=True, progress=False, threads=1, quantize="int8")
+    return out, model
+
+
+def resolve_model_dir(request, export_fixture: str) -> Path:
+    """``IRIS_TEST_MODEL_DIR`` if set, else the export made by ``export_fixture`` (needs torch)."""
     env = os.environ.get("IRIS_TEST_MODEL_DIR")
     if env:
         return Path(env)
     if not has_torch():
         pytest.skip("no IRIS_TEST_MODEL_DIR and no torch to export a model")
-    return request.getfixturevalue("torch_export")[0]
+    return request.getfixturevalue(export_fixture)[0]
+
+
+@pytest.fixture(scope="session")
+def model_dir(request) -> Path:
+    return resolve_model_dir(request, "torch_export")

@@ -12,48 +12,22 @@ small (16x16 or 24x24 pixels).
 """
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from iris_runtime import InputError, IrisRuntime
+
+from .conftest import resolve_model_dir
 from iris_runtime import quality as Q
 from iris_runtime.runtime import QUALITY_PRESETS, RenderSettings
 
 
-def _has_torch() -> bool:
-    try:
-        import torch  # noqa: F401
-    except ImportError:
-        return False
-    return True
-
-
-@pytest.fixture(scope="session")
-def knob_export(tmp_path_factory):
-    """(model_dir, IrisModel): a random tiny model exported with its int8 renderer."""
-    torch = pytest.importorskip("torch")
-    pytest.importorskip("onnx")
-    import iris_train
-    from export.pipeline import export_model
-
-    torch.manual_seed(0)
-    model = iris_train.build_model(iris_train.preset("tiny")).eval()
-    out = tmp_path_factory.mktemp("iris_knobs") / "tiny"
-    export_model(model, out, quick=True, progress=False, threads=1, quantize="int8")
-    return out, model
-
-
 @pytest.fixture(scope="session")
 def model_dir(request) -> Path:
-    env = os.environ.get("IRIS_TEST_MODEL_DIR")
-    if env:
-        return Path(env)
-    if not _has_torch():
-        pytest.skip("no IRIS_TEST_MODEL_DIR and no torch to export a model")
-    return request.getfixturevalue("knob_export")[0]
+    """The knobs need the int8 renderer: a model exported with it (or IRIS_TEST_MODEL_DIR)."""
+    return resolve_model_dir(request, "torch_export_int8")
 
 
 @pytest.fixture(scope="session")
@@ -240,9 +214,9 @@ def test_int8_precision_per_call(rt, scene, full):
 # ----------------------------------------------------------------------------------------------
 
 @pytest.mark.torch
-def test_exact_parallel_path_matches_torch(knob_export):
+def test_exact_parallel_path_matches_torch(torch_export_int8):
     import torch
-    model_dir, model = knob_export
+    model_dir, model = torch_export_int8
     rt = IrisRuntime(model_dir, threads=2, workers=2)
     rng = np.random.default_rng(5)
     images = rng.integers(0, 256, (4, 64, 64, 3), dtype=np.uint8)
