@@ -250,7 +250,7 @@ def read_transforms_json(path, image_size: Callable[[str], tuple[int, int]] | No
     means the image centre.
     """
     path = Path(path)
-    doc = _read_json(path)
+    doc = read_json_object(path)
     frames = doc.get("frames")
     if not isinstance(frames, list) or not frames:
         raise InputError(f"{path}: expected a non-empty 'frames' list")
@@ -294,20 +294,29 @@ def read_transforms_json(path, image_size: Callable[[str], tuple[int, int]] | No
                      np.asarray(sizes, dtype=np.int64), str(path))
 
 
-def _read_json(path: Path) -> dict:
+def read_text(path: Path, error: type[Exception] = InputError, missing: str = "") -> str:
+    """UTF-8 text of ``path``; a missing or unreadable file is ``error`` naming it (``missing`` is
+    appended to the no-such-file message)."""
     try:
-        text = path.read_text(encoding="utf-8")
+        return path.read_text(encoding="utf-8")
     except FileNotFoundError:
-        raise InputError(f"{path}: no such file") from None
+        raise error(f"{path}: no such file{missing}") from None
     except (OSError, UnicodeDecodeError) as e:
-        raise InputError(f"{path}: cannot read: {e}") from None
+        raise error(f"{path}: cannot read: {e}") from None
+
+
+def read_json_object(path: Path, error: type[Exception] = InputError, missing: str = "") -> dict:
+    """A JSON object from ``path``; every failure is ``error`` naming the file."""
+    text = read_text(path, error, missing)
     try:
         doc = json.loads(text)
     except json.JSONDecodeError as e:
-        raise InputError(f"{path}: not valid JSON ({e})") from None
+        raise error(f"{path}: not valid JSON ({e})") from None
     if not isinstance(doc, dict):
-        raise InputError(f"{path}: expected a JSON object at the top level")
+        raise error(f"{path}: expected a JSON object at the top level")
     return doc
+
+
 
 
 def _matrix(m, where: str) -> np.ndarray:
@@ -454,12 +463,7 @@ def read_colmap_text(directory) -> CameraSet:
 
 
 def _data_lines(path: Path, keep_empty: bool = False):
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise InputError(f"{path}: no such file") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise InputError(f"{path}: cannot read: {e}") from None
+    text = read_text(path)
     for i, line in enumerate(text.splitlines(), start=1):
         s = line.strip()
         if s.startswith("#") or (not s and not keep_empty):

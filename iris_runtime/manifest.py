@@ -23,7 +23,6 @@ Checks, each failing with a typed ``ModelFileError`` that names the file and wha
 from __future__ import annotations
 
 import hashlib
-import json
 import math
 import os
 from dataclasses import dataclass, field
@@ -31,6 +30,7 @@ from pathlib import Path, PurePosixPath, PureWindowsPath
 from types import MappingProxyType
 from typing import Any, Mapping
 
+from .camera_io import read_json_object
 from .errors import ManifestError, ModelFileError, ModelFormatError, ModelIntegrityError
 
 MANIFEST_NAME = "iris.json"
@@ -249,19 +249,8 @@ def read_manifest(model_dir: str | os.PathLike, *, verify_hashes: bool = True) -
         raise ModelFileError(f"model directory {str(model_dir)!r}: no such directory "
                              f"(expected the output directory of iris-export)")
     path = model_dir / MANIFEST_NAME
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise ManifestError(f"{path}: no such file (expected the {MANIFEST_NAME} manifest written "
-                            f"by iris-export)") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ManifestError(f"{path}: cannot read: {exc}") from None
-    try:
-        doc = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise ManifestError(f"{path}: not valid JSON ({exc})") from None
-    if not isinstance(doc, dict):
-        raise ManifestError(f"{path}: expected a JSON object at the top level")
+    doc = read_json_object(path, ManifestError, missing=f" (expected the {MANIFEST_NAME} manifest "
+                                                        "written by iris-export)")
 
     fmt, version = doc.get("format"), doc.get("version")
     if fmt != FORMAT_NAME:

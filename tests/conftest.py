@@ -21,9 +21,8 @@ def has_torch() -> bool:
     return True
 
 
-@pytest.fixture(scope="session")
-def torch_export(tmp_path_factory):
-    """(model_dir, IrisModel): a random tiny model and its export (needs torch and onnx)."""
+def _export_random_tiny(tmp_path_factory, name: str, quantize=None):
+    """(model_dir, IrisModel): a random tiny model (seed 0) exported once (needs torch and onnx)."""
     torch = pytest.importorskip("torch")
     pytest.importorskip("onnx")
     import iris_train
@@ -31,24 +30,21 @@ def torch_export(tmp_path_factory):
 
     torch.manual_seed(0)
     model = iris_train.build_model(iris_train.preset("tiny")).eval()
-    out = tmp_path_factory.mktemp("iris_model") / "tiny"
-    export_model(model, out, quick=True, progress=False, threads=1)
+    out = tmp_path_factory.mktemp(name) / "tiny"
+    export_model(model, out, quick=True, progress=False, threads=1, quantize=quantize)
     return out, model
+
+
+@pytest.fixture(scope="session")
+def torch_export(tmp_path_factory):
+    """(model_dir, IrisModel): a random tiny model and its export."""
+    return _export_random_tiny(tmp_path_factory, "iris_model")
 
 
 @pytest.fixture(scope="session")
 def torch_export_int8(tmp_path_factory):
     """Like ``torch_export``, also with the int8 renderer (``--quantize int8``)."""
-    torch = pytest.importorskip("torch")
-    pytest.importorskip("onnx")
-    import iris_train
-    from export.pipeline import export_model
-
-    torch.manual_seed(0)
-    model = iris_train.build_model(iris_train.preset("tiny")).eval()
-    out = tmp_path_factory.mktemp("iris_model_int8") / "tiny"
-    export_model(model, out, quick=True, progress=False, threads=1, quantize="int8")
-    return out, model
+    return _export_random_tiny(tmp_path_factory, "iris_model_int8", quantize="int8")
 
 
 def resolve_model_dir(request, export_fixture: str) -> Path:
