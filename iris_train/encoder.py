@@ -4,6 +4,13 @@ cross-view attention (a small Muskie/VGGT-style backbone).
 There is deliberately no image-index embedding: every view gets the same learnable camera token and
 the same 2D positional encoding, so the encoder is permutation-equivariant over views. The only
 thing that singles out view 0 is the camera head, which expresses every pose relative to it.
+
+**References are isolated.** Views are either references (they build the scene) or queries (views
+whose camera is wanted but whose image must not leak into the scene: training targets, evaluation
+targets, a photo to locate). In cross-view attention a reference token attends to reference tokens
+only; a query token attends to the references and to its own view. So the features and cameras of
+the references are exactly the same whether queries are present, changed or absent, and a query's
+camera is predicted in the references' frame. View 0 (the canonical frame) must be a reference.
 """
 from __future__ import annotations
 
@@ -32,8 +39,9 @@ class MultiViewEncoder(nn.Module):
         self.feature_grid = cfg.feature_grid
         self.register_buffer("pos_embed", sincos_2d(*self.feature_grid, d)[None], persistent=False)
 
-    def forward(self, images: torch.Tensor):
-        """``images [B, V, 3, H, W]`` in [0, 1] -> ``features [B, V, D, h, w]``, ``camera_tokens [B, V, D]``."""
+    def forward(self, images: torch.Tensor, is_reference: torch.Tensor | None = None):
+        """``images [B, V, 3, H, W]`` in [0, 1], ``is_reference`` bool ``[V]`` or ``[B, V]`` (None:
+        all views are references) -> ``features [B, V, D, h, w]``, ``camera_tokens [B, V, D]``."""
         B, V, _, H, W = images.shape
         x = self.patch_embed((images.flatten(0, 1) - _PIXEL_MEAN) / _PIXEL_STD)   # [BV, D, h, w]
         D, h, w = x.shape[1:]
@@ -43,12 +51,25 @@ class MultiViewEncoder(nn.Module):
         tokens = x.flatten(2).transpose(1, 2) + pos                                 # [BV, hw, D]
         tokens = torch.cat([self.camera_token.expand(B * V, 1, D), tokens], dim=1)  # [BV, T, D]
         T = tokens.shape[1]
+        attend = None if is_reference is None else cross_view_mask(is_reference, T)
         for i, block in enumerate(self.blocks):
             if i % 2 == 0:
                 tokens = block(tokens)                                   # per-view attention
-            else:
-                tokens = block(tokens.reshape(B, V * T, D)).reshape(B * V, T, D)   # cross-view
+            else:                                                        # cross-view
+                tokens = block(tokens.reshape(B, V * T, D), attend).reshape(B * V, T, D)
         tokens = self.norm(tokens)
         camera_tokens = tokens[:, 0].reshape(B, V, D)
         features = tokens[:, 1:].transpose(1, 2).reshape(B, V, D, h, w)
         return features, camera_tokens
+
+
+def cross_view_mask(is_reference: torch.Tensor, tokens_per_view: int) -> torch.Tensor:
+    """Which token may attend to which in cross-view attention: ``is_reference`` bool ``[V]`` or
+    ``[B, V]`` -> ``attend`` bool ``[B or 1, V*T, V*T]``. Query view i (row) may see key view j iff
+    j is a reference or j == i. Also the graph's contract: the exported encoder builds the same mask
+    from its ``is_reference`` input."""
+    ref = is_reference if is_reference.ndim == 2 else is_reference[None]           # [B, V]
+    V = ref.shape[1]
+    same = torch.eye(V, dtype=torch.bool, device=ref.device)[None]                 # [1, V, V]
+    views = ref[:, None, :] | same                                                 # [B, V(q), V(k)]
+    return views.repeat_interleave(tokens_per_view, 1).repeat_interleave(tokens_per_view, 2)

@@ -79,9 +79,13 @@ class IrisModel(nn.Module):
         self.renderer = renderer
 
     # -- encoding ---------------------------------------------------------------------------
-    def encode_batch(self, images: torch.Tensor):
-        """``images [B, V, 3, H, W]`` -> features ``[B, V, D, h, w]``, poses ``[B, V, 4, 4]``, focal ``[B, 2]``."""
-        features, camera_tokens = self.encoder(images)
+    def encode_batch(self, images: torch.Tensor, is_reference: torch.Tensor | None = None):
+        """``images [B, V, 3, H, W]``, ``is_reference`` bool ``[V]`` or ``[B, V]`` (None: all
+        references; view 0 must be one) -> features ``[B, V, D, h, w]``, poses ``[B, V, 4, 4]``
+        (view 0 = I), focal ``[B, 2]``. Reference outputs never depend on the query views."""
+        if is_reference is not None and not bool(is_reference[..., 0].all()):
+            raise ValueError("is_reference: view 0 is the canonical frame and must be a reference")
+        features, camera_tokens = self.encoder(images, is_reference)
         world_from_cam, focal = self.camera_head(camera_tokens)
         return features, world_from_cam, focal
 

@@ -78,7 +78,12 @@ class PhotometricLoss(nn.Module):
         indices ``[T, n]`` into H*W, stratified sample depths ``[T*n, S]``."""
         model = self.model
         H, W = images.shape[-2:]
-        features, world_from_cam, focal = model.encode_batch(images)
+        B, V = images.shape[:2]
+        is_reference = torch.ones(B, V, dtype=torch.bool)
+        for b in range(B):
+            is_reference[b, tgt[b]] = False
+        # Targets are queries: the references' features and cameras never see a target image.
+        features, world_from_cam, focal = model.encode_batch(images, is_reference)
         maps = [model.field.prepare(features[b, ref[b]]) for b in range(images.shape[0])]
         uv_all = G.pixel_centres(H, W, dtype=images.dtype)
         errs = []
@@ -127,9 +132,10 @@ def draw_batch(scenes, cfg: TrainConfig, mcfg: ModelConfig, rng: np.random.Gener
         data = scenes[int(rng.integers(len(scenes)))]
         order = rng.permutation(data.images.shape[0])[:n_views]        # random order: "Rand"
         images.append(data.images[order])
-        roles = rng.permutation(n_views)
+        # View 0 of the drawn order is the canonical frame, so it is always a reference.
+        roles = 1 + rng.permutation(n_views - 1)
         tgt.append(torch.as_tensor(np.sort(roles[:n_tgt])))
-        ref.append(torch.as_tensor(np.sort(roles[n_tgt:])))
+        ref.append(torch.as_tensor(np.sort(np.concatenate([[0], roles[n_tgt:]]))))
         n = cfg.rays_per_scene // n_tgt
         pixels.append(torch.as_tensor(rng.integers(0, H * W, size=(n_tgt, n))))
         depths.append(torch.as_tensor(sample_depths(mcfg.near, mcfg.far, mcfg.samples, n_tgt * n,
