@@ -34,6 +34,7 @@ from iris_runtime.errors import InputError
 from iris_runtime.geometry import sample_depths
 
 from . import geometry as G
+from . import ibr
 from .config import ModelConfig, preset
 from .model import IrisModel, Scene, build_model, read_checkpoint, save_checkpoint
 
@@ -48,6 +49,14 @@ class TrainConfig:
     targets_min: int = 1
     targets_max: int = 2
     rays_per_scene: int = 384         # random target rays per scene and step
+    train_samples: int = 0            # stratified samples per training ray (0: the model's S)
+    # Geometric signals for the cameras (docs/TRAINING.md has the runs that chose them):
+    aux_weight: float = 1.0           # explicit-warp (learned-logit blend of reference RGB) loss
+    aux_blur_weight: float = 1.0      # ... the same on blurred images (coarse to fine)
+    plane_sweep_weight: float = 0.0   # parameter-free plane-sweep loss
+    teacher_weight: float = 1.0       # epipolar pseudo-pose rotation loss (iris_train.pseudo_poses)
+    teacher_translation_weight: float = 0.5   # ... translation direction
+    teacher_focal_weight: float = 0.1         # ... log focal
     lr: float = 1e-3                  # renderer (latent field + ray renderer)
     encoder_lr_scale: float = 0.1     # encoder and camera head (paper: 0.1x)
     weight_decay: float = 0.05
@@ -66,38 +75,100 @@ class TrainConfig:
 
 
 class PhotometricLoss(nn.Module):
-    """Wraps the model so that one forward call computes a step's loss (what DDP needs)."""
+    """Wraps the model so that one forward call computes a step's loss (what DDP needs).
 
-    def __init__(self, model: IrisModel):
+    Terms (weights in ``TrainConfig``): the learned renderer's MSE on target rays; the explicit-warp
+    auxiliary (``iris_train.ibr``), whose colour is reference RGB sampled at the same ray samples and
+    blended by a learned per-sample logit, at full resolution and blurred; optionally the
+    parameter-free plane sweep; and the epipolar teacher on the predicted relative cameras. None of
+    them reads a camera label. ``forward`` returns the total and a dict of detached terms.
+    """
+
+    def __init__(self, model: IrisModel, cfg: "TrainConfig"):
         super().__init__()
         self.model = model
+        self.cfg = cfg
+        # Training-only head (saved as the checkpoint's "aux"): the blend's per-sample logit.
+        self.sample_logit = nn.Linear(model.cfg.field_width, 1)
 
     def forward(self, images: torch.Tensor, ref: list[torch.Tensor], tgt: list[torch.Tensor],
-                pixels: list[torch.Tensor], depths: list[torch.Tensor]):
+                pixels: list[torch.Tensor], depths: list[torch.Tensor], teacher: list | None = None):
         """``images [B, V, 3, H, W]``; per scene b: reference/target view indices, target pixel
-        indices ``[T, n]`` into H*W, stratified sample depths ``[T*n, S]``."""
-        model = self.model
-        H, W = images.shape[-2:]
+        indices ``[T, n]`` into H*W, stratified sample depths ``[T*n, S]``, and the teacher's
+        ``(cam_from_cam [V, V, 4, 4], trusted [V, V], focal)`` in the drawn view order (or None)."""
+        model, cfg = self.model, self.cfg
         B, V = images.shape[:2]
+        H, W = images.shape[-2:]
         is_reference = torch.ones(B, V, dtype=torch.bool)
         for b in range(B):
             is_reference[b, tgt[b]] = False
         # Targets are queries: the references' features and cameras never see a target image.
         features, world_from_cam, focal = model.encode_batch(images, is_reference)
-        maps = [model.field.prepare(features[b, ref[b]]) for b in range(images.shape[0])]
+        blurred = ibr.blur(images.flatten(0, 1)).reshape(images.shape) if cfg.aux_blur_weight else None
         uv_all = G.pixel_centres(H, W, dtype=images.dtype)
-        errs = []
-        for b in range(images.shape[0]):
-            scene = Scene(maps[b], world_from_cam[b, ref[b]], focal[b], (H, W))
+        terms: dict[str, list[torch.Tensor]] = {}
+
+        def add(name, value):
+            terms.setdefault(name, []).append(value)
+
+        for b in range(B):
+            scene = Scene(model.field.prepare(features[b, ref[b]]), world_from_cam[b, ref[b]], focal[b], (H, W))
             K = scene.intrinsics()
-            target_rgb = images[b, tgt[b]].flatten(2).transpose(1, 2)               # [T, HW, 3]
             idx = pixels[b]                                                         # [T, n]
             origins, directions = G.rays_from_pixels(uv_all[idx], K, world_from_cam[b, tgt[b]])
-            rgb, _ = model.render_rays(scene, origins.reshape(-1, 3), directions.reshape(-1, 3),
-                                       depths[b], need_weights=False)
-            gt = torch.gather(target_rgb, 1, idx[..., None].expand(-1, -1, 3)).reshape(-1, 3)
-            errs.append(((rgb - gt) ** 2).mean())
-        return torch.stack(errs).mean()
+            origins, directions = origins.reshape(-1, 3), directions.reshape(-1, 3)
+
+            def gt_of(source):
+                rgb = source[b, tgt[b]].flatten(2).transpose(1, 2)                 # [T, HW, 3]
+                return torch.gather(rgb, 1, idx[..., None].expand(-1, -1, 3)).reshape(-1, 3)
+
+            gt = gt_of(images)
+            f, points, mask = model.field_at(scene, origins, directions, depths[b])
+            rgb, _ = model.renderer(f, points, directions, mask.any(-1), need_weights=False)
+            add("render", ((rgb - gt) ** 2).mean())
+            if cfg.aux_weight or cfg.aux_blur_weight:
+                logits = self.sample_logit(f)[..., 0]                               # [R, S]
+                levels = [(images, gt, cfg.aux_weight)]
+                if blurred is not None:
+                    levels.append((blurred, gt_of(blurred), cfg.aux_blur_weight))
+                for level, (source, target, weight) in enumerate(levels):
+                    if not weight:
+                        continue
+                    colours, valid = ibr.sample_reference_rgb(source[b, ref[b]], points, K, scene.world_from_cam)
+                    mean, _, count = ibr.view_mean(colours, valid)
+                    add("warp_blur" if level else "warp", ((ibr.blend_render(logits, mean, count) - target) ** 2).mean())
+            if cfg.plane_sweep_weight:
+                sweep = ibr.plane_sweep_render(images[b, ref[b]], scene.world_from_cam, K, origins,
+                                               directions, depths[b])
+                add("sweep", ((sweep - gt) ** 2).mean())
+            if teacher is not None and teacher[b] is not None:
+                for name, value in teacher_losses(world_from_cam[b], focal[b], *teacher[b]).items():
+                    add(name, value)
+        weights = {"render": 1.0, "warp": cfg.aux_weight, "warp_blur": cfg.aux_blur_weight,
+                   "sweep": cfg.plane_sweep_weight, "teacher_rot": cfg.teacher_weight,
+                   "teacher_dir": cfg.teacher_translation_weight, "teacher_focal": cfg.teacher_focal_weight}
+        means = {k: torch.stack(v).mean() for k, v in terms.items()}
+        total = sum(weights[k] * v for k, v in means.items())
+        return total, {k: float(v.detach()) for k, v in means.items()}
+
+
+def teacher_losses(world_from_cam: torch.Tensor, focal: torch.Tensor, cam_from_cam: torch.Tensor,
+                   trusted: torch.Tensor, teacher_focal: float) -> dict[str, torch.Tensor]:
+    """Epipolar pseudo-pose losses of one scene's predicted ``world_from_cam [V, 4, 4]`` and
+    ``focal [2]``: over the trusted ordered pairs (a, b), rotation ``1 - cos`` of the angle between
+    the predicted and the teacher's cam_b_from_cam_a, and ``|unit(t_pred) - t_teacher|^2 / 2`` on the
+    translation direction (the teacher knows no scale; the photometric terms set it)."""
+    pred = G.compose(G.invert_pose(world_from_cam)[None, :], world_from_cam[:, None])   # [a, b]: b <- a
+    w = trusted.to(pred.dtype)
+    n = w.sum().clamp_min(1.0)
+    R_pred, R_t = pred[..., :3, :3], cam_from_cam[..., :3, :3]
+    cos = ((R_pred * R_t).sum((-1, -2)) - 1) / 2
+    t = pred[..., :3, 3]
+    unit = t / torch.sqrt((t ** 2).sum(-1, keepdim=True) + 1e-6)
+    out = {"teacher_rot": ((1 - cos) * w).sum() / n,
+           "teacher_dir": (((unit - cam_from_cam[..., :3, 3]) ** 2).sum(-1) / 2 * w).sum() / n}
+    out["teacher_focal"] = ((torch.log(focal) - math.log(teacher_focal)) ** 2).mean()
+    return out
 
 
 def lr_factor(step: int, cfg: TrainConfig) -> float:
@@ -107,9 +178,11 @@ def lr_factor(step: int, cfg: TrainConfig) -> float:
     return cfg.min_lr_ratio + (1 - cfg.min_lr_ratio) * 0.5 * (1 + math.cos(math.pi * progress))
 
 
-def make_optimizer(model: IrisModel, cfg: TrainConfig) -> torch.optim.AdamW:
+def make_optimizer(model: IrisModel, cfg: TrainConfig, extra: list | None = None) -> torch.optim.AdamW:
+    """AdamW over the model (encoder + camera head at ``encoder_lr_scale``) and ``extra``
+    training-only parameters (at the renderer's rate)."""
     slow = list(model.encoder.parameters()) + list(model.camera_head.parameters())
-    fast = list(model.field.parameters()) + list(model.renderer.parameters())
+    fast = list(model.field.parameters()) + list(model.renderer.parameters()) + list(extra or [])
 
     def split(params):   # no weight decay on norms and biases
         return ([p for p in params if p.ndim >= 2], [p for p in params if p.ndim < 2])
@@ -122,26 +195,59 @@ def make_optimizer(model: IrisModel, cfg: TrainConfig) -> torch.optim.AdamW:
     return torch.optim.AdamW(groups, lr=cfg.lr, betas=(0.9, 0.95))
 
 
-def draw_batch(scenes, cfg: TrainConfig, mcfg: ModelConfig, rng: np.random.Generator):
-    """Random scenes, views, split, target pixels and stratified depths for one step."""
+def draw_batch(scenes, cfg: TrainConfig, mcfg: ModelConfig, rng: np.random.Generator, teachers=None):
+    """Random scenes, views, split, target pixels and stratified depths for one step; with
+    ``teachers`` (scene index -> PseudoPoses), each scene's teacher in the drawn view order."""
     n_views = int(rng.integers(cfg.views_min, cfg.views_max + 1))
     n_tgt = int(rng.integers(cfg.targets_min, cfg.targets_max + 1))
     H, W = mcfg.image_height, mcfg.image_width
-    images, ref, tgt, pixels, depths = [], [], [], [], []
+    S = cfg.train_samples or mcfg.samples
+    images, ref, tgt, pixels, depths, teacher = [], [], [], [], [], []
     for _ in range(cfg.scenes_per_step):
-        data = scenes[int(rng.integers(len(scenes)))]
+        index = int(rng.integers(len(scenes)))
+        data = scenes[index]
         order = rng.permutation(data.images.shape[0])[:n_views]        # random order: "Rand"
         images.append(data.images[order])
+        if teachers is not None:
+            pp = teachers(index)
+            sel = np.ix_(order, order)
+            teacher.append((torch.as_tensor(pp.cam_from_cam[sel], dtype=torch.float32),
+                            torch.as_tensor(pp.trusted[sel]), pp.focal))
         # View 0 of the drawn order is the canonical frame, so it is always a reference.
         roles = 1 + rng.permutation(n_views - 1)
         tgt.append(torch.as_tensor(np.sort(roles[:n_tgt])))
         ref.append(torch.as_tensor(np.sort(np.concatenate([[0], roles[n_tgt:]]))))
         n = cfg.rays_per_scene // n_tgt
         pixels.append(torch.as_tensor(rng.integers(0, H * W, size=(n_tgt, n))))
-        depths.append(torch.as_tensor(sample_depths(mcfg.near, mcfg.far, mcfg.samples, n_tgt * n,
+        depths.append(torch.as_tensor(sample_depths(mcfg.near, mcfg.far, S, n_tgt * n,
                                                     stratified=True, rng=rng, dtype=np.float32)))
     batch = torch.as_tensor(np.stack(images)).permute(0, 1, 4, 2, 3).float() / 255.0
-    return batch, ref, tgt, pixels, depths
+    return batch, ref, tgt, pixels, depths, (teacher if teachers is not None else None)
+
+
+def _teacher_lookup(scenes):
+    """scene index -> PseudoPoses: from the cache beside a ``SyntheticScenes`` cache (computed
+    and cached when missing), otherwise computed from the images; kept in memory."""
+    from . import pseudo_poses
+    memo: dict[int, object] = {}
+
+    def lookup(index: int):
+        if index not in memo:
+            if hasattr(scenes, "cache_dir") and hasattr(scenes, "seeds"):
+                memo[index] = pseudo_poses.load_or_estimate(scenes, index)
+            else:
+                memo[index] = pseudo_poses.estimate(scenes[index].images)
+        return memo[index]
+    return lookup
+
+
+def _last_focal(model: IrisModel):
+    """The focal bias of the camera head's output (what the focal is for a zero token): a cheap
+    log line showing whether the focal drifts to a bound."""
+    head = model.camera_head
+    with torch.no_grad():
+        z = head.focal_mlp[-1].bias
+        return torch.exp(head.log_focal_min + head.log_focal_range * torch.sigmoid(z)).tolist()
 
 
 def _setup_distributed() -> tuple[int, int]:
@@ -162,11 +268,13 @@ def train(cfg: TrainConfig, out: Path, resume: bool = False, scenes=None, thread
     ckpt_path = out / "last.pt"
     torch.manual_seed(cfg.seed)
     model = build_model(mcfg)
-    optimizer = make_optimizer(model, cfg)
+    loss_module = PhotometricLoss(model, cfg)
+    optimizer = make_optimizer(model, cfg, list(loss_module.sample_logit.parameters()))
     start_step, elapsed_before = 0, 0.0
     if resume and ckpt_path.exists():
         payload = read_checkpoint(ckpt_path)
         model.load_state_dict(payload["model"])
+        loss_module.sample_logit.load_state_dict(payload["aux"])
         optimizer.load_state_dict(payload["optimizer"])
         start_step = int(payload["step"])
         elapsed_before = float(payload.get("elapsed", 0.0))
@@ -174,7 +282,10 @@ def train(cfg: TrainConfig, out: Path, resume: bool = False, scenes=None, thread
     if scenes is None:
         from .data import SyntheticScenes
         scenes = SyntheticScenes(range(cfg.train_scenes), size=(mcfg.image_height, mcfg.image_width))
-    step_module: nn.Module = PhotometricLoss(model)
+    teachers = None
+    if cfg.teacher_weight or cfg.teacher_translation_weight or cfg.teacher_focal_weight:
+        teachers = _teacher_lookup(scenes)
+    step_module: nn.Module = loss_module
     if world > 1:
         step_module = nn.parallel.DistributedDataParallel(step_module)
     log_path = out / "log.jsonl"
@@ -193,8 +304,8 @@ def train(cfg: TrainConfig, out: Path, resume: bool = False, scenes=None, thread
         for group in optimizer.param_groups:
             group["lr"] = cfg.lr * factor * group["lr_scale"]
         # One generator per (seed, rank, step): a resumed run draws exactly the batches it would have.
-        batch = draw_batch(scenes, cfg, mcfg, np.random.default_rng([cfg.seed, rank, step]))
-        loss = step_module(*batch)
+        batch = draw_batch(scenes, cfg, mcfg, np.random.default_rng([cfg.seed, rank, step]), teachers)
+        loss, terms = step_module(*batch)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
@@ -210,13 +321,15 @@ def train(cfg: TrainConfig, out: Path, resume: bool = False, scenes=None, thread
             if step % cfg.log_every == 0 or step == cfg.steps - 1:
                 record = {"step": step, "loss": loss_value, "psnr": -10 * math.log10(max(loss_value, 1e-10)),
                           "loss_ema": ema_loss, "lr": cfg.lr * factor,
-                          "time": elapsed_before + elapsed, "rays_per_s": rays_done / max(elapsed, 1e-9)}
+                          "time": elapsed_before + elapsed, "rays_per_s": rays_done / max(elapsed, 1e-9),
+                          "terms": terms, "focal": [float(x) for x in _last_focal(model)]}
                 with log_path.open("a") as f:
                     f.write(json.dumps(record) + "\n")
             done = step == cfg.steps - 1
             out_of_time = max_seconds is not None and elapsed > max_seconds
             if (step + 1) % cfg.ckpt_every == 0 or done or out_of_time:
                 save_checkpoint(ckpt_path, model, optimizer=optimizer.state_dict(), step=step + 1,
+                                aux=loss_module.sample_logit.state_dict(),
                                 elapsed=elapsed_before + elapsed, train_config=dataclasses.asdict(cfg))
             if out_of_time:
                 break

@@ -31,7 +31,8 @@ def fake_scenes(n=3, seed=0):
     return [FakeScene(rng.integers(0, 256, (8, 64, 64, 3), dtype=np.uint8)) for _ in range(n)]
 
 
-SMALL = dict(scenes_per_step=1, rays_per_scene=32, views_min=3, views_max=4, warmup=2,
+SMALL = dict(scenes_per_step=1, rays_per_scene=32, views_min=3, views_max=4, warmup=2, teacher_weight=0.0,
+             teacher_translation_weight=0.0, teacher_focal_weight=0.0,
              log_every=1, ckpt_every=2)
 
 
@@ -45,7 +46,7 @@ def test_lr_schedule_warms_up_then_decays():
 
 def test_draw_batch_splits_views_into_disjoint_reference_and_target_sets():
     cfg = TrainConfig(**SMALL)
-    images, ref, tgt, pixels, depths = draw_batch(fake_scenes(), cfg, preset("tiny"),
+    images, ref, tgt, pixels, depths, teacher = draw_batch(fake_scenes(), cfg, preset("tiny"),
                                                   np.random.default_rng(0))
     assert images.dtype == torch.float32 and 0 <= float(images.min()) and float(images.max()) <= 1
     for r, t, p, d in zip(ref, tgt, pixels, depths):
