@@ -1,4 +1,4 @@
-"""Evaluation metrics in numpy: PSNR, SSIM and relative pose accuracy (RPA).
+"""Evaluation metrics in numpy: PSNR, SSIM, relative pose accuracy (RPA), depth rank correlation.
 
 numpy + OpenCV only (no torch), so that a model served by ``iris_runtime`` can be scored in an
 environment without torch.
@@ -28,15 +28,20 @@ its norm is at most ``ZERO_TRANSLATION_RTOL`` times the largest camera-centre no
 """
 from __future__ import annotations
 
+import math
+
 import cv2
 import numpy as np
 
-__all__ = ["psnr", "ssim", "relative_pose_errors", "rpa", "RPA_THRESHOLDS", "ZERO_TRANSLATION_RTOL"]
+__all__ = ["psnr", "ssim", "relative_pose_errors", "rpa", "depth_spearman", "RPA_THRESHOLDS",
+           "ZERO_TRANSLATION_RTOL", "DEPTH_SPEARMAN_MIN_PIXELS"]
 
 #: Default RPA thresholds in degrees (the paper's RPA@5/15/30).
 RPA_THRESHOLDS = (5, 15, 30)
 #: Relative translations at most this times the scene's coordinate scale count as zero (see above).
 ZERO_TRANSLATION_RTOL = 1e-9
+#: ``depth_spearman`` needs at least this many valid pixels (else nan).
+DEPTH_SPEARMAN_MIN_PIXELS = 3
 
 # SSIM constants of Wang et al. 2004 (and scikit-image's ``gaussian_weights=True``).
 _SSIM_SIGMA = 1.5
@@ -159,3 +164,51 @@ def rpa(pred_world_from_cam: np.ndarray, gt_world_from_cam: np.ndarray,
     rot, trans = relative_pose_errors(pred_world_from_cam, gt_world_from_cam)
     err = np.maximum(rot, trans)
     return {f"rpa@{tau:g}": float(np.mean(err < tau)) for tau in thresholds}
+
+
+def _average_ranks(x: np.ndarray) -> np.ndarray:
+    """Ranks 1..n of ``x [n]``, ties sharing their mean rank (scipy.stats.rankdata "average")."""
+    order = np.argsort(x, kind="mergesort")
+    xs = x[order]
+    # Start index of each run of equal values; a run [a, b) gets the mean rank (a + 1 + b) / 2.
+    starts = np.flatnonzero(np.concatenate([[True], xs[1:] != xs[:-1]]))
+    ends = np.concatenate([starts[1:], [len(xs)]])
+    run_rank = (starts + 1 + ends) / 2.0
+    ranks = np.empty(len(x), dtype=np.float64)
+    ranks[order] = np.repeat(run_rank, ends - starts)
+    return ranks
+
+
+def depth_spearman(pred_depth: np.ndarray, true_depth: np.ndarray) -> float:
+    """Spearman rank correlation of a predicted depth map with the true one, over the pixels that
+    see geometry.
+
+    ``pred_depth, true_depth [H, W]`` (any real dtype, same shape). Valid pixels: ``true_depth > 0``
+    (0 = no geometry, as in ``SceneData.depth``) where both maps are finite. On those pixels:
+    Pearson correlation of the average ranks (ties share their mean rank), which is what
+    ``scipy.stats.spearmanr`` computes. Rank-based, so the prediction's unit (pose-free models have
+    their own scale) and any monotone reparametrisation of it do not matter.
+
+    Returns a float in [-1, 1], or **nan** when it is undefined: fewer than
+    ``DEPTH_SPEARMAN_MIN_PIXELS`` (3) valid pixels, or either map constant over them (zero rank
+    variance). Never warns.
+    """
+    pred = np.asarray(pred_depth, dtype=np.float64)
+    true = np.asarray(true_depth, dtype=np.float64)
+    if pred.shape != true.shape:
+        raise ValueError(f"pred_depth and true_depth must have the same shape, got {pred.shape} "
+                         f"and {true.shape}")
+    if pred.ndim != 2:
+        raise ValueError(f"depth maps: expected [H, W], got shape {pred.shape}")
+    with np.errstate(invalid="ignore"):
+        valid = np.isfinite(true) & np.isfinite(pred) & (true > 0)
+    if int(valid.sum()) < DEPTH_SPEARMAN_MIN_PIXELS:
+        return float("nan")
+    a = _average_ranks(pred[valid])
+    b = _average_ranks(true[valid])
+    a -= a.mean()
+    b -= b.mean()
+    denom = math.sqrt(float(a @ a) * float(b @ b))
+    if not denom > 0:
+        return float("nan")
+    return float(np.clip((a @ b) / denom, -1.0, 1.0))

@@ -244,3 +244,70 @@ def test_metrics_module_does_not_import_torch():
             "sys.exit(1 if 'torch' in sys.modules else 0)")
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     assert subprocess.run([sys.executable, "-c", code], cwd=root).returncode == 0
+
+
+# ----------------------------------------------------------------------------------------------
+# Depth rank correlation
+# ----------------------------------------------------------------------------------------------
+
+def _depth_pairs():
+    rng = np.random.default_rng(7)
+    yy, xx = np.mgrid[0:24, 0:20] / 20.0
+    true = 0.3 + 0.5 * xx + 0.1 * yy
+    hole = true.copy()
+    hole[5:12, 3:9] = 0.0                                  # no geometry there
+    quantised = np.round(true * 8) / 8                    # many ties in the truth
+    distinct = 0.2 + rng.random((24, 20))                 # no ties
+    return {
+        "monotone": (np.exp(3 * distinct), distinct),      # any monotone map: exactly 1
+        "reversed": (-distinct, distinct),
+        "noisy-with-holes": (hole + 0.05 * rng.standard_normal(hole.shape), hole),
+        "ties-both": (np.round(hole * 4) / 4, quantised),
+        "random": (rng.random((16, 16)), rng.random((16, 16)) + 0.1),
+        "float32": (rng.random((8, 9)).astype(np.float32), (rng.random((8, 9)) + 0.1).astype(np.float32)),
+    }
+
+
+@pytest.mark.parametrize("name", list(_depth_pairs()))
+def test_depth_spearman_matches_scipy(name):
+    stats = pytest.importorskip("scipy.stats")
+    from iris_train.metrics import depth_spearman
+    pred, true = _depth_pairs()[name]
+    valid = true > 0
+    expected = stats.spearmanr(pred[valid], true[valid]).statistic
+    assert depth_spearman(pred, true) == pytest.approx(expected, abs=1e-12)
+    if name == "monotone":
+        assert depth_spearman(pred, true) == pytest.approx(1.0, abs=1e-12)
+    if name == "reversed":
+        assert depth_spearman(pred, true) == pytest.approx(-1.0, abs=1e-12)
+
+
+def test_depth_spearman_ignores_pixels_without_geometry_and_non_finite_predictions():
+    from iris_train.metrics import depth_spearman
+    true = np.array([[0.0, 0.5, 0.6], [0.7, 0.0, 0.8]])
+    pred = np.array([[9.0, 1.0, 2.0], [3.0, -9.0, 4.0]])
+    assert depth_spearman(pred, true) == pytest.approx(1.0)
+    pred_nan = pred.copy()
+    pred_nan[0, 0] = np.nan                                # on a pixel without geometry: irrelevant
+    pred_nan[1, 2] = np.inf                                # on a valid pixel: left out
+    assert depth_spearman(pred_nan, true) == pytest.approx(1.0)
+
+
+def test_depth_spearman_is_nan_when_undefined():
+    import warnings
+
+    from iris_train.metrics import depth_spearman
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert np.isnan(depth_spearman(np.ones((4, 4)), np.zeros((4, 4))))            # no geometry
+        two = np.zeros((4, 4))
+        two[0, :2] = (0.5, 0.6)
+        assert np.isnan(depth_spearman(np.random.default_rng(0).random((4, 4)), two))  # 2 pixels
+        true = np.linspace(0.2, 0.9, 16).reshape(4, 4)
+        assert np.isnan(depth_spearman(np.full((4, 4), 0.5), true))                   # constant pred
+        assert np.isnan(depth_spearman(true, np.full((4, 4), 0.5)))                   # constant truth
+        assert np.isnan(depth_spearman(np.full((4, 4), np.nan), true))                # all NaN
+    with pytest.raises(ValueError):
+        depth_spearman(np.ones((4, 4)), np.ones((4, 5)))
+    with pytest.raises(ValueError):
+        depth_spearman(np.ones(4), np.ones(4))
