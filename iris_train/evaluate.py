@@ -20,6 +20,11 @@ Protocol (DESIGN.md "Evaluation protocol", the paper's appendix scaled down):
   predicted poses, at the model's resolution, and compared with the target images: PSNR and SSIM
   (``iris_train.metrics``), per image, averaged over targets, then over scenes.
 - Pose: RPA@5/15/30 of the N predicted poses against the ground truth over all frame pairs.
+- Soft depth: ``depth_spearman`` (``iris_train.metrics.depth_spearman``), the Spearman rank
+  correlation of each target's rendered soft depth with its true depth over the pixels that see
+  geometry (true depth > 0), averaged over targets, then over scenes. Only scenes with a true
+  depth count (the synthetic ones; users' folders have none: ``null`` when no scene has one); a
+  target with fewer than 3 such pixels or a constant depth map is left out of its scene's mean.
 - Two input orders: **Seq** (frames as stored) and **Rand** (a fixed per-scene permutation from
   ``RAND_SEED`` and the scene's index). Targets and references are the same frames in both; in Rand
   they are merely presented in shuffled order, and the first presented frame becomes the canonical
@@ -52,7 +57,7 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
-from .metrics import RPA_THRESHOLDS, psnr, rpa, ssim
+from .metrics import RPA_THRESHOLDS, depth_spearman, psnr, rpa, ssim
 
 __all__ = ["evaluate", "split_frames", "rand_permutation", "nearest_reference", "format_table",
            "load_scenes", "load_evaluable", "TARGET_FRAMES", "DEFAULT_VIEWS", "RAND_SEED", "ORDERS",
@@ -68,6 +73,8 @@ RAND_SEED = 2024
 ORDERS = ("seq", "rand")
 #: PSNR of one image is capped here (dB), so that a pixel-identical image stays finite.
 PSNR_CAP = 100.0
+#: Pixel size (H, W) of the camera picture in ``--grid``.
+_CAMERA_PANEL_SIZE = (450, 700)
 _RPA_KEYS = tuple(f"rpa@{t:g}" for t in RPA_THRESHOLDS)
 
 
@@ -233,6 +240,65 @@ def _prepare_scene(scene, views: int, image_size: tuple[int, int]):
     return images, poses
 
 
+def _true_depth_and_K(scene, views: int, image_size: tuple[int, int]):
+    """-> ``(true depth float64 [N, H, W] at the model's size or None, K [3, 3] / [N, 3, 3] or None)``
+    of the frames ``_prepare_scene`` keeps. A depth of another size gets the same centre crop as
+    the images and a nearest-neighbour resize (no depths mixed across edges); K is left as stored
+    (only its cx/fx, cy/fy are used, for the camera picture)."""
+    depth = getattr(scene, "depth", None)
+    K = getattr(scene, "K", None)
+    V = np.asarray(scene.images).shape[0]
+    idx = np.round(np.linspace(0, V - 1, views)).astype(int)
+    if K is not None:
+        K = np.asarray(K, dtype=np.float64)
+        K = K[idx] if K.ndim == 3 else K
+    if depth is None:
+        return None, K
+    depth = np.asarray(depth, dtype=np.float64)
+    if depth.ndim != 3 or depth.shape[0] != V:
+        return None, K
+    depth = depth[idx]
+    if depth.shape[1:] != tuple(image_size):
+        import cv2
+
+        from iris_runtime.images import plan_crop_resize
+        H, W = image_size
+        plan = plan_crop_resize(depth.shape[1], depth.shape[2], H, W)
+        depth = np.stack([cv2.resize(np.ascontiguousarray(d[plan.y0:plan.y0 + plan.crop_h,
+                                                            plan.x0:plan.x0 + plan.crop_w]),
+                                     (W, H), interpolation=cv2.INTER_NEAREST) for d in depth])
+    return depth, K
+
+
+def _depth_score(pred_depths: np.ndarray, true_depths: np.ndarray) -> float | None:
+    """Mean ``depth_spearman`` over the targets where it is defined, or None."""
+    values = [depth_spearman(p, t) for p, t in zip(pred_depths, true_depths)]
+    values = [v for v in values if np.isfinite(v)]
+    return float(np.mean(values)) if values else None
+
+
+def _camera_panel(pred_poses: np.ndarray, pred_focal, gt_poses: np.ndarray | None, gt_K,
+                  size: tuple[int, int]) -> np.ndarray:
+    """Picture of the predicted cameras (``iris_runtime.camera_plot``), moved into the true frame
+    by a similarity alignment of their centres when true cameras are known."""
+    from iris_runtime.camera_plot import align_poses, draw_cameras
+    if gt_poses is None:
+        return draw_cameras(pred_poses, pred_focal, size=size, title="predicted cameras")
+    aligned, (s, _, _) = align_poses(pred_poses, gt_poses)
+    return draw_cameras(aligned, pred_focal, reference=gt_poses, reference_focal=gt_K, size=size,
+                        title=f"predicted cameras, similarity-aligned to the true ones (scale {s:.3g})")
+
+
+def _focal_of(encoded):
+    """The normalised focal [fx/W, fy/H] of an encoded scene (torch or runtime), or None."""
+    f = getattr(encoded, "focal", None)
+    if f is None:
+        return None
+    if hasattr(f, "detach"):
+        f = f.detach().cpu().double().numpy()
+    return np.asarray(f, dtype=np.float64)
+
+
 # ----------------------------------------------------------------------------------------------
 # Evaluation
 # ----------------------------------------------------------------------------------------------
@@ -253,9 +319,10 @@ def evaluate(model, scenes: Iterable, *, views: int = DEFAULT_VIEWS, seed: int =
     write a PNG of the first scene (Seq order). ``total``: number of scenes, for the progress bar.
 
     Returns ``{"seq": R, "rand": R}`` with ``R = {"model": {"psnr", "ssim", "rpa@5", "rpa@15",
-    "rpa@30"}, "baselines": {"nearest_reference": {"psnr", "ssim"}, "mean_colour": {"psnr",
-    "ssim"}, "identity_poses": {"rpa@5", "rpa@15", "rpa@30"}}}``: means over scenes (see the module
-    docstring for the protocol). Raises ``ValueError`` when no scene has ``views`` frames.
+    "rpa@30", "depth_spearman"}, "baselines": {"nearest_reference": {"psnr", "ssim"},
+    "mean_colour": {"psnr", "ssim"}, "identity_poses": {"rpa@5", "rpa@15", "rpa@30"}}}``: means
+    over scenes (see the module docstring for the protocol; ``depth_spearman`` is None when no
+    scene has a true depth). Raises ``ValueError`` when no scene has ``views`` frames.
     """
     backend = _backend(model)
     refs, targets = split_frames(views)
@@ -263,7 +330,7 @@ def evaluate(model, scenes: Iterable, *, views: int = DEFAULT_VIEWS, seed: int =
     training = getattr(model, "training", None)
     if training:
         model.eval()
-    acc = {order: {"model": {k: [] for k in ("psnr", "ssim", *_RPA_KEYS)},
+    acc = {order: {"model": {k: [] for k in ("psnr", "ssim", *_RPA_KEYS, "depth_spearman")},
                    "nearest_reference": {"psnr": [], "ssim": []},
                    "mean_colour": {"psnr": [], "ssim": []},
                    "identity_poses": {k: [] for k in _RPA_KEYS}} for order in ORDERS}
@@ -278,6 +345,7 @@ def evaluate(model, scenes: Iterable, *, views: int = DEFAULT_VIEWS, seed: int =
                 n_skipped += 1
                 continue
             images, gt_poses = prepared
+            true_depth, true_K = _true_depth_and_K(scene, views, backend.image_size)
             n_used += 1
             gt_images = images.astype(np.float64) / 255.0
             targets_gt = gt_images[targets_a]
@@ -306,6 +374,10 @@ def evaluate(model, scenes: Iterable, *, views: int = DEFAULT_VIEWS, seed: int =
                     a["model"][k].append(v)
                 for k, v in mean_scores.items():
                     a["mean_colour"][k].append(v)
+                if true_depth is not None:
+                    score = _depth_score(depth, true_depth[targets_a])
+                    if score is not None:
+                        a["model"]["depth_spearman"].append(score)
                 if gt_poses is not None:
                     gt_presented = gt_poses[perm]
                     for k, v in rpa(pred, gt_presented).items():
@@ -317,7 +389,10 @@ def evaluate(model, scenes: Iterable, *, views: int = DEFAULT_VIEWS, seed: int =
                         a["nearest_reference"][k].append(v)
                 if grid is not None and order == "seq" and n_used == 1:
                     save_grid(grid, gt_images[refs_a], targets_gt, rgb, depth, backend.depth_range,
-                              refs, targets)
+                              refs, targets,
+                              true_depths=None if true_depth is None else true_depth[targets_a],
+                              cameras=_camera_panel(pred, _focal_of(encoded), gt_poses, true_K,
+                                                    _CAMERA_PANEL_SIZE))
     finally:
         bar.close()
         if training:
@@ -340,9 +415,13 @@ def evaluate(model, scenes: Iterable, *, views: int = DEFAULT_VIEWS, seed: int =
 # ----------------------------------------------------------------------------------------------
 
 def format_table(results: dict) -> str:
-    """The results as a fixed-width text table (one row per order and method; "-" = not measured)."""
-    cols = ("psnr", "ssim", *_RPA_KEYS)
-    head = f"{'order':<6} {'method':<18}" + "".join(f"{c.upper():>9}" for c in cols)
+    """The results as a fixed-width text table (one row per order and method; "-" = not measured).
+    DEPTH-RHO is ``depth_spearman``."""
+    cols = ("psnr", "ssim", *_RPA_KEYS, "depth_spearman")
+    labels = {"depth_spearman": "DEPTH-RHO"}
+    width = {c: max(9, len(labels.get(c, c)) + 1) for c in cols}
+    head = f"{'order':<6} {'method':<18}" + "".join(f"{labels.get(c, c.upper()):>{width[c]}}"
+                                                     for c in cols)
     lines = [head, "-" * len(head)]
     rows = (("IRIS", lambda r: r["model"]),
             ("nearest reference", lambda r: r["baselines"]["nearest_reference"]),
@@ -353,9 +432,9 @@ def format_table(results: dict) -> str:
             values = get(results[order])
             cells = []
             for c in cols:
-                v = values.get(c)
-                cells.append(f"{'-':>9}" if v is None else
-                             f"{v:>9.2f}" if c == "psnr" else f"{v:>9.3f}")
+                v, w = values.get(c), width[c]
+                cells.append(f"{'-':>{w}}" if v is None else
+                             f"{v:>{w}.2f}" if c == "psnr" else f"{v:>{w}.3f}")
             lines.append(f"{order.capitalize():<6} {name:<18}" + "".join(cells))
     return "\n".join(lines)
 
@@ -380,10 +459,13 @@ def write_json(path: str | os.PathLike, results: dict) -> None:
 
 def save_grid(path: str | os.PathLike, references: np.ndarray, targets: np.ndarray,
               renders: np.ndarray, depths: np.ndarray, depth_range: tuple[float, float],
-              ref_frames: Sequence[int] | None = None, target_frames: Sequence[int] | None = None
-              ) -> None:
+              ref_frames: Sequence[int] | None = None, target_frames: Sequence[int] | None = None,
+              *, true_depths: np.ndarray | None = None, cameras: np.ndarray | None = None) -> None:
     """PNG of one scene: reference views; ground-truth targets; renders (with their PSNR); soft
-    depth (turbo colour map over the model's [near, far]). Images float ``[n, H, W, 3]`` in [0, 1],
+    depth (turbo colour map over the model's [near, far]); the targets' true depth (same colour map
+    and range; grey where there is no geometry; the soft depth's title then gives its Spearman
+    correlation with it); and a picture of the cameras below (``cameras``: an RGB uint8 image, e.g.
+    from ``iris_runtime.camera_plot.draw_cameras``). Images float ``[n, H, W, 3]`` in [0, 1],
     depths ``[n, H, W]``; ``*_frames`` label the columns with frame indices. Written atomically."""
     import matplotlib
     matplotlib.use("Agg")
@@ -392,27 +474,48 @@ def save_grid(path: str | os.PathLike, references: np.ndarray, targets: np.ndarr
     import matplotlib.pyplot as plt
     ref_frames = range(len(references)) if ref_frames is None else ref_frames
     target_frames = range(len(targets)) if target_frames is None else target_frames
-    rows = (("references", references, [f"frame {i}" for i in ref_frames]),
+    depth_titles = [f"{d.min():.2f}-{d.max():.2f}" for d in depths]
+    if true_depths is not None:
+        rhos = [depth_spearman(d, t) for d, t in zip(depths, true_depths)]
+        depth_titles = [f"{t}, \u03c1 {r:.2f}" if np.isfinite(r) else t
+                        for t, r in zip(depth_titles, rhos)]
+    rows = [("references", references, [f"frame {i}" for i in ref_frames]),
             ("targets (GT)", targets, [f"frame {i}" for i in target_frames]),
             ("renders", renders, [f"{_psnr(np.clip(r, 0, 1), t):.1f} dB" for r, t in zip(renders, targets)]),
-            ("soft depth", depths, [f"{d.min():.2f}-{d.max():.2f}" for d in depths]))
+            ("soft depth", depths, depth_titles)]
+    if true_depths is not None:
+        masked = [np.ma.masked_where(~(np.asarray(t) > 0), t) for t in true_depths]
+        rows.append(("true depth", masked,
+                     [f"{t.min():.2f}-{t.max():.2f}" if t.count() else "no geometry" for t in masked]))
     ncols = max(len(r[1]) for r in rows)
-    fig, axes = plt.subplots(len(rows), ncols, figsize=(1.4 * ncols, 1.5 * len(rows)), squeeze=False)
+    cam_rows = 3 if cameras is not None else 0
+    fig = plt.figure(figsize=(1.4 * ncols, 1.5 * (len(rows) + cam_rows)))
+    gs = fig.add_gridspec(len(rows) + cam_rows, ncols)
+    cmap = matplotlib.colormaps["turbo"].with_extremes(bad="0.85")   # no geometry: grey
+
+    def bare(ax):
+        ax.set_xticks([])
+        ax.set_yticks([])
+        for spine in ax.spines.values():
+            spine.set_visible(False)
+
     for r, (label, ims, titles) in enumerate(rows):
         for c in range(ncols):
-            ax = axes[r, c]
-            ax.set_xticks([])
-            ax.set_yticks([])
-            for spine in ax.spines.values():
-                spine.set_visible(False)
+            ax = fig.add_subplot(gs[r, c])
+            bare(ax)
             if c < len(ims):
                 if ims[c].ndim == 2:
-                    ax.imshow(ims[c], cmap="turbo", vmin=depth_range[0], vmax=depth_range[1])
+                    ax.imshow(ims[c], cmap=cmap, vmin=depth_range[0], vmax=depth_range[1])
                 else:
                     ax.imshow(np.clip(ims[c], 0, 1))
                 ax.set_title(titles[c], fontsize=7)
             if c == 0:
                 ax.set_ylabel(label, fontsize=8)
+    if cameras is not None:
+        ax = fig.add_subplot(gs[len(rows):, :])
+        bare(ax)
+        ax.imshow(np.asarray(cameras))
+        ax.set_ylabel("cameras", fontsize=8)
     fig.tight_layout()
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=100)
@@ -476,7 +579,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=RAND_SEED,
                         help=f"seed of the Rand-order permutations (default {RAND_SEED})")
     parser.add_argument("--grid", metavar="FILE.png", type=Path, default=None,
-                        help="write a PNG grid of the first scene (references, targets, renders, depth)")
+                        help="write a PNG grid of the first scene (references, targets, renders, "
+                             "soft and true depth, predicted vs true cameras)")
     parser.add_argument("--threads", type=int, default=None,
                         help="intra-op threads of torch (checkpoint) or ONNX Runtime (exported "
                              "model); default: the library's choice. On a busy machine 1 can be "

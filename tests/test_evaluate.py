@@ -88,7 +88,7 @@ def check_structure(results):
     assert set(results) == {"seq", "rand"}
     for R in results.values():
         assert set(R) == {"model", "baselines"}
-        assert set(R["model"]) == {"psnr", "ssim", *RPA_KEYS}
+        assert set(R["model"]) == {"psnr", "ssim", *RPA_KEYS, "depth_spearman"}
         assert set(R["baselines"]) == {"nearest_reference", "mean_colour", "identity_poses"}
         assert set(R["baselines"]["nearest_reference"]) == {"psnr", "ssim"}
         assert set(R["baselines"]["mean_colour"]) == {"psnr", "ssim"}
@@ -206,9 +206,13 @@ def test_evaluate_tiny_model_structure_and_ranges(tiny_results):
     results, grid, _ = tiny_results
     check_structure(results)
     json.dumps(results, allow_nan=False)
+    has_depth = getattr(tiny_results[2][0], "depth", None) is not None   # else a made-up scene
     for R in results.values():
         for name, values in [("model", R["model"]), *R["baselines"].items()]:
             for key, v in values.items():
+                if key == "depth_spearman" and not has_depth:
+                    assert v is None
+                    continue
                 assert v is not None and np.isfinite(v), (name, key)
                 if key == "psnr":
                     assert 0 < v <= 100
@@ -218,6 +222,59 @@ def test_evaluate_tiny_model_structure_and_ranges(tiny_results):
     assert results["seq"]["baselines"] == results["rand"]["baselines"]
     assert grid.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert "nearest reference" in format_table(results)
+
+
+class DepthOracleRuntime(OracleRuntime):
+    """Also "renders" the true depth of the matched frame, in other units (2 z + 0.1: a monotone
+    map, so its rank correlation with the truth is exactly 1)."""
+
+    def __init__(self, scenes):
+        super().__init__(scenes)
+        self.depth_of = [getattr(s, "depth", None) for s in scenes]
+
+    def render(self, scene, pose, *, height, width, depth):
+        result = super().render(scene, pose, height=height, width=width, depth=depth)
+        image = result.image
+        for (ims, _), true_depth in zip(self.truth, self.depth_of):
+            match = np.flatnonzero((ims == image).all(axis=(1, 2, 3)))
+            if match.size and true_depth is not None:
+                result.depth = 2.0 * true_depth[match[0]] + 0.1
+        return result
+
+
+def scene_with_depth(seed):
+    scene = rotation_scene(seed)
+    rng = np.random.default_rng(seed)
+    depth = rng.uniform(0.3, 1.0, (8, *SIZE))
+    depth[:, :3] = 0.0                                       # rows without geometry
+    scene.depth = depth
+    return scene
+
+
+def test_depth_spearman_in_evaluate_counts_only_scenes_with_depth():
+    with_depth = scene_with_depth(11)
+    no_depth = rotation_scene(12)                            # no depth attribute at all
+    none_depth = rotation_scene(13)
+    none_depth.depth = None
+    results = evaluate(DepthOracleRuntime([with_depth, no_depth, none_depth]),
+                       [with_depth, no_depth, none_depth], progress=False)
+    for order in ORDERS:
+        assert results[order]["model"]["depth_spearman"] == pytest.approx(1.0, abs=1e-12)
+    results = evaluate(OracleRuntime([no_depth]), [no_depth], progress=False)
+    assert all(results[o]["model"]["depth_spearman"] is None for o in ORDERS)
+    assert "DEPTH-RHO" in format_table(results)
+
+
+def test_true_depth_follows_the_image_crop():
+    from iris_train.evaluate import _true_depth_and_K
+    scene = scene_with_depth(14)
+    big = np.repeat(np.repeat(scene.depth, 2, 1), 3, 2)     # 32 x 48: centre crop 32 x 32, halved
+    scene.depth = big
+    scene.images = np.repeat(np.repeat(scene.images, 2, 1), 3, 2)
+    depth, K = _true_depth_and_K(scene, 8, SIZE)
+    assert depth.shape == (8, *SIZE) and K is None
+    crop = big[:, :, 8:40]
+    np.testing.assert_array_equal(depth, crop[:, ::2, ::2])
 
 
 def test_identity_baseline_in_evaluate(tiny_results):
