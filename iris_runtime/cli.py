@@ -19,7 +19,9 @@ Written to OUT (created if needed; files of the same name are replaced):
 - ``inputs/NNN.png``: the input images as the model saw them (centre-cropped, resized), with
   their predicted cameras in ``transforms.json`` (nerfstudio; OpenGL axes) and in
   ``colmap/{cameras,images,points3D}.txt`` (COLMAP text; image folder ``inputs/``). The
-  intrinsics are in pixels of these model-resolution images.
+  intrinsics are in pixels of these model-resolution images;
+- ``cameras.png``: a picture of those predicted cameras (frustums with their view indices, from
+  above; ``iris_runtime.camera_plot.draw_cameras``), written whenever the inputs are encoded.
 
 Everything is checked (model, images, poses, view indices) before anything is written. Errors
 print one line on stderr and exit with code 2, without a traceback.
@@ -194,6 +196,7 @@ def _nearest_rigid(T: np.ndarray) -> np.ndarray:
 
 def run(args: argparse.Namespace) -> int:
     from . import camera_io
+    from .camera_plot import draw_cameras
     from .errors import InputError
     from .images import fit_to_model, load_image
     from .orbit import orbit_poses
@@ -251,6 +254,8 @@ def run(args: argparse.Namespace) -> int:
     camera_io.write_transforms_json(out / "transforms.json", cams, scene.K, (H, W),
                                     [f"inputs/{n}" for n in names])
     camera_io.write_colmap_text(out / "colmap", cams, scene.K, (H, W), names)
+    _write_png(out / "cameras.png", draw_cameras(cams, scene.K, size=(480, 640),
+                                                 title=f"predicted cameras of the {V} input(s)"))
     if orbit is not None:
         (out / "orbit_poses.json").write_text(json.dumps(orbit.tolist()) + "\n")
 
@@ -296,7 +301,7 @@ def run(args: argparse.Namespace) -> int:
     elif orbit is not None:
         say(f"video: not written (OpenCV has no mp4v encoder here); frames are in {out}")
     say(f"cameras of the inputs: {out / 'transforms.json'}, {out / 'colmap'} "
-        f"(images in {out / 'inputs'})")
+        f"(images in {out / 'inputs'}; picture {out / 'cameras.png'})")
     say(f"total {time.perf_counter() - t_all:.2f} s")
     return 0
 

@@ -213,3 +213,21 @@ def test_picture_is_deterministic_and_scale_free():
     # The same drawing up to the scale bar's label: the frustum area is the same.
     body = slice(30, 300)
     assert np.array_equal(a[body] == 255, c[body] == 255)
+
+
+def test_iris_render_writes_a_picture_of_the_predicted_cameras(model_dir, tmp_path, capsys):
+    from PIL import Image
+
+    from iris_runtime.cli import main as render_main
+    rng = np.random.default_rng(3)
+    paths = []
+    for k in range(3):
+        paths.append(tmp_path / f"{k}.png")
+        Image.fromarray(rng.integers(0, 256, (40, 50, 3), dtype=np.uint8)).save(paths[-1])
+    out = tmp_path / "out"
+    code = render_main([str(model_dir), *map(str, paths), "-o", str(out), "--view", "1",
+                        "--size", "8x8", "--no-depth", "--threads", "1"])
+    assert code == 0, capsys.readouterr().err
+    assert "cameras.png" in capsys.readouterr().out
+    img = np.asarray(Image.open(out / "cameras.png"))
+    check_image(img, (480, 640))
