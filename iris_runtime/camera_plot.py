@@ -122,6 +122,20 @@ def align_similarity(pred_centres, true_centres, *, pred_rotation=None, true_rot
     Rq = _check_rotation(true_rotation, "true_rotation")
     R0 = np.eye(3) if Rp is None or Rq is None else Rq @ Rp.T
 
+    # Umeyama is equivariant under scaling each set: solve for P / a, Q / b (a, b powers of two
+    # near their magnitudes: exact, no overflow in the squares), then s = s' b / a, t = t' b.
+    a = _power_of_two_scale(P)
+    b = _power_of_two_scale(Q)
+    s, R, t = _umeyama(P / a, Q / b, R0)
+    return s * b / a, R, t * b
+
+
+def _power_of_two_scale(X: np.ndarray) -> float:
+    m = float(np.abs(X).max())
+    return 2.0 ** math.ceil(math.log2(m)) if m > 0 else 1.0
+
+
+def _umeyama(P: np.ndarray, Q: np.ndarray, R0: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
     N = P.shape[0]
     mu_p, mu_q = P.mean(0), Q.mean(0)
     Pc, Qc = P - mu_p, Q - mu_q
@@ -323,12 +337,22 @@ def draw_cameras(world_from_cam, focal=None, *, reference=None, reference_focal=
         if not finite.all():
             notes.append(f"{int((~finite).sum())} non-finite camera(s) not drawn")
         idx = np.flatnonzero(finite)
-        R = _nearest_rotation(T[idx, :3, :3]) if len(idx) else np.zeros((0, 3, 3))
         poses = np.zeros((len(idx), 4, 4))
-        poses[:, :3, :3] = R
+        if len(idx):
+            M = T[idx, :3, :3]
+            size_m = np.abs(M).max(axis=(1, 2), keepdims=True)
+            M = np.where(size_m > 0, M / np.where(size_m > 0, size_m, 1.0), np.eye(3))
+            poses[:, :3, :3] = _nearest_rotation(M)
         poses[:, :3, 3] = T[idx, :3, 3]
         poses[:, 3, 3] = 1.0
         kept[key] = (idx, poses, half[idx])
+    # Work in coordinates divided by a power of two near their magnitude (exact, and no overflow
+    # or underflow in the squares below whatever the scene's unit); the scale bar undoes it.
+    magnitude = max([float(np.abs(p[:, :3, 3]).max()) for _, p, _ in kept.values() if len(p)],
+                    default=0.0)
+    coord_scale = 2.0 ** math.ceil(math.log2(magnitude)) if magnitude > 0 else 1.0
+    for _, p, _ in kept.values():
+        p[:, :3, 3] /= coord_scale
 
     # Normalised coordinates: centred on all cameras, in units of their spread.
     centres = np.concatenate([p[:, :3, 3] for _, p, _ in kept.values()]) if kept else np.zeros((0, 3))
@@ -453,7 +477,7 @@ def draw_cameras(world_from_cam, focal=None, *, reference=None, reference_focal=
     # Scale bar (scene units) and notes.
     y = H - 6 - line_h * len(notes)
     if not all_collapsed:
-        per_px = unit / scale                      # scene units per pixel
+        per_px = unit * coord_scale / scale        # scene units per pixel
         bar = _nice_length(0.2 * W * per_px)
         bar_px = bar / per_px
         x0 = margin

@@ -202,6 +202,23 @@ def test_degenerate_cameras_still_give_a_picture(case):
     check_image(img, (240, 320))
 
 
+@pytest.mark.parametrize("magnitude", [1e-200, 1e200])
+def test_extreme_coordinates_neither_warn_nor_lose_the_alignment(magnitude):
+    import warnings
+    rng = np.random.default_rng(8)
+    true = arc()
+    true[:, :3, 3] *= magnitude
+    pred = apply_similarity(true, 0.5, random_rotation(rng), magnitude * rng.standard_normal(3))
+    pred[:, :3, :3] *= magnitude                          # a badly scaled "rotation" too
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        aligned, (s, R, t) = align_poses(pred, true)
+        check_image(draw_cameras(aligned, K, reference=true, size=(120, 160)), (120, 160))
+        check_image(draw_cameras(pred, K, size=(120, 160)), (120, 160))
+    assert s == pytest.approx(2.0, rel=1e-9)
+    np.testing.assert_allclose(aligned[:, :3, 3] / magnitude, true[:, :3, 3] / magnitude, atol=1e-9)
+
+
 def test_picture_is_deterministic_and_scale_free():
     true = arc()
     a = draw_cameras(true, K)
