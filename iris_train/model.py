@@ -2,8 +2,16 @@
 benchmarks.
 
     model = build_model(preset("tiny"))
-    scene = model.encode(images)                     # images [V, 3, H, W] in [0, 1]
+    scene = model.encode(images)                     # images [V, 3, H, W] in [0, 1]: references
     rgb, depth = model.render(scene, poses, H, W)    # poses [N, 4, 4] world_from_cam
+    poses = model.locate(images, queries)            # queries [Q, 3, H, W] -> [Q, 4, 4]
+
+References and queries (``iris_train.encoder``): ``encode`` treats every image as a reference;
+``locate(references, queries)`` runs the encoder once on references + queries with the queries
+isolated (``is_reference = [True] * V + [False] * Q``) and returns the queries' poses in the
+references' frame. The references' features and cameras are the same with or without queries, and
+queries never see each other, so ``locate`` does not change ``encode(references)`` and locating Q
+photos at once equals locating them one by one (up to float rounding).
 
 Checkpoints are a plain dict (format tag, config dict, state dict, training info) loaded with
 ``torch.load(..., weights_only=True)``: no pickled classes, nothing executed on load.
@@ -89,15 +97,33 @@ class IrisModel(nn.Module):
         world_from_cam, focal = self.camera_head(camera_tokens)
         return features, world_from_cam, focal
 
-    def encode(self, images: torch.Tensor) -> Scene:
-        """``images [V, 3, H, W]`` in [0, 1] at the model's resolution -> Scene."""
+    def _check_images(self, images: torch.Tensor, name: str) -> None:
         cfg = self.cfg
-        if images.ndim != 4 or images.shape[1:] != (3, cfg.image_height, cfg.image_width):
-            raise ValueError(f"images: expected [V, 3, {cfg.image_height}, {cfg.image_width}], "
-                             f"got {tuple(images.shape)}")
+        if images.ndim != 4 or images.shape[1:] != (3, cfg.image_height, cfg.image_width) \
+                or images.shape[0] == 0:
+            raise ValueError(f"{name}: expected [V, 3, {cfg.image_height}, {cfg.image_width}] with "
+                             f"V >= 1, got {tuple(images.shape)}")
+
+    def encode(self, images: torch.Tensor) -> Scene:
+        """``images [V, 3, H, W]`` in [0, 1] at the model's resolution, all references -> Scene."""
+        cfg = self.cfg
+        self._check_images(images, "images")
         features, world_from_cam, focal = self.encode_batch(images[None])
         return Scene(self.field.prepare(features[0]), world_from_cam[0], focal[0],
                      (cfg.image_height, cfg.image_width))
+
+    def locate(self, references: torch.Tensor, queries: torch.Tensor) -> torch.Tensor:
+        """Poses of ``queries [Q, 3, H, W]`` in the frame of ``references [V, 3, H, W]`` (both in
+        [0, 1] at the model's resolution) -> ``world_from_cam [Q, 4, 4]``, the frame of
+        ``encode(references)`` (reference 0 = I). One encoder run over V + Q views with the queries
+        isolated; each query sees the references and itself only."""
+        self._check_images(references, "references")
+        self._check_images(queries, "queries")
+        V, Q = references.shape[0], queries.shape[0]
+        is_reference = torch.arange(V + Q, device=references.device) < V
+        images = torch.cat([references, queries.to(references)])
+        _, world_from_cam, _ = self.encode_batch(images[None], is_reference)
+        return world_from_cam[0, V:]
 
     # -- rendering --------------------------------------------------------------------------
     def render_rays(self, scene: Scene, origins: torch.Tensor, directions: torch.Tensor,

@@ -5,6 +5,8 @@ whole file takes seconds. What is checked:
 
 * shapes and ranges of ``encode`` / ``render`` / ``render_rays`` for 1, 2 and 5 views;
 * order-freeness: permuting views 1..V-1 permutes the cameras and leaves a render unchanged;
+* isolated references: the references' features and cameras do not depend on the queries
+  (present, changed, absent), nor does a render from them; ``locate``;
 * masked reductions (``iris_train.layers``), the latent field and the ray renderer with fully
   masked points / rays; renderer invariance to dropping never-valid samples and to sample order
   (the runtime relies on both); the fused (``need_weights=False``) path;
@@ -227,6 +229,77 @@ def test_view_zero_is_the_canonical_frame(spread_model, images):
     scene_s = spread_model.encode(images[[1, 0, 2]])
     assert torch.equal(scene_s.world_from_cam[0], torch.eye(4))
     assert not torch.allclose(scene_s.world_from_cam[1], scene.world_from_cam[0], atol=1e-3)
+
+
+# -- isolated references (no information leak from targets / queries) -------------------------
+def _with_queries(model, refs, queries):
+    """Encode references followed by queries, the queries isolated -> the references' Scene (as
+    training builds it from the reference rows) and the queries' poses."""
+    V = refs.shape[0]
+    images = torch.cat([refs, queries])
+    features, world_from_cam, focal = model.encode_batch(images[None], torch.arange(len(images)) < V)
+    scene = Scene(model.field.prepare(features[0, :V]), world_from_cam[0, :V], focal[0],
+                  (CFG.image_height, CFG.image_width))
+    return scene, world_from_cam[0, V:]
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_references_never_depend_on_the_queries(spread_model, images, dtype):
+    """Features (field maps) and cameras of the references are equal within 1e-6 whether the
+    queries are present, changed or absent; a render from the references does not change when a
+    query image changes.
+
+    Present vs changed is exact in float32 too (a masked key's attention weight is exactly 0, so a
+    query's values never enter a reference's sums). Present vs absent changes the length of the
+    attention rows, hence the float32 rounding: measured 9.5e-7 on field maps of magnitude ~5
+    (2 ulps); in float32 that comparison is held to 1e-6 of the output scale, in float64 to 1e-6
+    absolute (measured ~1e-15)."""
+    model = copy.deepcopy(spread_model).to(dtype)
+    images = images.to(dtype)
+    refs, queries = images[:3], images[3:]
+    other = torch.rand(queries.shape, generator=torch.Generator().manual_seed(9)).to(dtype)
+    with torch.no_grad():
+        alone = model.encode(refs)
+        present, poses = _with_queries(model, refs, queries)
+        changed, poses_changed = _with_queries(model, refs, other)
+        more, _ = _with_queries(model, refs, torch.cat([queries, other, 1.0 - queries]))
+        pose = NEAR_POSE[None].to(dtype)
+        renders = [model.render(s, pose, height=H8, width=W8) for s in (alone, present, changed, more)]
+    for name in ("maps", "world_from_cam", "focal"):
+        want = getattr(alone, name)
+        tol = 1e-6 * (max(1.0, float(want.abs().max())) if dtype == torch.float32 else 1.0)
+        for scene in (present, changed, more):
+            assert (getattr(scene, name) - want).abs().max() <= tol, name
+        assert torch.equal(getattr(changed, name), getattr(present, name)), name
+    assert torch.equal(renders[2][0], renders[1][0]) and torch.equal(renders[2][1], renders[1][1])
+    for rgb, depth in renders[1:]:
+        assert (rgb - renders[0][0]).abs().max() <= 1e-6 and (depth - renders[0][1]).abs().max() <= 1e-6
+    # The queries' own cameras are predicted from their images (so they do differ).
+    assert (poses - poses_changed).abs().max() > 1e-3
+
+
+def test_locate(spread_model, images):
+    """locate = the query rows of encode_batch with the queries isolated, in the references'
+    frame; queries never see each other (together = one by one); view 0 must be a reference."""
+    model = spread_model
+    refs, queries = images[:3], images[3:]
+    with torch.no_grad():
+        poses = model.locate(refs, queries)
+        _, expected = _with_queries(model, refs, queries)
+        one_by_one = torch.cat([model.locate(refs, q[None]) for q in queries])
+        swapped = model.locate(refs, queries.flip(0))
+        of_references = model.locate(refs, refs)
+    assert poses.shape == (2, 4, 4) and torch.isfinite(poses).all()
+    assert torch.equal(poses, expected)
+    assert (one_by_one - poses).abs().max() <= 1e-6 and (swapped.flip(0) - poses).abs().max() <= 1e-6
+    R = poses[:, :3, :3]
+    torch.testing.assert_close(R.transpose(1, 2) @ R, torch.eye(3).expand(2, 3, 3), atol=1e-5, rtol=0)
+    assert torch.equal(poses[:, 3], torch.tensor([0.0, 0.0, 0.0, 1.0]).expand(2, 4))
+    assert of_references.shape == (3, 4, 4) and torch.isfinite(of_references).all()
+    with pytest.raises(ValueError, match="view 0"):
+        model.encode_batch(images[None, :3], torch.tensor([False, True, True]))
+    with pytest.raises(ValueError, match="queries"):
+        model.locate(refs, queries[0])
 
 
 # -- masked reductions and fully masked points/rays ------------------------------------------
