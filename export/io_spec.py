@@ -10,7 +10,8 @@ runtime's numpy projection produces it.
 """
 from __future__ import annotations
 
-IO_SPEC_VERSION = 1
+#: 2: the encoder takes ``is_reference`` (isolated references, queries located in their frame).
+IO_SPEC_VERSION = 2
 
 #: ONNX opset of the graphs unless ``--opset`` says otherwise: 20 has ``Gelu`` and the current
 #: ``GridSample``; onnxruntime >= 1.17 runs it.
@@ -23,6 +24,10 @@ ENCODER = {
     "inputs": {
         # RGB in [0, 1] at the model's resolution (H, W fixed, recorded in the manifest).
         "images": {"dtype": "float32", "shape": ["V", 3, "H", "W"]},
+        # True: a reference (its tokens attend to references only, so its outputs never depend on
+        # the queries); False: a query (attends to the references and to itself; its pose comes
+        # out in the references' frame). View 0 must be a reference. All True = encode a scene.
+        "is_reference": {"dtype": "bool", "shape": ["V"]},
     },
     "outputs": {
         # Per-scene field maps (LatentField.prepare of the encoder features): what the renderer samples.
@@ -30,9 +35,13 @@ ENCODER = {
         "world_from_cam": {"dtype": "float32", "shape": ["V", 4, 4]},    # view 0 = I
         "focal": {"dtype": "float32", "shape": [2]},                    # (fx/W, fy/H)
     },
-    "dynamic_axes": {"images": {0: "V"}, "field_maps": {0: "V"}, "world_from_cam": {0: "V"}},
+    "dynamic_axes": {"images": {0: "V"}, "is_reference": {0: "V"}, "field_maps": {0: "V"},
+                     "world_from_cam": {0: "V"}},
     # Max abs error of ONNX Runtime vs torch on the probe inputs.
     "tolerance": {"field_maps": 1e-4, "world_from_cam": 1e-5, "focal": 1e-5},
+    # Max abs change of the references' outputs in ONNX Runtime when queries are added, changed or
+    # removed (export.validate.isolation_errors).
+    "isolation_tolerance": 1e-6,
 }
 
 RENDERER = {

@@ -7,7 +7,7 @@ per graph its file name, sha256, size and I/O spec (from ``export.io_spec``), an
 report (max abs error of ONNX Runtime vs torch per output, tolerances, median times). Layout::
 
     {
-      "format": "iris-model", "version": 1, "io_spec_version": 1,
+      "format": "iris-model", "version": 2, "io_spec_version": 2,
       "created": "2025-01-01T00:00:00Z",
       "config": {...ModelConfig.to_dict()...},
       "image_size": [H, W], "patch_size": p, "feature_grid": [h, w], "field_channels": C',
@@ -23,8 +23,15 @@ report (max abs error of ONNX Runtime vs torch per output, tolerances, median ti
         "renderer_int8": {..., "variant_of": "renderer", "precision": "int8",  # only with --quantize int8
                           "tolerance": null}     # its error is in "validation", not enforced
       },
-      "validation": {"quick": false, "encoder": {...}, "renderer": {...}, "renderer_int8": {...}}
+      "validation": {"quick": false, "encoder": {..., "isolation": {...}}, "renderer": {...},
+                     "renderer_int8": {...}}
     }
+
+Versions: 2 (this one) = the encoder graph takes ``is_reference [V]`` (isolated references,
+queries located in their frame) and the encoder validation covers probes with queries and the
+isolation check; 1 = the encoder took ``images`` only and every view saw every other. The runtime
+refuses version 1 with a ``ModelFormatError`` that says to re-export with iris-export (the
+checkpoint's weights are unchanged; only the graph's contract is new).
 
 JSON turns the integer axis keys of ``dynamic_axes`` into strings ("0"); non-finite numbers in the
 validation report (an int8 error can be ``inf`` if it produced NaN) are written as strings.
@@ -43,7 +50,7 @@ from iris_train.config import ModelConfig
 from . import io_spec
 
 FORMAT = "iris-model"
-VERSION = 1
+VERSION = 2
 MANIFEST_NAME = "iris.json"
 
 

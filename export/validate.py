@@ -7,9 +7,14 @@
 3. probe inputs through ONNX Runtime and through the torch reference, max abs error per output
    against the spec's tolerance (read from ``io_spec`` at call time). Probes, all seeded:
 
-   * encoder: uniform random images and a *scene* (crops of one smooth random texture, panned
-     across the views: structured, correlated images), for V in {1, 3, 8}; the reference is
-     ``IrisModel.encode``.
+   * encoder, all references: uniform random images and a *scene* (crops of one smooth random
+     texture, panned across the views: structured, correlated images), for V in {1, 3, 8},
+     ``is_reference`` all True; the reference is ``IrisModel.encode``.
+   * encoder, with queries: crops of one panned texture split into V references followed by Q
+     queries, (V, Q) in ``QUERY_COUNTS``; the reference is ``IrisModel.encode`` of the references
+     alone (their rows) and ``IrisModel.locate`` (the queries' poses), so the error covers parity
+     and isolation at once. Plus one probe with the queries interleaved among the references
+     (``is_reference = [T, F, T, T, F]``) against ``IrisModel.encode_batch``.
    * renderer, random: random field maps, grid (partly outside the image), unit cues and a random
      mask in which the first sample of every ray is masked in every view and (R > 1) the last ray
      has every sample masked; V' in {1, 3, 8}, R in {1, n} and an odd S; the reference is
@@ -21,6 +26,10 @@
      the model computes.
 
    Non-finite outputs and wrong shapes count as an infinite error.
+3b. encoder isolation inside ONNX Runtime: for each probe with queries, the references' outputs
+   (field maps, cameras, focal) with the queries present, with other query images, and with no
+   queries at all; max abs difference against ``io_spec.ENCODER["isolation_tolerance"]`` (1e-6;
+   measured 0.0: the rows are computed identically).
 4. the median time of each graph in ONNX Runtime and in torch on a fixed input (renderer: R=1024,
    S=cfg.samples, V'=4; ``quick`` shrinks probes and timing for tests).
 
@@ -52,6 +61,8 @@ from .graphs import EncoderGraph, RendererGraph, fixed_dims
 
 PROBE_SEED = 0
 VIEW_COUNTS = (1, 3, 8)
+#: (references, queries) of the encoder probes with queries.
+QUERY_COUNTS = ((1, 1), (3, 2), (5, 3))
 _ORT_TYPES = {"float32": "tensor(float)", "bool": "tensor(bool)"}
 
 
@@ -153,8 +164,16 @@ def _mask_info(mask: torch.Tensor) -> dict:
             "rays_with_every_sample_masked": int((~any_view.any(-1)).sum())}
 
 
+def _encoder_reference(maps: torch.Tensor, world_from_cam: torch.Tensor, focal: torch.Tensor) -> dict:
+    return {"field_maps": _numpy(maps), "world_from_cam": _numpy(world_from_cam), "focal": _numpy(focal)}
+
+
 @torch.no_grad()
-def encoder_probes(model: IrisModel, view_counts=VIEW_COUNTS, seed: int = PROBE_SEED) -> list[Probe]:
+def encoder_probes(model: IrisModel, view_counts=VIEW_COUNTS, query_counts=QUERY_COUNTS,
+                   seed: int = PROBE_SEED) -> list[Probe]:
+    """All-reference probes, probes with queries after the references, one interleaved probe
+    (see the module docstring). ``info``: V (views fed), queries, and for references-first probes
+    with queries ``references`` (the isolation check of ``isolation_errors`` uses it)."""
     g = torch.Generator().manual_seed(seed)
     H, W = model.cfg.image_height, model.cfg.image_width
     probes = []
@@ -162,11 +181,55 @@ def encoder_probes(model: IrisModel, view_counts=VIEW_COUNTS, seed: int = PROBE_
         for kind, images in (("random", torch.rand(V, 3, H, W, generator=g)),
                              ("scene", scene_images(V, H, W, g))):
             scene = model.encode(images)
-            probes.append(Probe(f"{kind} V={V}", {"images": images},
-                                {"field_maps": _numpy(scene.maps),
-                                 "world_from_cam": _numpy(scene.world_from_cam),
-                                 "focal": _numpy(scene.focal)}, {"V": V}))
+            probes.append(Probe(f"{kind} V={V}", {"images": images,
+                                                  "is_reference": torch.ones(V, dtype=torch.bool)},
+                                _encoder_reference(scene.maps, scene.world_from_cam, scene.focal),
+                                {"V": V, "queries": 0}))
+    for V, Q in query_counts:
+        views = scene_images(V + Q, H, W, g)
+        # Queries are odd views of the pan (between references), fed after the references.
+        queries = [i for i in range(1, V + Q, 2)][:Q]
+        queries += [i for i in range(V + Q - 1, 0, -1) if i not in queries][:Q - len(queries)]
+        images = views[[i for i in range(V + Q) if i not in queries] + queries]
+        is_reference = torch.arange(V + Q) < V
+        scene = model.encode(images[:V])
+        features, _, _ = model.encode_batch(images[None], is_reference)
+        maps = torch.cat([scene.maps, model.field.prepare(features[0, V:])])
+        poses = torch.cat([scene.world_from_cam, model.locate(images[:V], images[V:])])
+        probes.append(Probe(f"scene V={V} + Q={Q} queries", {"images": images,
+                                                              "is_reference": is_reference},
+                            _encoder_reference(maps, poses, scene.focal),
+                            {"V": V + Q, "queries": Q, "references": V}))
+    images = scene_images(5, H, W, g)
+    is_reference = torch.tensor([True, False, True, True, False])
+    features, poses, focal = model.encode_batch(images[None], is_reference)
+    probes.append(Probe("scene V=5 interleaved queries", {"images": images, "is_reference": is_reference},
+                        _encoder_reference(model.field.prepare(features[0]), poses[0], focal[0]),
+                        {"V": 5, "queries": 2}))
     return probes
+
+
+def isolation_errors(sess: ort.InferenceSession, probes: list[Probe]) -> dict[str, float]:
+    """Max abs difference, inside ONNX Runtime, between the references' outputs of each probe with
+    queries (references first) and the same references run with other query images (1 - images)
+    and with no queries at all. 0 when no probe has queries."""
+    names = [o.name for o in sess.get_outputs()]
+    worst = {n: 0.0 for n in names}
+    for probe in probes:
+        V = probe.info.get("references")
+        if not V:
+            continue
+        images, is_reference = _numpy(probe.inputs["images"]), _numpy(probe.inputs["is_reference"])
+        changed = images.copy()
+        changed[V:] = 1.0 - changed[V:]
+        base = sess.run(names, {"images": images, "is_reference": is_reference})
+        for feed in ({"images": changed, "is_reference": is_reference},
+                     {"images": np.ascontiguousarray(images[:V]), "is_reference": is_reference[:V]}):
+            other = sess.run(names, feed)
+            for n, a, b in zip(names, base, other):
+                rows = slice(None) if n == "focal" else slice(0, V)
+                worst[n] = max(worst[n], max_abs_error(a[rows], b[rows]))
+    return worst
 
 
 @torch.no_grad()
@@ -273,6 +336,18 @@ def summarise(graph: str, rows: list[dict], tolerance: dict[str, float], enforce
             "enforced": enforce, "probes": rows}
 
 
+def _check_isolation(graph: str, errors: dict[str, float], tolerance: float, enforce: bool) -> dict:
+    worst = max(errors, key=lambda o: math.inf if not errors[o] <= tolerance else errors[o])
+    passed = errors[worst] <= tolerance
+    if enforce and not passed:
+        raise ValidationError(f"{graph}: the references' output {worst!r} changes by "
+                              f"{errors[worst]:.3g} when queries are added, changed or removed "
+                              f"(isolation tolerance {tolerance:.3g}); nothing was written",
+                              graph=graph, output=worst, error=errors[worst], tolerance=tolerance,
+                              probe="isolation")
+    return {"max_abs_error": errors, "tolerance": tolerance, "passed": passed}
+
+
 def median_time(fn: Callable[[], object], runs: int) -> float:
     """Median wall time of ``runs`` calls after one warm-up call (the first run is 1.3-3x slower)."""
     fn()
@@ -324,7 +399,8 @@ def _validate(model, files, *, quick, threads, progress) -> dict:
     n_rays = 16 if quick else 128
     runs = 2 if quick else 5
     timing = {"encoder": {"images": scene_images(4, cfg.image_height, cfg.image_width,
-                                                 torch.Generator().manual_seed(PROBE_SEED))},
+                                                 torch.Generator().manual_seed(PROBE_SEED)),
+                          "is_reference": torch.ones(4, dtype=torch.bool)},
               "renderer": random_renderer_inputs(model, 4, 64 if quick else 1024, cfg.samples,
                                                  torch.Generator().manual_seed(PROBE_SEED))}
     torch_fns = {"encoder": EncoderGraph(model).eval(), "renderer": RendererGraph(model).eval()}
@@ -343,6 +419,9 @@ def _validate(model, files, *, quick, threads, progress) -> dict:
                             else renderer_probes(model, n_rays=n_rays))
         enforce = graph == base
         entry = summarise(graph, run_probes(sess, probes[base]), spec["tolerance"], enforce)
+        if base == "encoder":
+            entry["isolation"] = _check_isolation(graph, isolation_errors(sess, probes[base]),
+                                                  spec["isolation_tolerance"], enforce)
         known = report[base]["time"]["torch_median_s"] if base in report else None
         entry["time"] = time_graph(sess, torch_fns[base], timing[base], runs, known)
         report[graph] = entry
@@ -356,4 +435,5 @@ def _validate(model, files, *, quick, threads, progress) -> dict:
 
 __all__ = ["validate", "ValidationError", "Probe", "scene_images", "renderer_inputs",
            "random_renderer_inputs", "scene_rays", "encoder_probes", "renderer_probes",
+           "isolation_errors", "QUERY_COUNTS",
            "max_abs_error", "check_graph_file", "check_io", "session", "median_time", "VIEW_COUNTS"]

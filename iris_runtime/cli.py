@@ -7,6 +7,9 @@ A thin command line over ``IrisRuntime``. It encodes the input images once, then
   (view 0's camera, OpenCV axes: x right, y down, z forward);
 - ``--orbit N``: N frames on a smooth closed path through and around the predicted input cameras,
   looking at the scene centre (``iris_runtime.orbit``), plus ``orbit.mp4``;
+- ``--locate PHOTO [PHOTO ...]`` (repeatable; put it after IMAGES): the pose of each photo in the
+  scene's frame (``IrisRuntime.locate``: the photo is a query, the inputs stay the scene), printed,
+  written to ``located_poses.json`` and rendered from the inputs as ``located_NNN``;
 - nothing of the above: every input view (``--view`` 0..V-1).
 
 Written to OUT (created if needed; files of the same name are replaced):
@@ -16,6 +19,8 @@ Written to OUT (created if needed; files of the same name are replaced):
   * 65535)** (far from the model's manifest, 1.0 unless trained otherwise; 0 where no sample
   sees a reference view); ``<name>_depth.npy``: the float32 depth in model units;
 - ``orbit.mp4`` (``mp4v``) and ``orbit_poses.json`` (its poses, usable with ``--pose``);
+- ``located_poses.json``: with ``--locate``, one 4x4 ``world_from_cam`` per photo in the order
+  given (same convention as ``orbit_poses.json``, usable with ``--pose``);
 - ``inputs/NNN.png``: the input images as the model saw them (centre-cropped, resized), with
   their predicted cameras in ``transforms.json`` (nerfstudio; OpenGL axes) and in
   ``colmap/{cameras,images,points3D}.txt`` (COLMAP text; image folder ``inputs/``). The
@@ -85,6 +90,7 @@ def build_parser() -> argparse.ArgumentParser:
                     "the first image's camera (OpenCV axes: x right, y down, z forward).",
         epilog="Outputs: NAME.png, NAME_depth.png (16-bit, value = depth / far * 65535), "
                "NAME_depth.npy (float32, model units), orbit.mp4 + orbit_poses.json with --orbit, "
+               "located_poses.json with --locate, "
                "inputs/*.png with transforms.json (nerfstudio) and colmap/*.txt (COLMAP text) for "
                "the predicted cameras of the inputs. Exit code 2 on any error (one line on "
                "stderr).")
@@ -99,6 +105,11 @@ def build_parser() -> argparse.ArgumentParser:
                         help="the predicted pose of input view I (repeatable)")
     target.add_argument("--orbit", metavar="N", type=_positive,
                         help="N frames on a closed path around the input cameras, plus orbit.mp4")
+    target.add_argument("--locate", metavar="PHOTO", nargs="+", action="extend", default=[],
+                        help="find the pose of each PHOTO in the inputs' frame (the inputs stay "
+                             "the scene): printed, written to located_poses.json (4x4 "
+                             "world_from_cam each) and rendered as located_NNN; give it after "
+                             "IMAGES")
     out = p.add_argument_group("output and speed")
     out.add_argument("--size", metavar="HxW", type=_size,
                      help="output size (default: the model's resolution)")
@@ -224,6 +235,7 @@ def run(args: argparse.Namespace) -> int:
     if bad:
         raise InputError(f"--view {bad[0]}: out of range, {V} input image(s) give views 0..{V - 1}")
     poses_from_files = [T for f in args.pose for T in _read_poses(f)]
+    photos = [load_image(p, f"--locate {p}") for p in args.locate]
     t_load = time.perf_counter() - t0
 
     # 2. Encode once.
@@ -232,10 +244,20 @@ def run(args: argparse.Namespace) -> int:
     t_encode = time.perf_counter() - t0
     say(f"encoded {V} view(s) at {H}x{W} in {t_encode:.2f} s (model check + image loading "
         f"{t_load:.2f} s); focal fx/W={scene.focal[0]:.4f} fy/H={scene.focal[1]:.4f}")
+    located = None
+    if photos:
+        t0 = time.perf_counter()
+        located = rt.locate(scene, photos)                       # [Q, 4, 4], scene unchanged
+        say(f"located {len(photos)} photo(s) in the inputs' frame in "
+            f"{time.perf_counter() - t0:.2f} s")
+        for path, T in zip(args.locate, located):
+            say(f"located {path}: world_from_cam {json.dumps(np.round(T, 6).tolist())}")
 
     jobs: list[tuple[str, np.ndarray | int]] = []
     jobs += [(f"view_{i:03d}", i) for i in args.view]
     jobs += [(f"pose_{k:03d}", T) for k, T in enumerate(poses_from_files)]
+    if located is not None:
+        jobs += [(f"located_{k:03d}", T) for k, T in enumerate(located)]
     orbit = None
     if args.orbit:
         orbit = orbit_poses(scene.world_from_cam, args.orbit, near=rt.near, far=rt.far)
@@ -258,6 +280,8 @@ def run(args: argparse.Namespace) -> int:
                                                  title=f"predicted cameras of the {V} input(s)"))
     if orbit is not None:
         (out / "orbit_poses.json").write_text(json.dumps(orbit.tolist()) + "\n")
+    if located is not None:
+        (out / "located_poses.json").write_text(json.dumps(located.tolist()) + "\n")
 
     # 4. Render.
     progress = _Progress(total=len(jobs) * size[0] * size[1], enabled=not args.quiet)
@@ -302,6 +326,9 @@ def run(args: argparse.Namespace) -> int:
         say(f"video: not written (OpenCV has no mp4v encoder here); frames are in {out}")
     say(f"cameras of the inputs: {out / 'transforms.json'}, {out / 'colmap'} "
         f"(images in {out / 'inputs'}; picture {out / 'cameras.png'})")
+    if located is not None:
+        say(f"located poses: {out / 'located_poses.json'} (one 4x4 world_from_cam per --locate "
+            f"photo, usable with --pose)")
     say(f"total {time.perf_counter() - t_all:.2f} s")
     return 0
 

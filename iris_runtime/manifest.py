@@ -10,7 +10,9 @@ Checks, each failing with a typed ``ModelFileError`` that names the file and wha
 - ``ManifestError``: ``iris.json`` missing, not JSON, a field missing or of the wrong type, a
   graph path that is absolute, contains ``..`` or resolves (through symlinks) outside the model
   directory, or an I/O spec that lacks a name the runtime feeds or reads;
-- ``ModelFormatError``: format name other than ``"iris-model"`` or a version other than 1;
+- ``ModelFormatError``: format name other than ``"iris-model"`` or a version other than 2
+  (version 1, written before the encoder isolated its references, says to re-export with
+  iris-export);
 - ``ModelIntegrityError``: a graph file whose sha256 differs from the manifest's (tampered,
   truncated or replaced); a missing graph file is a plain ``ModelFileError``;
 - external data: iris-export writes self-contained graphs. A graph whose tensors refer to ONNX
@@ -35,15 +37,16 @@ from .errors import ManifestError, ModelFileError, ModelFormatError, ModelIntegr
 
 MANIFEST_NAME = "iris.json"
 FORMAT_NAME = "iris-model"
-FORMAT_VERSION = 1
+#: 2: the encoder graph takes ``is_reference`` (isolated references; ``IrisRuntime.locate``).
+FORMAT_VERSION = 2
 #: Version of the graphs' I/O names and layouts (export/io_spec.py IO_SPEC_VERSION).
-IO_SPEC_VERSION = 1
+IO_SPEC_VERSION = 2
 
 #: The names the runtime feeds and reads, with their dtypes (export/io_spec.py is the source;
 #: the manifest carries it, and a model whose spec lacks one of these cannot be run).
 REQUIRED_IO: dict[str, dict[str, dict[str, str]]] = {
     "encoder": {
-        "inputs": {"images": "float32"},
+        "inputs": {"images": "float32", "is_reference": "bool"},
         "outputs": {"field_maps": "float32", "world_from_cam": "float32", "focal": "float32"},
     },
     "renderer": {
@@ -256,10 +259,15 @@ def read_manifest(model_dir: str | os.PathLike, *, verify_hashes: bool = True) -
     if fmt != FORMAT_NAME:
         raise ModelFormatError(f"{path}: format {fmt!r}, expected {FORMAT_NAME!r} "
                                f"(the manifest of an iris-export model directory)")
+    if version == 1 and not isinstance(version, bool):
+        raise ModelFormatError(f"{path}: {FORMAT_NAME} version 1, written before the encoder "
+                               f"isolated its references (its graph has no 'is_reference' input); "
+                               f"this runtime reads version {FORMAT_VERSION}: re-export with "
+                               f"iris-export (the checkpoint still loads: iris-export CKPT OUT)")
     if version != FORMAT_VERSION or isinstance(version, bool):
         raise ModelFormatError(f"{path}: {FORMAT_NAME} version {version!r}; this runtime reads "
-                               f"version {FORMAT_VERSION} (re-export the model with a matching "
-                               f"iris-export, or upgrade iris_runtime)")
+                               f"version {FORMAT_VERSION} (re-export with iris-export, or upgrade "
+                               f"iris_runtime)")
 
     io_version = doc.get("io_spec_version", IO_SPEC_VERSION)
     if io_version != IO_SPEC_VERSION:

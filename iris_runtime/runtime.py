@@ -5,6 +5,14 @@ ONNX Runtime on the CPU, torch-free.
     image = rt.render(images, pose)               # one shot: encode, then render one pose
     scene = rt.encode(images)                     # run the encoder once (the expensive half) ...
     result = rt.render(scene, 2, depth=True)      # ... and render many poses from it
+    pose = rt.locate(scene, photo)                # a new photo's world_from_cam; scene unchanged
+
+References and queries: ``encode`` runs the encoder graph with every image a reference.
+``locate`` runs it again on the scene's reference images (kept, read-only, in the ``Scene``)
+followed by the photos as queries (``is_reference = [True] * V + [False] * Q``): a reference's
+tokens attend to references only, a query's to the references and itself, so the references'
+features and cameras are those of the scene (bitwise, in ONNX Runtime) and the query's pose comes
+out in the scene's frame. The scene is not changed and queries never see each other.
 
 Cameras follow DESIGN.md: OpenCV axes, ``world_from_cam`` 4x4, canonical frame = view 0's camera,
 intrinsics in pixels with pixel centres at (j + 0.5, i + 0.5).
@@ -43,7 +51,8 @@ from .images import fit_to_model, load_image
 from .manifest import MANIFEST_NAME, Manifest, read_graph_bytes, read_manifest
 
 __all__ = ["IrisRuntime", "Scene", "RenderResult", "check_pose", "RENDER_BUDGET", "MAX_CHUNK_RAYS",
-           "MAX_OUTPUT_PIXELS", "MAX_ENCODER_TOKENS", "MAX_CHUNK_SAMPLES", "render_memory_bound",
+           "MAX_OUTPUT_PIXELS", "MAX_ENCODER_TOKENS", "MAX_CHUNK_SAMPLES", "MAX_LOCATE_CALLS",
+           "render_memory_bound",
            "PRECISIONS", "RenderSettings", "QUALITY_PRESETS"]
 
 RenderSettings = Q.RenderSettings
@@ -75,6 +84,9 @@ MAX_ENCODER_TOKENS = 4160
 #: Rays x samples x views per renderer call when ``chunk_rays`` is given explicitly (8 x the default
 #: budget): ONNX Runtime's peak grows linearly with it (``render_memory_bound``), ~1 GB here.
 MAX_CHUNK_SAMPLES = 8 * RENDER_BUDGET
+#: Encoder calls one ``locate`` may make: photos per call are ``max_views`` minus the scene's
+#: references (at least 1), so one call locates up to this many batches (bounded work per request).
+MAX_LOCATE_CALLS = 64
 
 
 def render_memory_bound(num_views: int, chunk_rays: int, samples: int = 64,
@@ -98,6 +110,12 @@ PRECISIONS = {"float32": "renderer", "int8": "renderer_int8"}
 # 107 ms but NOT exact (it quantises the bilinear weights to 1/32 px: errors 0.13-0.15); numpy
 # channel-last gather 513 ms; numpy channel-first 3.9-4.7 s. Exactness (parity with torch to 1e-4)
 # decides for GridSample, which is also the fastest exact option.
+
+
+def _is_single_image(x) -> bool:
+    """One image (a path, a PIL image, an HxW(xC) array) rather than a sequence of images."""
+    return (isinstance(x, (str, os.PathLike, bytes)) or hasattr(x, "getpixel")
+            or (isinstance(x, np.ndarray) and x.ndim != 4))
 
 
 def _readonly(a, dtype) -> np.ndarray:
@@ -151,6 +169,10 @@ class Scene:
     K:              float64 [3, 3]         intrinsics in pixels of the model's resolution
     image_size:     (H, W)                 the model's resolution
     model_id:       sha256 of the encoder graph that made the scene ('' if unknown)
+    reference_images: float32 [N, 3, H, W] in [0, 1], the model-resolution images the scene was
+                    encoded from, what ``IrisRuntime.locate`` runs the encoder on (all N of them,
+                    also after ``subset``, which keeps the frame and so the images that define it);
+                    None for a Scene built by hand (``locate`` refuses it)
     """
     field_maps: np.ndarray
     world_from_cam: np.ndarray
@@ -158,6 +180,7 @@ class Scene:
     K: np.ndarray
     image_size: tuple[int, int]
     model_id: str = ""
+    reference_images: np.ndarray | None = field(default=None, repr=False)
 
     def __post_init__(self):
         arrays = {}
@@ -187,8 +210,20 @@ class Scene:
         size = tuple(int(s) for s in self.image_size)
         if len(size) != 2 or min(size) <= 0:
             raise InputError(f"image_size: expected (H, W) positive, got {self.image_size!r}")
+        refs = self.reference_images
+        if refs is not None:
+            try:
+                refs = _readonly(refs, np.float32)
+            except (TypeError, ValueError):
+                raise InputError(f"reference_images: expected an array of numbers or None, got "
+                                 f"{type(self.reference_images).__name__}") from None
+            if refs.ndim != 4 or refs.shape[0] == 0 or refs.shape[1:] != (3, *size):
+                raise InputError(f"reference_images: expected [N, 3, {size[0]}, {size[1]}] with "
+                                 f"N >= 1, got {refs.shape}")
+            if not (np.all(np.isfinite(refs)) and refs.min() >= 0.0 and refs.max() <= 1.0):
+                raise InputError("reference_images: expected values in [0, 1] (no NaN or inf)")
         for name, value in (("field_maps", maps), ("world_from_cam", poses), ("focal", focal),
-                            ("image_size", size), ("K", K)):
+                            ("image_size", size), ("K", K), ("reference_images", refs)):
             object.__setattr__(self, name, value)
 
     @property
@@ -219,7 +254,7 @@ class Scene:
             raise InputError(f"indices: repeated view index in {idx.tolist()} (a view counted "
                              f"twice would weigh twice in the view attention)")
         return Scene(self.field_maps[idx], self.world_from_cam[idx], self.focal, self.K,
-                     self.image_size, self.model_id)
+                     self.image_size, self.model_id, self.reference_images)
 
     def __repr__(self) -> str:
         return (f"Scene(views={self.num_views}, field_maps={tuple(self.field_maps.shape)}, "
@@ -368,47 +403,44 @@ class IrisRuntime:
         return session
 
     # -- encoding ---------------------------------------------------------------------------
-    def _load_images(self, images) -> np.ndarray:
-        """Images -> float32 [V, 3, H, W] in [0, 1] at the model's resolution."""
-        if isinstance(images, (str, os.PathLike, bytes)) or (
-                isinstance(images, np.ndarray) and images.ndim != 4) or hasattr(images, "getpixel"):
-            raise InputError(f"images: expected a sequence of images (paths, PIL images or "
+    def _load_images(self, images, name: str = "images", limit: int | None = None,
+                     single: bool = False) -> np.ndarray:
+        """Images -> float32 [V, 3, H, W] in [0, 1] at the model's resolution (``name``: the
+        argument in messages; ``limit``: most images accepted, default ``max_views``; ``single``:
+        ``images`` is a one-element list made from one image called ``name``)."""
+        if _is_single_image(images):
+            raise InputError(f"{name}: expected a sequence of images (paths, PIL images or "
                              f"HxWx3 uint8 arrays), got a single {type(images).__name__}; "
                              f"wrap it in a list")
         try:
             items = list(images)
         except TypeError:
-            raise InputError(f"images: expected a sequence of images or a Scene, got "
+            raise InputError(f"{name}: expected a sequence of images or a Scene, got "
                              f"{type(images).__name__}") from None
         if not items:
-            raise InputError("images: expected at least one image, got an empty sequence")
-        if len(items) > self.max_views:
-            raise InputError(f"images: {len(items)} images, at most {self.max_views} per encode "
+            raise InputError(f"{name}: expected at least one image, got an empty sequence")
+        if limit is None and len(items) > self.max_views:
+            raise InputError(f"{name}: {len(items)} images, at most {self.max_views} per encode "
                              f"for this model (MAX_ENCODER_TOKENS = {MAX_ENCODER_TOKENS}: the "
                              f"encoder's memory grows with the square of the views)")
+        if limit is not None and len(items) > limit:
+            raise InputError(f"{name}: {len(items)} images, at most {limit} per locate for this "
+                             f"scene and model (MAX_LOCATE_CALLS = {MAX_LOCATE_CALLS} encoder calls "
+                             f"of up to {self.max_views} views, the scene's references included)")
         H, W = self.image_size
         batch = np.empty((len(items), 3, H, W), dtype=np.float32)
         for i, item in enumerate(items):
-            rgb, _ = fit_to_model(load_image(item, f"images[{i}]"), H, W)
+            rgb, _ = fit_to_model(load_image(item, name if single else f"{name}[{i}]"), H, W)
             batch[i] = rgb.transpose(2, 0, 1)
         batch *= np.float32(1.0 / 255.0)
         return batch
 
-    def encode(self, images) -> Scene:
-        """Run the encoder on ``images`` (a sequence of HxWx3 uint8 RGB arrays, PIL images or
-        file paths, any size: centre-cropped to the model's aspect ratio and resized, see
-        ``iris_runtime.images.fit_to_model``) -> an immutable ``Scene``."""
-        return self._encode(images, {})
-
-    def _encode(self, images, timings: dict) -> Scene:
-        t0 = time.perf_counter()
-        batch = self._load_images(images)
-        t1 = time.perf_counter()
+    def _run_encoder(self, batch: np.ndarray, is_reference: np.ndarray):
+        """The encoder graph on ``batch [V, 3, H, W]`` with ``is_reference`` bool [V] -> field_maps
+        float32 [V, C', h, w], world_from_cam float32 [V, 4, 4], focal float32 [2], checked."""
         maps, world_from_cam, focal = self._session("encoder").run(
-            ["field_maps", "world_from_cam", "focal"], {"images": batch})
-        t2 = time.perf_counter()
-        timings["load"] = timings.get("load", 0.0) + (t1 - t0)
-        timings["encode"] = timings.get("encode", 0.0) + (t2 - t1)
+            ["field_maps", "world_from_cam", "focal"],
+            {"images": batch, "is_reference": np.ascontiguousarray(is_reference, dtype=bool)})
         V = batch.shape[0]
         channels = self.manifest.field_channels
         if (maps.ndim != 4 or maps.shape[0] != V or (channels and maps.shape[1] != channels)
@@ -421,11 +453,73 @@ class IrisRuntime:
                 and np.all(np.isfinite(focal))):
             raise ModelFileError(f"{self.manifest.graphs['encoder'].path}: the encoder returned NaN "
                                  f"or inf for finite images in [0, 1] (broken weights?)")
+        return maps, world_from_cam, focal
+
+    def encode(self, images) -> Scene:
+        """Run the encoder on ``images`` (a sequence of HxWx3 uint8 RGB arrays, PIL images or
+        file paths, any size: centre-cropped to the model's aspect ratio and resized, see
+        ``iris_runtime.images.fit_to_model``), every image a reference -> an immutable ``Scene``
+        (which keeps the model-resolution images for ``locate``)."""
+        return self._encode(images, {})
+
+    def _encode(self, images, timings: dict) -> Scene:
+        t0 = time.perf_counter()
+        batch = self._load_images(images)
+        t1 = time.perf_counter()
+        maps, world_from_cam, focal = self._run_encoder(batch, np.ones(batch.shape[0], bool))
+        t2 = time.perf_counter()
+        timings["load"] = timings.get("load", 0.0) + (t1 - t0)
+        timings["encode"] = timings.get("encode", 0.0) + (t2 - t1)
         H, W = self.image_size
         focal64 = focal.astype(np.float64)
         return Scene(maps, world_from_cam.astype(np.float64), focal64,
                      G.intrinsics_from_focal(focal64, H, W), (H, W),
-                     self.manifest.graphs["encoder"].sha256)
+                     self.manifest.graphs["encoder"].sha256, batch)
+
+    # -- locating ---------------------------------------------------------------------------
+    def locate(self, scene: Scene, image) -> np.ndarray:
+        """Pose of a new photo in ``scene``'s frame, without changing the scene.
+
+        scene:  a ``Scene`` from ``encode`` of this model (or its ``subset``: same frame).
+        image:  one photo (path, PIL image or HxWx3 array, any size: fitted like ``encode``'s
+                images) or a sequence of them.
+
+        Runs the encoder graph on the scene's reference images followed by the photo(s) as
+        queries: each photo sees the references and itself, never the other photos, so locating
+        several at once equals locating them one by one, up to float rounding (batches of at most
+        ``max_views`` views per encoder call, references included, and at least one photo per
+        call; at most ``MAX_LOCATE_CALLS`` calls). Returns ``world_from_cam`` float64 ``[4, 4]``
+        for one photo, ``[Q, 4, 4]`` for a sequence (OpenCV axes, the scene's canonical frame:
+        its first reference is the identity; the scene's shared focal applies).
+        """
+        if not isinstance(scene, Scene):
+            raise InputError(f"scene: expected a Scene from IrisRuntime.encode, got "
+                             f"{type(scene).__name__}")
+        self._check_scene(scene, "scene")
+        refs = scene.reference_images
+        if refs is None:
+            raise InputError("scene: this Scene holds no reference images (it was built by hand, "
+                             "not by IrisRuntime.encode); locate needs them to run the encoder")
+        single = _is_single_image(image)
+        if not single and (isinstance(image, (dict, set)) or not hasattr(image, "__iter__")):
+            raise InputError(f"image: expected one photo (a path, a PIL image or an HxWx3 array) "
+                             f"or a sequence of them, got {type(image).__name__}")
+        N = refs.shape[0]
+        per_call = max(1, self.max_views - N)
+        queries = self._load_images([image] if single else image, "image",
+                                    limit=per_call * MAX_LOCATE_CALLS, single=single)
+        poses = []
+        for start in range(0, queries.shape[0], per_call):
+            chunk = queries[start:start + per_call]
+            batch = np.concatenate([refs, chunk])
+            _, world_from_cam, focal = self._run_encoder(batch, np.arange(batch.shape[0]) < N)
+            if np.abs(focal.astype(np.float64) - scene.focal).max() > 1e-6:   # bitwise when real
+                raise InputError(f"scene: its reference_images give focal {focal.tolist()}, not "
+                                 f"the scene's {scene.focal.tolist()} (not the images it was "
+                                 f"encoded from)")
+            poses.append(world_from_cam[N:].astype(np.float64))
+        poses = np.concatenate(poses)
+        return poses[0] if single else poses
 
     # -- rendering --------------------------------------------------------------------------
     def render(self, images_or_scene, pose, *, height: int | None = None, width: int | None = None,
@@ -524,15 +618,15 @@ class IrisRuntime:
         return RenderResult(image, image_float, z, timings, work, settings)
 
     # .. argument checks ......................................................................
-    def _check_scene(self, scene: Scene) -> None:
+    def _check_scene(self, scene: Scene, name: str = "images_or_scene") -> None:
         enc = self.manifest.graphs["encoder"].sha256
         if scene.model_id and scene.model_id != enc:
-            raise InputError("images_or_scene: this Scene was encoded by another model "
+            raise InputError(f"{name}: this Scene was encoded by another model "
                              f"(encoder sha256 {scene.model_id[:12]}..., this model {enc[:12]}...)")
         channels = self.manifest.field_channels
         if tuple(scene.image_size) != tuple(self.image_size) or (
                 channels and scene.field_maps.shape[1] != channels):
-            raise InputError(f"images_or_scene: Scene of image size {scene.image_size} with "
+            raise InputError(f"{name}: Scene of image size {scene.image_size} with "
                              f"{scene.field_maps.shape[1]} channels; this model has "
                              f"{self.image_size} and {channels}")
 

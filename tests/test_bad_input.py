@@ -1,6 +1,6 @@
 """Bad input at every public entry -> one typed error, never a raw numpy/onnxruntime traceback.
 
-Entries: ``IrisRuntime(...)``, ``encode``, ``render``, ``Scene``, ``iris-render``, ``iris-export``
+Entries: ``IrisRuntime(...)``, ``encode``, ``render``, ``locate``, ``Scene``, ``iris-render``, ``iris-export``
 (``export_model``), and the data loading of ``iris-train`` / ``iris-eval``. Every error must be an
 ``IrisError`` (the project's one base class) and also a ``ValueError`` (bad argument) or an
 ``OSError`` (bad model file), name the argument or file, and leave nothing half-written.
@@ -104,6 +104,9 @@ def _edit_manifest(d: Path, edit) -> None:
     (lambda d: d.update(version="1"), ModelFileError, "version"),
     (lambda d: d.update(version=True), ModelFileError, "version"),
     (lambda d: d.update(version=None), ModelFileError, "version"),
+    (lambda d: d.update(version=1), ModelFileError, "re-export with iris-export"),
+    (lambda d: d.update(version=99), ModelFileError, "re-export with iris-export"),
+    (lambda d: d["graphs"]["encoder"]["inputs"].pop("is_reference"), ManifestError, "is_reference"),
     (lambda d: d.update(samples=0), ManifestError, "samples"),
     (lambda d: d.update(far=float("nan")) or d, ManifestError, "far"),
     (lambda d: d.update(image_size=[64]), ManifestError, "image_size"),
@@ -367,6 +370,10 @@ def _with(a, index, value):
     ("focal", lambda s: [None, None], "focal"),
     ("K", lambda s: np.eye(4), "K"),
     ("image_size", lambda s: (0, 64), "image_size"),
+    ("reference_images", lambda s: np.zeros((2, 3, 8, 8), np.float32), "reference_images"),
+    ("reference_images", lambda s: np.full((1, 3, *s.image_size), 2.0), "reference_images"),
+    ("reference_images", lambda s: np.full((1, 3, *s.image_size), np.nan), "reference_images"),
+    ("reference_images", lambda s: "images", "reference_images"),
 ])
 def test_scene_rejects_bad_contents(scene, field, make, match):
     kwargs = _scene_kwargs(scene)
@@ -381,6 +388,31 @@ def test_scene_subset_bad_indices(scene, indices):
     with pytest.raises(InputError) as info:
         scene.subset(indices)
     assert_typed(info, ValueError, "indices")
+
+
+@pytest.mark.parametrize("args, error, match", [
+    (lambda rt, s: (12, np.zeros((64, 64, 3), np.uint8)), InputError, "scene"),
+    (lambda rt, s: (s, None), InputError, "image"),
+    (lambda rt, s: (s, 3.5), InputError, "image"),
+    (lambda rt, s: (s, []), InputError, "image"),
+    (lambda rt, s: (s, "missing.png"), ImageError, "missing.png"),
+    (lambda rt, s: (s, [np.zeros((64, 64, 3), np.uint8), np.zeros((0, 4, 3), np.uint8)]),
+     ImageError, "image[1]"),
+    (lambda rt, s: (s, np.zeros((64, 64, 5), np.uint8)), ImageError, "image"),
+    (lambda rt, s: (s, [np.zeros((4, 4, 3), np.uint8)] * (R.MAX_LOCATE_CALLS * rt.max_views + 1)),
+     InputError, "image"),
+    (lambda rt, s: (Scene(**_scene_kwargs(s)), np.zeros((64, 64, 3), np.uint8)), InputError,
+     "reference images"),
+    (lambda rt, s: (Scene(**_scene_kwargs(s), model_id="0" * 64), np.zeros((64, 64, 3), np.uint8)),
+     InputError, "another model"),
+    (lambda rt, s: (Scene(**_scene_kwargs(s), model_id=s.model_id,
+                          reference_images=1.0 - s.reference_images),
+                    np.zeros((64, 64, 3), np.uint8)), InputError, "reference_images"),
+])
+def test_locate_bad_input(rt, scene, args, error, match):
+    with pytest.raises(error) as info:
+        rt.locate(*args(rt, scene))
+    assert_typed(info, ValueError, match)
 
 
 def test_render_wrong_scene_type(rt):

@@ -10,6 +10,10 @@ The random ``tiny`` model of conftest's ``torch_export`` (exported once per sess
   -> ORT renderer, against torch ``IrisModel.encode`` + ``render_rays`` on fresh random rays,
   within 1e-4, for V' in {1, 2, 5} and several (R, S) (dynamic axes, exported once);
 * masking: points masked in every view and rays with every sample masked stay finite and match;
+* isolated references: the encoder graph's ``is_reference`` input; the references' field maps and
+  cameras equal within 1e-6 (measured: bitwise) whether queries are present, changed or absent,
+  and the queries' poses match ``IrisModel.locate``; validation reports probes with queries and
+  the isolation check;
 * the wrappers compute exactly what the model computes;
 * failures: existing OUT_DIR without --force (and --force replacing it), corrupt / truncated /
   foreign checkpoints, tolerance exceeded -> ``ValidationError``; OUT_DIR untouched each time, no
@@ -158,6 +162,11 @@ def test_manifest_content(exported, model, checkpoint):
         for out, tol in spec["tolerance"].items():
             assert 0 <= report["max_abs_error"][out] <= tol
         assert report["time"]["onnxruntime_median_s"] > 0 and report["time"]["torch_median_s"] > 0
+    # Encoder probes: all references and with queries; isolation checked and recorded.
+    enc = m["validation"]["encoder"]
+    assert {p["queries"] for p in enc["probes"]} >= {0, 1, 2, 3}
+    assert enc["isolation"]["passed"] and enc["isolation"]["tolerance"] == 1e-6
+    assert all(0 <= e <= 1e-6 for e in enc["isolation"]["max_abs_error"].values())
     # Probes covered the edge cases and the view counts.
     probes = m["validation"]["renderer"]["probes"]
     assert {p["V"] for p in probes} == {1, 3, 8} and 1 in {p["R"] for p in probes}
@@ -197,12 +206,15 @@ def test_io_names_match_spec(sessions):
                 assert arg.shape[axis] == name
     mask = next(i for i in sessions["renderer"].get_inputs() if i.name == "mask")
     assert mask.type == "tensor(bool)"
+    is_reference = next(i for i in sessions["encoder"].get_inputs() if i.name == "is_reference")
+    assert is_reference.type == "tensor(bool)" and is_reference.shape == ["V"]
 
 
 # -- numbers -------------------------------------------------------------------------------------
 def _runtime_render(sessions, images, pose, uv, depths, reverse=0):
     """What the runtime does: ORT encoder, numpy geometry in float32, ORT renderer."""
-    maps, world_from_cam, focal = sessions["encoder"].run(None, {"images": images})
+    maps, world_from_cam, focal = sessions["encoder"].run(
+        None, {"images": images, "is_reference": np.ones(len(images), bool)})
     K = RG.intrinsics_from_focal(focal, H, W)
     origins, directions = RG.rays_from_pixels(uv, K, pose)
     if reverse:
@@ -242,6 +254,31 @@ def test_round_trip_against_torch_render_rays(model, sessions, V, R, S):
     np.testing.assert_allclose(weights, w_ref.numpy(), rtol=0, atol=TOL)
     if reverse:       # backward rays: every sample masked in every view -> zero weights
         assert not valid[:, -reverse:].any() and np.all(weights[-reverse:] == 0)
+
+
+def test_encoder_graph_isolates_references(model, sessions):
+    """ONNX Runtime: the references' field maps and cameras do not change (within 1e-6; measured
+    bitwise) when queries are added, changed or removed, and the queries' poses match torch's
+    ``IrisModel.locate``."""
+    enc = sessions["encoder"]
+    g = torch.Generator().manual_seed(11)
+    refs, queries = scene_images(4, H, W, g).numpy(), scene_images(3, H, W, g).numpy()
+
+    def run(q):
+        images = np.concatenate([refs, q]) if len(q) else refs
+        return enc.run(None, {"images": images, "is_reference": np.arange(len(images)) < len(refs)})
+
+    alone = run(queries[:0])
+    present, changed, fewer = run(queries), run(1.0 - queries), run(queries[:1])
+    for out in (present, changed, fewer):
+        for name, a, b in zip(("field_maps", "world_from_cam", "focal"), out, alone):
+            rows = slice(None) if name == "focal" else slice(0, len(refs))
+            assert np.abs(a[rows] - b).max() <= 1e-6, name
+    with torch.no_grad():
+        located = model.locate(torch.from_numpy(refs), torch.from_numpy(queries)).numpy()
+    assert np.abs(present[1][len(refs):] - located).max() <= 1e-5
+    assert np.abs(present[1][len(refs):] - changed[1][len(refs):]).max() > 0   # queries' own poses
+    assert np.abs(fewer[1][len(refs)] - present[1][len(refs)]).max() <= 1e-6   # queries independent
 
 
 def _random_feed(V, R, S, seed):
@@ -285,9 +322,18 @@ def test_wrappers_compute_what_the_model_computes(model):
     with torch.no_grad():
         images = scene_images(3, H, W, g)
         scene = model.encode(images)
-        maps, world_from_cam, focal = EncoderGraph(model)(images)
+        maps, world_from_cam, focal = EncoderGraph(model)(images, torch.ones(3, dtype=torch.bool))
         assert torch.equal(maps, scene.maps) and torch.equal(world_from_cam, scene.world_from_cam)
         assert torch.equal(focal, scene.focal)
+        # With queries after the references: the references' rows are encode's (float32 rounding
+        # of longer attention rows aside), the queries' poses are locate's.
+        queries = scene_images(2, H, W, g)
+        maps_q, poses_q, focal_q = EncoderGraph(model)(torch.cat([images, queries]),
+                                                       torch.arange(5) < 3)
+        scale = max(1.0, float(scene.maps.abs().max()))
+        torch.testing.assert_close(maps_q[:3], scene.maps, atol=1e-6 * scale, rtol=0)
+        torch.testing.assert_close(poses_q[:3], scene.world_from_cam, atol=1e-6, rtol=0)
+        assert torch.equal(poses_q[3:], model.locate(images, queries))
         origins, directions, depths = scene_rays(model, scene, 24, g)
         rgb, weights = RendererGraph(model)(**renderer_inputs(scene, origins, directions, depths))
         rgb_ref, w_ref = model.render_rays(scene, origins, directions, depths)

@@ -134,6 +134,19 @@ def test_subset_matches_torch(torch_pair):
     assert np.abs(res.depth - depth).max() <= 1e-4
 
 
+@pytest.mark.torch
+def test_locate_matches_torch(torch_pair):
+    import torch
+    runtime, scene, model, _ = torch_pair
+    photos = _images(2, runtime.image_size, seed=7)
+    x = np.stack(photos).astype(np.float32).transpose(0, 3, 1, 2) * np.float32(1.0 / 255.0)
+    with torch.no_grad():
+        want = model.locate(torch.from_numpy(scene.reference_images.copy()), torch.from_numpy(x))
+    got = runtime.locate(scene, photos)
+    assert got.shape == (2, 4, 4) and got.dtype == np.float64
+    assert np.abs(got - want.double().numpy()).max() <= 1e-5
+
+
 # ----------------------------------------------------------------------------------------------
 # Runtime behaviour (no torch needed)
 # ----------------------------------------------------------------------------------------------
@@ -147,8 +160,9 @@ def test_scene_is_immutable_and_typed(rt, scene):
     assert scene.focal.shape == (2,) and scene.K.shape == (3, 3)
     np.testing.assert_allclose(scene.world_from_cam[0], np.eye(4), atol=1e-6)
     np.testing.assert_allclose(scene.K, G.intrinsics_from_focal(scene.focal, H, W))
-    for name in ("field_maps", "world_from_cam", "focal", "K"):
+    for name in ("field_maps", "world_from_cam", "focal", "K", "reference_images"):
         assert not getattr(scene, name).flags.writeable
+    assert scene.reference_images.shape == (V, 3, H, W) and scene.reference_images.dtype == np.float32
     with pytest.raises(ValueError):
         scene.field_maps[0, 0, 0, 0] = 1.0
     with pytest.raises(dataclasses.FrozenInstanceError):
@@ -162,9 +176,58 @@ def test_subset_keeps_frame(scene):
     np.testing.assert_array_equal(sub.world_from_cam, scene.world_from_cam[[2, 1]])
     np.testing.assert_array_equal(sub.field_maps, scene.field_maps[[2, 1]])
     np.testing.assert_array_equal(sub.K, scene.K)
+    np.testing.assert_array_equal(sub.reference_images, scene.reference_images)   # all inputs: the frame
     for bad in ([], [3], [-1], [0, 0], ["a"]):
         with pytest.raises(InputError, match="indices"):
             scene.subset(bad)
+
+
+def test_locate_returns_rigid_poses_and_leaves_the_scene(rt, scene):
+    """locate: rigid finite world_from_cam, one photo -> [4, 4], a sequence -> [Q, 4, 4]; photos
+    located together = one by one; the scene is not changed (field maps bitwise) and neither is a
+    render made from it, whatever photo was located; a subset (same frame) locates the same."""
+    photos = _images(3, (80, 60), seed=5)
+    before = {k: getattr(scene, k).copy() for k in ("field_maps", "world_from_cam", "focal", "K")}
+    render_before = rt.render(scene, _pose(), height=6, width=6, depth=True)
+    one = rt.locate(scene, photos[0])
+    many = rt.locate(scene, photos)
+    assert one.shape == (4, 4) and many.shape == (3, 4, 4)
+    assert one.dtype == np.float64 and np.isfinite(many).all()
+    assert all(G.is_rigid(T) for T in many)
+    # Queries never see each other: together = one by one (float rounding of other batch sizes).
+    assert np.abs(many[0] - one).max() <= 1e-6
+    assert np.abs(many[1:] - rt.locate(scene, photos[1:])).max() <= 1e-6
+    np.testing.assert_array_equal(rt.locate(scene.subset([2, 0]), photos), many)
+    rt.locate(scene, [255 - p for p in photos])                    # other photos located
+    for k, v in before.items():
+        np.testing.assert_array_equal(getattr(scene, k), v)
+    render_after = rt.render(scene, _pose(), height=6, width=6, depth=True)
+    np.testing.assert_array_equal(render_after.image_float, render_before.image_float)
+    np.testing.assert_array_equal(render_after.depth, render_before.depth)
+
+
+def test_encoder_isolates_references_in_the_runtime(rt):
+    """Through the runtime's encoder session: the references' field maps and cameras are equal
+    (within 1e-6; measured bitwise) with queries present, changed or absent, and a render from
+    the references made with queries present equals the render of the scene encoded alone."""
+    refs = rt._load_images(_images(3, rt.image_size, seed=8))
+    queries = rt._load_images(_images(2, rt.image_size, seed=9))
+    alone = rt._run_encoder(refs, np.ones(3, bool))
+    runs = [rt._run_encoder(np.concatenate([refs, q]), np.arange(5) < 3)
+            for q in (queries, 1.0 - queries, queries[::-1])]
+    for out in runs:
+        for name, a, b in zip(("field_maps", "world_from_cam", "focal"), out, alone):
+            rows = slice(None) if name == "focal" else slice(0, 3)
+            assert np.abs(a[rows] - b).max() <= 1e-6, name
+    assert np.abs(runs[0][1][3:] - runs[1][1][3:]).max() > 0       # the queries' own poses move
+    scene = rt.encode([np.rint(r.transpose(1, 2, 0) * 255).astype(np.uint8) for r in refs])
+    maps, poses, focal = runs[1]
+    with_queries = Scene(maps[:3], poses[:3].astype(np.float64), focal.astype(np.float64), scene.K,
+                         scene.image_size, scene.model_id)
+    a = rt.render(scene, _pose(), height=6, width=6, depth=True)
+    b = rt.render(with_queries, _pose(), height=6, width=6, depth=True)
+    assert np.abs(a.image_float - b.image_float).max() <= 1e-6
+    assert np.abs(a.depth - b.depth).max() <= 1e-6
 
 
 def test_encode_fits_any_size(rt):
@@ -370,7 +433,8 @@ def test_graph_replaced_after_check(model_copy):
 
 
 @pytest.mark.parametrize("edit, error, match", [
-    (lambda d: d.update(version=2), ModelFormatError, "version 1"),
+    (lambda d: d.update(version=1), ModelFormatError, "re-export with iris-export"),
+    (lambda d: d.update(version=3), ModelFormatError, "version 2"),
     (lambda d: d.update(format="something-else"), ModelFormatError, "iris-model"),
     (lambda d: d.update(io_spec_version=7), ModelFormatError, "I/O spec"),
     (lambda d: d["graphs"]["renderer"].update(file="../renderer.onnx"), ManifestError, r"'\.\.'"),
@@ -525,6 +589,33 @@ def test_cli_end_to_end(model_dir, tmp_path):
         assert not (tmp_path / "o2").exists()
 
 
+def test_cli_locate(model_dir, tmp_path):
+    """iris-render --locate: poses printed and written to located_poses.json (usable with --pose),
+    located views rendered; the same numbers as IrisRuntime.locate."""
+    from PIL import Image
+    paths = []
+    for i in range(4):
+        paths.append(tmp_path / f"in{i}.png")
+        Image.fromarray(_images(1, (64, 64), seed=20 + i)[0]).save(paths[-1])
+    out = tmp_path / "out"
+    code = "from iris_runtime.cli import main; sys.exit(main(sys.argv[1:]))"
+    proc = _python(code, model_dir, *paths[:2], "-o", out, "--size", "4x4", "--threads", 1,
+                   "--locate", paths[2], paths[3], "--no-depth")
+    assert proc.returncode == 0, proc.stderr
+    located = np.asarray(json.loads((out / "located_poses.json").read_text()))
+    assert located.shape == (2, 4, 4) and all(G.is_rigid(T) for T in located)
+    runtime = IrisRuntime(model_dir, threads=1)
+    np.testing.assert_allclose(located, runtime.locate(runtime.encode(paths[:2]), paths[2:]),
+                               atol=1e-12, rtol=0)
+    assert str(paths[2]) in proc.stdout and "located_poses.json" in proc.stdout
+    assert sorted(p.name for p in out.glob("located_*.png")) == ["located_000.png", "located_001.png"]
+    assert not list(out.glob("view_*.png"))            # --locate is a target: no default views
+    proc = _python(code, model_dir, paths[0], "-o", tmp_path / "o2", "--locate",
+                   tmp_path / "missing.png")
+    assert proc.returncode == 2 and "missing.png" in proc.stderr and "Traceback" not in proc.stderr
+    assert not (tmp_path / "o2").exists()
+
+
 # ----------------------------------------------------------------------------------------------
 # Parity on the shipped, trained model and the committed held-out sample scene
 # ----------------------------------------------------------------------------------------------
@@ -565,3 +656,19 @@ def test_trained_model_runtime_matches_torch(shipped_pair):
         rgb, depth = _torch_render(model, tscene.subset(refs), pose, *runtime.image_size)
         assert np.abs(res.image_float - rgb).max() <= 1e-4
         assert np.abs(res.depth - depth).max() <= 1e-4
+
+
+@pytest.mark.torch
+def test_trained_model_locate_matches_torch(shipped_pair):
+    """The shipped model (trained before references were isolated, exported under the new
+    contract): the targets of the sample scene located from its references, runtime vs torch."""
+    import torch
+    runtime, _, model, _ = shipped_pair
+    paths = sorted(SAMPLE.glob("frame_*.png"))
+    refs, targets = [paths[i] for i in (0, 2, 3, 5, 7)], [paths[i] for i in (1, 4, 6)]
+    scene = runtime.encode(refs)
+    got = runtime.locate(scene, targets)
+    with torch.no_grad():
+        want = model.locate(torch.from_numpy(scene.reference_images.copy()),
+                            torch.from_numpy(runtime._load_images(targets)))
+    assert np.abs(got - want.double().numpy()).max() <= 1e-5

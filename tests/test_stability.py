@@ -726,10 +726,12 @@ def test_encoder_graph_vs_float64_torch(torch_models, kind):
               "constant": np.broadcast_to(np.array([0.35, 0.55, 0.12])[None, :, None, None],
                                           (3, 3, H, W)),
               "noise": rng.random((3, 3, H, W))}[kind].astype(F32)
+    is_reference = np.array([True, True, False])          # a query too: the mask's both kinds
     out = _ort(Path(model_dir) / "encoder.onnx").run(["field_maps", "world_from_cam", "focal"],
-                                                     {"images": images})
+                                                     {"images": images, "is_reference": is_reference})
     with torch.no_grad():
-        ref = [t.numpy() for t in EncoderGraph(model64)(torch.from_numpy(images.astype(np.float64)))]
+        ref = [t.numpy() for t in EncoderGraph(model64)(torch.from_numpy(images.astype(np.float64)),
+                                                        torch.from_numpy(is_reference))]
     for a, b in zip(out, ref):
         assert np.all(np.isfinite(a))
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-4 * max(1.0, np.abs(b).max()))
