@@ -15,20 +15,30 @@ Protocol (DESIGN.md "Evaluation protocol", the paper's appendix scaled down):
   subsampled evenly along the stored order; scenes with fewer are skipped.
 - Fixed split: targets are frames ``TARGET_FRAMES = (1, 4, 6)``, references the others
   (0, 2, 3, 5, 7); for N != 8 see ``split_frames``.
-- The encoder sees all N frames, so the target poses are predicted from the target images. The
-  targets are rendered from the reference views only (``scene.subset(references)``) at their
-  predicted poses, at the model's resolution, and compared with the target images: PSNR and SSIM
-  (``iris_train.metrics``), per image, averaged over targets, then over scenes.
-- Pose: RPA@5/15/30 of the N predicted poses against the ground truth over all frame pairs.
+- References are encoded isolated: the scene (features, cameras, focal) is ``encode`` of the
+  reference frames alone, so no target image reaches it. The targets are *queries*: their poses
+  are predicted from the target images in the references' frame by ``locate``
+  (``IrisRuntime.locate`` for an exported model, ``IrisModel.locate`` for a checkpoint: one encoder
+  run over references + targets in which a target sees the references and itself only). The
+  targets are rendered from the references at their located poses, at the model's resolution,
+  and compared with the target images: PSNR and SSIM (``iris_train.metrics``), per image,
+  averaged over targets, then over scenes.
+- Pose: RPA@5/15/30 of the N predicted poses (references from ``encode``, targets from
+  ``locate``) against the ground truth over all frame pairs; and **locate RPA**
+  (``locate_rpa@5/15/30``) over the pairs that involve at least one target (target-reference and
+  target-target pairs: 18 of the 28 at N = 8), i.e. every pair whose relative pose depends on a
+  located camera. The identity-pose baseline reports both too.
 - Soft depth: ``depth_spearman`` (``iris_train.metrics.depth_spearman``), the Spearman rank
   correlation of each target's rendered soft depth with its true depth over the pixels that see
   geometry (true depth > 0), averaged over targets, then over scenes. Only scenes with a true
   depth count (the synthetic ones; users' folders have none: ``null`` when no scene has one); a
   target with fewer than 3 such pixels or a constant depth map is left out of its scene's mean.
 - Two input orders: **Seq** (frames as stored) and **Rand** (a fixed per-scene permutation from
-  ``RAND_SEED`` and the scene's index). Targets and references are the same frames in both; in Rand
-  they are merely presented in shuffled order, and the first presented frame becomes the canonical
-  frame (RPA does not depend on the world frame).
+  ``RAND_SEED`` and the scene's index, ``presentation_order``). Targets and references are the same
+  frames in both; in Rand the references are presented to ``encode`` in the order they take in the
+  permutation, so the first reference of the permutation becomes the canonical frame (view 0 must
+  be a reference; RPA does not depend on the world frame), and the targets are located in their
+  permutation order (queries do not see each other, so that order does not matter).
 - Baselines on the same scenes and frames: *nearest reference* (the reference image whose
   ground-truth camera is closest to the target's: rotation angle in radians + centre distance
   divided by the mean distance of the scene's camera centres from their centroid; see
@@ -59,7 +69,8 @@ import numpy as np
 
 from .metrics import RPA_THRESHOLDS, depth_spearman, psnr, rpa, ssim
 
-__all__ = ["evaluate", "split_frames", "rand_permutation", "nearest_reference", "format_table",
+__all__ = ["evaluate", "split_frames", "rand_permutation", "presentation_order", "nearest_reference",
+           "format_table",
            "load_scenes", "load_evaluable", "TARGET_FRAMES", "DEFAULT_VIEWS", "RAND_SEED", "ORDERS",
            "PSNR_CAP", "write_json", "save_grid", "main"]
 
@@ -76,6 +87,7 @@ PSNR_CAP = 100.0
 #: Pixel size (H, W) of the camera picture in ``--grid``.
 _CAMERA_PANEL_SIZE = (450, 700)
 _RPA_KEYS = tuple(f"rpa@{t:g}" for t in RPA_THRESHOLDS)
+_LOCATE_RPA_KEYS = tuple(f"locate_{k}" for k in _RPA_KEYS)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -104,6 +116,31 @@ def rand_permutation(n_views: int, scene_index: int, seed: int = RAND_SEED) -> n
     """The fixed "Rand" presentation order of scene ``scene_index``: ``order[p]`` = frame shown at
     position p. Reproducible: ``numpy.random.default_rng([seed, scene_index]).permutation``."""
     return np.random.default_rng([seed, scene_index]).permutation(n_views)
+
+
+def presentation_order(order: str, references: Sequence[int], targets: Sequence[int],
+                       scene_index: int, seed: int = RAND_SEED) -> tuple[list[int], list[int]]:
+    """``(reference frames, target frames)`` in the order they are given to ``encode`` and
+    ``locate``. "seq": as stored. "rand": the order they take in ``rand_permutation(N, scene_index,
+    seed)`` (N = all frames), so the first reference of the permutation is view 0."""
+    if order == "seq":
+        return list(references), list(targets)
+    if order != "rand":
+        raise ValueError(f"order: expected one of {ORDERS}, got {order!r}")
+    perm = rand_permutation(len(references) + len(targets), scene_index, seed).tolist()
+    refs, tgts = set(references), set(targets)
+    return [f for f in perm if f in refs], [f for f in perm if f in tgts]
+
+
+def _locate_rpa(pred: np.ndarray, gt: np.ndarray, targets: Sequence[int]) -> dict[str, float]:
+    """RPA over the frame pairs (i < j) that involve at least one of ``targets``."""
+    from .metrics import relative_pose_errors
+    rot, trans = relative_pose_errors(pred, gt)
+    err = np.maximum(rot, trans)
+    i, j = np.triu_indices(len(pred), 1)
+    is_target = np.isin(np.arange(len(pred)), list(targets))
+    pairs = is_target[i] | is_target[j]
+    return {f"locate_rpa@{t:g}": float(np.mean(err[pairs] < t)) for t in RPA_THRESHOLDS}
 
 
 def _rotation_angle(Ra: np.ndarray, Rb: np.ndarray) -> np.ndarray:
@@ -164,11 +201,19 @@ class _TorchBackend:
     def poses(self, scene) -> np.ndarray:
         return scene.world_from_cam.detach().double().numpy()
 
-    def render(self, scene, refs: Sequence[int], poses: np.ndarray):
+    def locate(self, scene, references: np.ndarray, queries: np.ndarray) -> np.ndarray:
+        """Poses [Q, 4, 4] of ``queries`` in the frame of ``scene`` = ``encode(references)``."""
+        import torch
+
+        def to_tensor(images):
+            return torch.from_numpy(np.ascontiguousarray(images)).permute(0, 3, 1, 2).float() / 255.0
+        with torch.no_grad():
+            return self.model.locate(to_tensor(references), to_tensor(queries)).double().numpy()
+
+    def render(self, scene, poses: np.ndarray):
         import torch
         H, W = self.image_size
-        rgb, depth = self.model.render(scene.subset(refs),
-                                       torch.as_tensor(poses, dtype=scene.maps.dtype), H, W)
+        rgb, depth = self.model.render(scene, torch.as_tensor(poses, dtype=scene.maps.dtype), H, W)
         return rgb.double().numpy(), depth.double().numpy()
 
 
@@ -185,12 +230,15 @@ class _RuntimeBackend:
     def poses(self, scene) -> np.ndarray:
         return np.asarray(scene.world_from_cam, dtype=np.float64)
 
-    def render(self, scene, refs: Sequence[int], poses: np.ndarray):
+    def locate(self, scene, references: np.ndarray, queries: np.ndarray) -> np.ndarray:
+        """Poses [Q, 4, 4] of ``queries`` in ``scene``'s frame (the scene keeps its references)."""
+        return np.asarray(self.rt.locate(scene, list(queries)), dtype=np.float64)
+
+    def render(self, scene, poses: np.ndarray):
         H, W = self.image_size
-        sub = scene.subset(list(refs))
         rgbs, depths = [], []
         for pose in poses:
-            result = self.rt.render(sub, pose, height=H, width=W, depth=True)
+            result = self.rt.render(scene, pose, height=H, width=W, depth=True)
             image = getattr(result, "image_float", None)
             if image is None:
                 image = np.asarray(getattr(result, "image", result), dtype=np.float64) / 255.0
@@ -315,12 +363,14 @@ def evaluate(model, scenes: Iterable, *, views: int = DEFAULT_VIEWS, seed: int =
     ``scenes``: objects with ``images`` uint8 ``[V, H, W, 3]`` (trajectory order) and
     ``world_from_cam`` ``[V, 4, 4]`` or None (no ground-truth cameras). Images of another size are
     brought to the model's resolution by ``iris_runtime.images.fit_to_model``. The Rand order of
-    a scene is ``rand_permutation(views, i, seed)`` with i its position in ``scenes``. ``grid``:
+    a scene is ``presentation_order("rand", ..., i, seed)`` (from ``rand_permutation(views, i,
+    seed)``) with i its position in ``scenes``. ``grid``:
     write a PNG of the first scene (Seq order). ``total``: number of scenes, for the progress bar.
 
     Returns ``{"seq": R, "rand": R}`` with ``R = {"model": {"psnr", "ssim", "rpa@5", "rpa@15",
-    "rpa@30", "depth_spearman"}, "baselines": {"nearest_reference": {"psnr", "ssim"},
-    "mean_colour": {"psnr", "ssim"}, "identity_poses": {"rpa@5", "rpa@15", "rpa@30"}}}``: means
+    "rpa@30", "locate_rpa@5", "locate_rpa@15", "locate_rpa@30", "depth_spearman"}, "baselines":
+    {"nearest_reference": {"psnr", "ssim"}, "mean_colour": {"psnr", "ssim"}, "identity_poses":
+    {"rpa@5", "rpa@15", "rpa@30", "locate_rpa@5", "locate_rpa@15", "locate_rpa@30"}}}``: means
     over scenes (see the module docstring for the protocol; ``depth_spearman`` is None when no
     scene has a true depth). Raises ``ValueError`` when no scene has ``views`` frames.
     """
@@ -330,10 +380,12 @@ def evaluate(model, scenes: Iterable, *, views: int = DEFAULT_VIEWS, seed: int =
     training = getattr(model, "training", None)
     if training:
         model.eval()
-    acc = {order: {"model": {k: [] for k in ("psnr", "ssim", *_RPA_KEYS, "depth_spearman")},
+    acc = {order: {"model": {k: [] for k in ("psnr", "ssim", *_RPA_KEYS, *_LOCATE_RPA_KEYS,
+                                             "depth_spearman")},
                    "nearest_reference": {"psnr": [], "ssim": []},
                    "mean_colour": {"psnr": [], "ssim": []},
-                   "identity_poses": {k: [] for k in _RPA_KEYS}} for order in ORDERS}
+                   "identity_poses": {k: [] for k in (*_RPA_KEYS, *_LOCATE_RPA_KEYS)}}
+           for order in ORDERS}
     n_used, n_skipped = 0, 0
     from tqdm import tqdm
     bar = tqdm(scenes, total=total, desc="iris-eval", unit="scene", disable=not progress,
@@ -359,12 +411,13 @@ def evaluate(model, scenes: Iterable, *, views: int = DEFAULT_VIEWS, seed: int =
                 near_scores = _nvs_scores(gt_images[nearest], targets_gt)
 
             for order in ORDERS:
-                perm = np.arange(views) if order == "seq" else rand_permutation(views, index, seed)
-                pos = np.argsort(perm)                    # pos[frame] = its presented position
-                encoded = backend.encode(images[perm])
-                pred = backend.poses(encoded)              # presented order
-                rgb, depth = backend.render(encoded, np.sort(pos[refs_a]).tolist(),
-                                            pred[pos[targets_a]])
+                ref_order, target_order = presentation_order(order, refs, targets, index, seed)
+                # References encoded isolated (view 0 = ref_order[0]); targets located as queries.
+                encoded = backend.encode(images[ref_order])
+                pred = np.empty((views, 4, 4))             # frame order
+                pred[ref_order] = backend.poses(encoded)
+                pred[target_order] = backend.locate(encoded, images[ref_order], images[target_order])
+                rgb, depth = backend.render(encoded, pred[targets_a])
                 if not (np.isfinite(rgb).all() and np.isfinite(pred).all()):
                     raise ValueError(f"scene {index} ({order}): the model returned NaN or inf "
                                      "(poses or colours); nothing to score")
@@ -379,12 +432,12 @@ def evaluate(model, scenes: Iterable, *, views: int = DEFAULT_VIEWS, seed: int =
                     if score is not None:
                         a["model"]["depth_spearman"].append(score)
                 if gt_poses is not None:
-                    gt_presented = gt_poses[perm]
-                    for k, v in rpa(pred, gt_presented).items():
-                        a["model"][k].append(v)
-                    identity = np.broadcast_to(np.eye(4), gt_presented.shape)
-                    for k, v in rpa(identity, gt_presented).items():
-                        a["identity_poses"][k].append(v)
+                    # RPA does not depend on the world frame, so frame order serves both orders.
+                    identity = np.broadcast_to(np.eye(4), gt_poses.shape)
+                    for name, poses in (("model", pred), ("identity_poses", identity)):
+                        for k, v in {**rpa(poses, gt_poses),
+                                     **_locate_rpa(poses, gt_poses, targets)}.items():
+                            a[name][k].append(v)
                     for k, v in near_scores.items():
                         a["nearest_reference"][k].append(v)
                 if grid is not None and order == "seq" and n_used == 1:
@@ -416,9 +469,10 @@ def evaluate(model, scenes: Iterable, *, views: int = DEFAULT_VIEWS, seed: int =
 
 def format_table(results: dict) -> str:
     """The results as a fixed-width text table (one row per order and method; "-" = not measured).
-    DEPTH-RHO is ``depth_spearman``."""
-    cols = ("psnr", "ssim", *_RPA_KEYS, "depth_spearman")
-    labels = {"depth_spearman": "DEPTH-RHO"}
+    DEPTH-RHO is ``depth_spearman``, LOC@t is ``locate_rpa@t``."""
+    cols = ("psnr", "ssim", *_RPA_KEYS, *_LOCATE_RPA_KEYS, "depth_spearman")
+    labels = {"depth_spearman": "DEPTH-RHO",
+              **{k: f"LOC@{t:g}" for k, t in zip(_LOCATE_RPA_KEYS, RPA_THRESHOLDS)}}
     width = {c: max(9, len(labels.get(c, c)) + 1) for c in cols}
     head = f"{'order':<6} {'method':<18}" + "".join(f"{labels.get(c, c.upper()):>{width[c]}}"
                                                      for c in cols)

@@ -19,12 +19,14 @@ torch = pytest.importorskip("torch")
 
 from iris_train import build_model, preset, save_checkpoint  # noqa: E402
 from iris_train.evaluate import (ORDERS, TARGET_FRAMES, evaluate, format_table, main,  # noqa: E402
-                                 nearest_reference, rand_permutation, split_frames, write_json)
+                                 nearest_reference, presentation_order, rand_permutation,
+                                 split_frames, write_json)
 from iris_train.metrics import rpa  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 SIZE = (16, 16)          # smallest size of the tiny preset's 8-px patches that SSIM (11 taps) takes
 RPA_KEYS = ("rpa@5", "rpa@15", "rpa@30")
+LOCATE_KEYS = ("locate_rpa@5", "locate_rpa@15", "locate_rpa@30")
 YAWS = (0.0, 2.0, 4.0, 8.0, 12.0, 20.0, 31.0, 45.0)    # no pair differs by exactly 5, 15 or 30 deg
 
 
@@ -88,11 +90,11 @@ def check_structure(results):
     assert set(results) == {"seq", "rand"}
     for R in results.values():
         assert set(R) == {"model", "baselines"}
-        assert set(R["model"]) == {"psnr", "ssim", *RPA_KEYS, "depth_spearman"}
+        assert set(R["model"]) == {"psnr", "ssim", *RPA_KEYS, *LOCATE_KEYS, "depth_spearman"}
         assert set(R["baselines"]) == {"nearest_reference", "mean_colour", "identity_poses"}
         assert set(R["baselines"]["nearest_reference"]) == {"psnr", "ssim"}
         assert set(R["baselines"]["mean_colour"]) == {"psnr", "ssim"}
-        assert set(R["baselines"]["identity_poses"]) == set(RPA_KEYS)
+        assert set(R["baselines"]["identity_poses"]) == {*RPA_KEYS, *LOCATE_KEYS}
 
 
 # ----------------------------------------------------------------------------------------------
@@ -142,9 +144,12 @@ def test_identity_baseline_rpa_on_hand_made_cameras():
 # ----------------------------------------------------------------------------------------------
 
 class OracleRuntime:
-    """Duck-types IrisRuntime. "Predicts" the true poses (re-based to the first presented view and
-    scaled by 0.5) and "renders" the true image of whichever presented view has that pose, after
-    checking that the pose is not one of the references it was given."""
+    """Duck-types IrisRuntime. ``encode`` must be given exactly the reference frames of a known
+    scene (so no target reaches the scene) and "predicts" their true poses, re-based to the first
+    one given and scaled by 0.5; ``locate`` gives the true pose of a photo of the scene in that
+    frame, and must be asked about targets only; ``render`` returns the true image of whichever
+    frame has the pose, after checking that it is not a reference. Records the order of the
+    frames encoded and located."""
 
     image_size = SIZE
     near, far = 0.1, 1.0
@@ -152,20 +157,33 @@ class OracleRuntime:
     def __init__(self, scenes):
         self.truth = [(s.images, s.world_from_cam) for s in scenes]
         self.calls = 0
+        self.encoded, self.located = [], []
+
+    @staticmethod
+    def _frames(ims, images):
+        found = [np.flatnonzero((ims == im).all(axis=(1, 2, 3))) for im in images]
+        return [int(f[0]) for f in found if f.size]
 
     def encode(self, images):
         images = np.stack(images)
         for ims, poses in self.truth:
-            found = [np.flatnonzero((ims == im).all(axis=(1, 2, 3))) for im in images]
-            match = [int(f[0]) for f in found if f.size]
-            if sorted(match) == list(range(len(ims))):
-                T = np.linalg.inv(poses[match[0]]) @ poses[match]
-                T[:, :3, 3] *= 0.5
-
-                def subset(indices, T=T):
-                    return SimpleNamespace(views=list(indices), all_poses=T, all_images=images)
-                return SimpleNamespace(world_from_cam=T, subset=subset)
+            match = self._frames(ims, images)
+            if len(match) == len(images):
+                refs, _ = split_frames(len(ims))
+                assert sorted(match) == list(refs), "encode was given other frames than the references"
+                all_poses = np.linalg.inv(poses[match[0]]) @ poses
+                all_poses[:, :3, 3] *= 0.5
+                self.encoded.append(match)
+                return SimpleNamespace(world_from_cam=all_poses[match], views=match,
+                                       all_poses=all_poses, all_images=ims)
         raise AssertionError("unknown images")
+
+    def locate(self, scene, images):
+        match = self._frames(scene.all_images, images)
+        assert len(match) == len(images) and not set(match) & set(scene.views), \
+            "locate was asked about a reference or a photo of another scene"
+        self.located.append(match)
+        return scene.all_poses[match]
 
     def render(self, scene, pose, *, height, width, depth):
         assert (height, width) == SIZE and depth
@@ -185,8 +203,42 @@ def test_evaluate_with_oracle_runtime_is_perfect_in_both_orders():
     for order in ORDERS:
         m = results[order]["model"]
         assert m["psnr"] == 100.0 and m["ssim"] == pytest.approx(1.0)
-        assert all(m[k] == 1.0 for k in RPA_KEYS)
+        assert all(m[k] == 1.0 for k in RPA_KEYS + LOCATE_KEYS)
     assert results["seq"]["baselines"] == results["rand"]["baselines"]
+    # Seq: references and targets as stored; Rand: in the order of the scene's permutation.
+    refs, targets = split_frames(8)
+    assert rt.encoded[0] == list(refs) and rt.located[0] == list(targets)
+    perm = rand_permutation(8, 0).tolist()
+    assert rt.encoded[1] == [f for f in perm if f in refs] and rt.encoded[1][0] in refs
+    assert rt.located[1] == [f for f in perm if f in targets]
+
+
+def test_presentation_order():
+    refs, targets = split_frames(8)
+    assert presentation_order("seq", refs, targets, 5) == (list(refs), list(targets))
+    for index in range(6):
+        r, t = presentation_order("rand", refs, targets, index)
+        perm = rand_permutation(8, index).tolist()
+        assert sorted(r) == list(refs) and sorted(t) == list(targets)
+        assert r == [f for f in perm if f in refs] and t == [f for f in perm if f in targets]
+    assert len({tuple(presentation_order("rand", refs, targets, k)[0]) for k in range(6)}) > 1
+    with pytest.raises(ValueError, match="order"):
+        presentation_order("sideways", refs, targets, 0)
+
+
+def test_locate_rpa_counts_pairs_with_a_target():
+    """Targets' poses wrong, references right: RPA over all 28 pairs keeps the 10 reference pairs,
+    locate RPA (the 18 pairs with a target) is 0; and the other way round."""
+    from iris_train.evaluate import _locate_rpa
+    scene = rotation_scene()
+    refs, targets = split_frames(8)
+    wrong = scene.world_from_cam.copy()
+    for k, t in enumerate(targets):          # every pair with a target off by more than 50 deg
+        wrong[t, :3, :3] = rot_y(100.0 * (k + 1))
+    assert rpa(wrong, scene.world_from_cam)["rpa@5"] == pytest.approx(10 / 28)
+    assert _locate_rpa(wrong, scene.world_from_cam, targets) == {k: 0.0 for k in LOCATE_KEYS}
+    assert _locate_rpa(scene.world_from_cam, scene.world_from_cam, targets) == \
+        {k: 1.0 for k in LOCATE_KEYS}
 
 
 # ----------------------------------------------------------------------------------------------
@@ -333,7 +385,7 @@ def test_cli_on_a_folder_without_cameras(tmp_path, capsys):
     check_structure(results)
     for R in results.values():
         assert np.isfinite(R["model"]["psnr"]) and np.isfinite(R["baselines"]["mean_colour"]["ssim"])
-        assert all(R["model"][k] is None for k in RPA_KEYS)
+        assert all(R["model"][k] is None for k in RPA_KEYS + LOCATE_KEYS)
         assert R["baselines"]["nearest_reference"] == {"psnr": None, "ssim": None}
     assert grid.is_file()
     printed = capsys.readouterr().out
@@ -362,6 +414,8 @@ def test_exported_runtime_gives_the_torch_numbers(tmp_path, request):
         assert a["model"]["ssim"] == pytest.approx(b["model"]["ssim"], abs=1e-3)
         for k in RPA_KEYS:      # float32 graphs vs torch: at most one pair of 28 may cross a threshold
             assert a["model"][k] == pytest.approx(b["model"][k], abs=1 / 28 / 2 + 1e-9)
+        for k in LOCATE_KEYS:   # ... of the 18 pairs with a target
+            assert a["model"][k] == pytest.approx(b["model"][k], abs=1 / 18 / 2 + 1e-9)
 
 
 def test_cli_reports_bad_inputs_in_one_line(tmp_path, capsys):
