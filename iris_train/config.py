@@ -28,6 +28,12 @@ class ModelConfig:
     field_heads: int = 4
     pos_freqs: int = 6                # sinusoidal frequencies for sample positions
     dir_freqs: int = 4                # ... and for ray directions
+    # Explicit colour (issue 10): the field also gets the reference RGB sampled at full resolution
+    # where each sample projects, and the ray's colour is a learned blend of it over samples (a
+    # per-sample logit) plus a bounded learned residual; the blend weights give the soft depth.
+    # False: the paper's renderer (colour from the rgb head alone, depth from the last ray
+    # attention), which is what checkpoints without this field hold.
+    explicit_rgb: bool = False
     # Ray sampling (DESIGN.md: camera depths in [0.1, 1.0], 64 samples).
     near: float = 0.1
     far: float = 1.0
@@ -72,6 +78,8 @@ class ModelConfig:
 PRESETS: dict[str, ModelConfig] = {
     # Trainable on 2 CPU cores.
     "tiny": ModelConfig(),
+    # The tiny preset with explicit colour: the default for new runs (docs/TRAINING.md).
+    "tiny-rgb": ModelConfig(explicit_rgb=True),
     # Muskie-base-like widths at 256x256, patch 16 (needs a GPU to train).
     "paper": ModelConfig(image_height=256, image_width=256, patch_size=16, encoder_width=768,
                          encoder_pairs=6, encoder_heads=12, field_width=256, view_blocks=1,

@@ -80,6 +80,9 @@ class LatentField(nn.Module):
         self.feature_norm = nn.LayerNorm(cfg.encoder_width)
         self.proj = nn.Linear(cfg.encoder_width, cfg.field_width)          # φ_proj
         self.view_transformer = ViewTransformer(cfg)
+        # Explicit colour: the sampled reference RGB enters every field-map channel additively
+        # (u and each block's keys/values), so it is one affine map per sample and view.
+        self.rgb_to_maps = nn.Linear(3, cfg.field_channels) if cfg.explicit_rgb else None
 
     def prepare(self, features: torch.Tensor) -> torch.Tensor:
         """Per-scene, per-pixel work: ``features [V, D, h, w]`` -> field maps ``[V, C', h, w]``.
@@ -90,11 +93,15 @@ class LatentField(nn.Module):
         maps = [u] + [block.to_kv(u) for block in self.view_transformer.blocks]
         return torch.cat(maps, dim=-1).permute(0, 3, 1, 2).contiguous()
 
-    def forward(self, sampled: torch.Tensor, cues: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    def forward(self, sampled: torch.Tensor, cues: torch.Tensor, mask: torch.Tensor,
+                colours: torch.Tensor | None = None) -> torch.Tensor:
         """Point-wise latent features ``f~ [N, W]`` from ``sampled [N, V, C']`` field-map values,
-        ``cues [N, V, 4]`` and validity ``mask [N, V]`` (bool). Points valid in no view get the
-        view transformer's response to a zero token with no attention (finite, and masked out of
-        the ray transformer anyway)."""
+        ``cues [N, V, 4]``, validity ``mask [N, V]`` (bool) and, with ``explicit_rgb``, the
+        reference ``colours [N, V, 3]`` in [0, 1] sampled at full resolution. Points valid in no
+        view get the view transformer's response to a zero token with no attention (finite, and
+        masked out of the ray transformer anyway)."""
+        if self.rgb_to_maps is not None:
+            sampled = sampled + self.rgb_to_maps(colours - 0.5)
         u = sampled[..., :self.width]
         q0 = masked_max(u, mask[..., None], dim=1)                                # [N, W]
         return self.view_transformer(q0, sampled[..., self.width:], cues, mask)

@@ -21,6 +21,9 @@ import torch.nn.functional as F
 from .config import ModelConfig
 from .layers import MASK_FILL, MLP, masked_softmax, sinusoidal_encoding
 
+#: The blend is clamped to [BLEND_EPS, 1 - BLEND_EPS] before its logit: finite at black and white.
+BLEND_EPS = 1e-4
+
 
 class RayBlock(nn.Module):
     """Pre-norm masked self-attention over the samples of a ray, then an MLP."""
@@ -90,17 +93,37 @@ class RayRenderer(nn.Module):
         self.ray_transformer = RayTransformer(cfg)
         self.norm = nn.LayerNorm(cfg.field_width)
         self.rgb_head = MLP(cfg.field_width, cfg.field_width, 3)
+        self.explicit_rgb = cfg.explicit_rgb
+        if cfg.explicit_rgb:
+            # Per-sample logit of the colour blend (and of the soft depth); the residual head
+            # starts at zero, so a new model renders the blend itself.
+            self.sample_logit = nn.Linear(cfg.field_width, 1)
+            nn.init.zeros_(self.rgb_head[-1].weight)
+            nn.init.zeros_(self.rgb_head[-1].bias)
 
     def forward(self, f: torch.Tensor, positions: torch.Tensor, directions: torch.Tensor,
-                sample_mask: torch.Tensor, need_weights: bool = True):
+                sample_mask: torch.Tensor, need_weights: bool = True,
+                colours: torch.Tensor | None = None):
         """-> ``rgb [R, 3]`` in (0, 1), per-sample ``weights [R, S]`` (sum 1, or 0 for empty rays).
 
-        ``need_weights=False`` (training) skips the explicit attention matrix; weights are None.
+        With ``explicit_rgb``, ``colours [R, S, 3]`` is the mean reference colour of each sample
+        over the views that see it; ``rgb = sigmoid(logit(blend) + head(h))`` with
+        ``blend = sum_s w_s colours_s`` and ``w = masked softmax of the per-sample logits``, and
+        ``weights`` is ``w`` (always returned: it costs nothing). Otherwise ``need_weights=False``
+        (training) skips the explicit attention matrix and weights are None.
         """
+        if self.explicit_rgb:
+            need_weights = False                        # the depth weights are the blend's
         f, attn = self.ray_transformer(f, positions, directions, sample_mask, need_weights)
         m = sample_mask.to(f.dtype)                                                  # [R, S]
         n_valid = m.sum(-1, keepdim=True)                                            # [R, 1]
-        h = (self.norm(f) * m[..., None]).sum(1) / n_valid.clamp_min(1.0)            # [R, W]
+        normed = self.norm(f)
+        h = (normed * m[..., None]).sum(1) / n_valid.clamp_min(1.0)                  # [R, W]
+        if self.explicit_rgb:
+            w = masked_softmax(self.sample_logit(normed)[..., 0], sample_mask)        # [R, S]
+            blend = (w[..., None] * colours).sum(1).clamp(BLEND_EPS, 1 - BLEND_EPS)  # [R, 3]
+            rgb = torch.sigmoid(torch.log(blend) - torch.log1p(-blend) + self.rgb_head(h))
+            return rgb, w
         rgb = torch.sigmoid(self.rgb_head(h))
         if attn is None:
             return rgb, None

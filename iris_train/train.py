@@ -112,7 +112,8 @@ class PhotometricLoss(nn.Module):
             terms.setdefault(name, []).append(value)
 
         for b in range(B):
-            scene = Scene(model.field.prepare(features[b, ref[b]]), world_from_cam[b, ref[b]], focal[b], (H, W))
+            scene = Scene(model.field.prepare(features[b, ref[b]]), world_from_cam[b, ref[b]], focal[b], (H, W),
+                          images[b, ref[b]] if model.cfg.explicit_rgb else None)
             K = scene.intrinsics()
             idx = pixels[b]                                                         # [T, n]
             origins, directions = G.rays_from_pixels(uv_all[idx], K, world_from_cam[b, tgt[b]])
@@ -123,11 +124,15 @@ class PhotometricLoss(nn.Module):
                 return torch.gather(rgb, 1, idx[..., None].expand(-1, -1, 3)).reshape(-1, 3)
 
             gt = gt_of(images)
-            f, points, mask = model.field_at(scene, origins, directions, depths[b])
-            rgb, _ = model.renderer(f, points, directions, mask.any(-1), need_weights=False)
+            f, points, mask, colours = model.field_at(scene, origins, directions, depths[b])
+            rgb, blend_weights = model.renderer(f, points, directions, mask.any(-1), need_weights=False,
+                                                colours=colours)
             add("render", ((rgb - gt) ** 2).mean())
             if cfg.aux_weight or cfg.aux_blur_weight:
-                logits = self.sample_logit(f)[..., 0]                               # [R, S]
+                # The explicit-colour model's own blend weights (without its residual head), or,
+                # for the paper's renderer, a training-only logit head on the point features.
+                logits = (torch.log(blend_weights.clamp_min(1e-30)) if model.cfg.explicit_rgb
+                          else self.sample_logit(f)[..., 0])                        # [R, S]
                 levels = [(images, gt, cfg.aux_weight)]
                 if blurred is not None:
                     levels.append((blurred, gt_of(blurred), cfg.aux_blur_weight))

@@ -1,0 +1,70 @@
+"""The explicit-colour renderer (``ModelConfig.explicit_rgb``): the colour is a learned blend of
+reference RGB sampled at the ray samples plus a bounded residual, and the blend weights are the
+soft-depth weights."""
+from __future__ import annotations
+
+import pytest
+
+torch = pytest.importorskip("torch")
+pytestmark = pytest.mark.torch
+
+from iris_train import build_model, preset  # noqa: E402
+from iris_train import geometry as G  # noqa: E402
+from iris_train.ray_renderer import BLEND_EPS  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def model():
+    torch.manual_seed(0)
+    return build_model(preset("tiny-rgb")).double().eval()
+
+
+def _rays(scene, n=64):
+    H, W = scene.image_size
+    uv = G.pixel_centres(H, W, dtype=torch.float64)[torch.arange(0, H * W, H * W // n)]
+    pose = torch.eye(4, dtype=torch.float64)
+    pose[:3, 3] = torch.tensor([0.05, -0.02, 0.01])
+    o, d = G.rays_from_pixels(uv, scene.intrinsics(), pose)
+    return o, d, G.sample_depths(0.1, 1.0, 64, o.shape[0], dtype=torch.float64)
+
+
+def test_new_model_renders_its_blend_and_weights_are_a_distribution(model):
+    torch.manual_seed(1)
+    images = torch.rand(3, 3, 64, 64, dtype=torch.float64)
+    scene = model.encode(images)
+    o, d, z = _rays(scene)
+    with torch.no_grad():
+        f, points, mask, colours = model.field_at(scene, o, d, z)
+        rgb, w = model.renderer(f, points, d, mask.any(-1), colours=colours)
+    blend = (w[..., None] * colours).sum(1).clamp(BLEND_EPS, 1 - BLEND_EPS)
+    torch.testing.assert_close(rgb, blend, rtol=0, atol=1e-12)        # residual head starts at 0
+    seen = mask.any(-1).any(-1)
+    torch.testing.assert_close(w.sum(-1)[seen], torch.ones(int(seen.sum()), dtype=torch.float64))
+    assert bool((w[~mask.any(-1)] == 0).all())                          # unseen samples: no weight
+    # colours are the mean over the views that see the sample of bilinear full-resolution RGB
+    uv, _, valid = G.project_points(points, scene.intrinsics(), G.invert_pose(scene.world_from_cam), 64, 64)
+    ref = G.sample_bilinear(images, G.pixels_to_grid(uv, 64, 64))
+    m = valid.double()[..., None]
+    torch.testing.assert_close(colours, (ref * m).sum(0) / m.sum(0).clamp_min(1), rtol=0, atol=1e-12)
+
+
+def test_render_follows_the_reference_pixels(model):
+    """Changing a reference photo changes the render (through the sampled RGB, not only through
+    the patch features) and a uniform grey scene renders grey."""
+    grey = torch.full((3, 3, 64, 64), 0.3, dtype=torch.float64)
+    scene = model.encode(grey)
+    rgb, _ = model.render(scene, scene.world_from_cam[:1])
+    torch.testing.assert_close(rgb, torch.full_like(rgb, 0.3), rtol=0, atol=1e-9)
+
+
+def test_scene_without_images_is_a_typed_error(model):
+    import dataclasses
+    scene = dataclasses.replace(model.encode(torch.rand(2, 3, 64, 64, dtype=torch.float64)), images=None)
+    with pytest.raises(ValueError, match="scene.images"):
+        model.render(scene, torch.eye(4, dtype=torch.float64)[None])
+
+
+def test_subset_keeps_the_matching_photos(model):
+    images = torch.rand(4, 3, 64, 64, dtype=torch.float64)
+    sub = model.encode(images).subset([0, 2])
+    torch.testing.assert_close(sub.images, images[[0, 2]])
