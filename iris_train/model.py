@@ -55,12 +55,14 @@ class Scene:
 
     ``maps [V, C', h, w]`` are the per-scene field maps (LatentField.prepare of the features),
     ``world_from_cam [V, 4, 4]`` the predicted poses (view 0 = I), ``focal [2]`` (fx/W, fy/H) and
-    ``image_size`` (H, W) the model's resolution.
+    ``image_size`` (H, W) the model's resolution; ``images [V, 3, H, W]`` in [0, 1] the reference
+    photos (needed by models with ``explicit_rgb``, None otherwise).
     """
     maps: torch.Tensor
     world_from_cam: torch.Tensor
     focal: torch.Tensor
     image_size: tuple[int, int]
+    images: torch.Tensor | None = None
 
     @property
     def num_views(self) -> int:
@@ -73,7 +75,8 @@ class Scene:
     def subset(self, indices) -> "Scene":
         """Keep only these views as references, in the same camera frame."""
         idx = torch.as_tensor(list(indices), dtype=torch.long)
-        return dataclasses.replace(self, maps=self.maps[idx], world_from_cam=self.world_from_cam[idx])
+        return dataclasses.replace(self, maps=self.maps[idx], world_from_cam=self.world_from_cam[idx],
+                                   images=None if self.images is None else self.images[idx])
 
 
 class IrisModel(nn.Module):
@@ -110,7 +113,7 @@ class IrisModel(nn.Module):
         self._check_images(images, "images")
         features, world_from_cam, focal = self.encode_batch(images[None])
         return Scene(self.field.prepare(features[0]), world_from_cam[0], focal[0],
-                     (cfg.image_height, cfg.image_width))
+                     (cfg.image_height, cfg.image_width), images if cfg.explicit_rgb else None)
 
     def locate(self, references: torch.Tensor, queries: torch.Tensor) -> torch.Tensor:
         """Poses of ``queries [Q, 3, H, W]`` in the frame of ``references [V, 3, H, W]`` (both in
@@ -130,6 +133,15 @@ class IrisModel(nn.Module):
                     depths: torch.Tensor, need_weights: bool = True):
         """Render rays ``origins, directions [R, 3]`` with sample depths ``[R, S]`` from the
         scene's reference views -> ``rgb [R, 3]``, ``weights [R, S]`` (None unless need_weights)."""
+        f, points, mask, colours = self.field_at(scene, origins, directions, depths)
+        return self.renderer(f, points, directions, mask.any(-1), need_weights, colours)
+
+    def field_at(self, scene: Scene, origins: torch.Tensor, directions: torch.Tensor,
+                 depths: torch.Tensor):
+        """The latent field at the ray samples (Algorithm 1): ``origins, directions [R, 3]``,
+        ``depths [R, S]`` -> point features ``f [R, S, W]``, ``points [R, S, 3]``, validity
+        ``mask [R, S, V]`` (sample seen by reference view k) and, with ``explicit_rgb``, each
+        sample's mean reference colour over the views that see it ``[R, S, 3]`` (else None)."""
         H, W = scene.image_size
         R, S = depths.shape
         V = scene.num_views
@@ -143,9 +155,17 @@ class IrisModel(nn.Module):
         sampled = sample(scene.maps, grid)                                              # [V, R, S, C']
         cues = G.geometric_cue(points, origins[:, None, :], scene.world_from_cam[:, :3, 3])
         mask = valid.permute(1, 2, 0)                                                   # [R, S, V]
+        colours = mean_colour = None
+        if self.cfg.explicit_rgb:
+            if scene.images is None:
+                raise ValueError("scene.images: this model (explicit_rgb) needs the reference photos")
+            colours = G.sample_bilinear(scene.images, grid)                             # [V, R, S, 3]
+            m = valid.to(colours.dtype)[..., None]
+            mean_colour = (colours * m).sum(0) / m.sum(0).clamp_min(1.0)                # [R, S, 3]
+            colours = colours.permute(1, 2, 0, 3).reshape(R * S, V, 3)
         f = self.field(sampled.permute(1, 2, 0, 3).reshape(R * S, V, -1),
-                       cues.reshape(R * S, V, 4), mask.reshape(R * S, V))
-        return self.renderer(f.reshape(R, S, -1), points, directions, mask.any(-1), need_weights)
+                       cues.reshape(R * S, V, 4), mask.reshape(R * S, V), colours)
+        return f.reshape(R, S, -1), points, mask, mean_colour
 
     @torch.no_grad()
     def render(self, scene: Scene, world_from_cam: torch.Tensor, height: int | None = None,
