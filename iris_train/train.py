@@ -57,6 +57,7 @@ class TrainConfig:
     teacher_weight: float = 1.0       # epipolar pseudo-pose rotation loss (iris_train.pseudo_poses)
     teacher_translation_weight: float = 0.5   # ... translation direction
     teacher_focal_weight: float = 0.1         # ... log focal
+    teacher_scenes: int = 0           # extra scenes per step encoded (all views) for the teacher only
     lr: float = 1e-3                  # renderer (latent field + ray renderer)
     encoder_lr_scale: float = 0.1     # encoder and camera head (paper: 0.1x)
     weight_decay: float = 0.05
@@ -92,10 +93,13 @@ class PhotometricLoss(nn.Module):
         self.sample_logit = nn.Linear(model.cfg.field_width, 1)
 
     def forward(self, images: torch.Tensor, ref: list[torch.Tensor], tgt: list[torch.Tensor],
-                pixels: list[torch.Tensor], depths: list[torch.Tensor], teacher: list | None = None):
+                pixels: list[torch.Tensor], depths: list[torch.Tensor], teacher: list | None = None,
+                pose_batch: tuple | None = None):
         """``images [B, V, 3, H, W]``; per scene b: reference/target view indices, target pixel
         indices ``[T, n]`` into H*W, stratified sample depths ``[T*n, S]``, and the teacher's
-        ``(cam_from_cam [V, V, 4, 4], trusted [V, V], focal)`` in the drawn view order (or None)."""
+        ``(cam_from_cam [V, V, 4, 4], trusted [V, V], focal)`` in the drawn view order (or None);
+        ``pose_batch``: ``(images [P, V, 3, H, W], is_reference [P, V], teachers)`` of extra scenes
+        that only the teacher losses see (``TrainConfig.teacher_scenes``)."""
         model, cfg = self.model, self.cfg
         B, V = images.shape[:2]
         H, W = images.shape[-2:]
@@ -148,6 +152,15 @@ class PhotometricLoss(nn.Module):
                 add("sweep", ((sweep - gt) ** 2).mean())
             if teacher is not None and teacher[b] is not None:
                 for name, value in teacher_losses(world_from_cam[b], focal[b], *teacher[b]).items():
+                    add(name, value)
+        if pose_batch is not None:
+            # Extra scenes for the camera head only: the encoder is cheap next to the renderer,
+            # so the teacher's pairs per step multiply at a small cost.
+            pose_images, pose_ref, pose_teacher = pose_batch
+            _, pose_world, pose_focal = model.encode_batch(pose_images, pose_ref)
+            for b, (cam_from_cam, trusted, focal_t) in enumerate(pose_teacher):
+                for name, value in teacher_losses(pose_world[b], pose_focal[b], cam_from_cam, trusted,
+                                                  focal_t).items():
                     add(name, value)
         weights = {"render": 1.0, "warp": cfg.aux_weight, "warp_blur": cfg.aux_blur_weight,
                    "sweep": cfg.plane_sweep_weight, "teacher_rot": cfg.teacher_weight,
@@ -227,7 +240,23 @@ def draw_batch(scenes, cfg: TrainConfig, mcfg: ModelConfig, rng: np.random.Gener
         depths.append(torch.as_tensor(sample_depths(mcfg.near, mcfg.far, S, n_tgt * n,
                                                     stratified=True, rng=rng, dtype=np.float32)))
     batch = torch.as_tensor(np.stack(images)).permute(0, 1, 4, 2, 3).float() / 255.0
-    return batch, ref, tgt, pixels, depths, (teacher if teachers is not None else None)
+    pose_batch = None
+    if teachers is not None and cfg.teacher_scenes:
+        pose_images, pose_teacher = [], []
+        for _ in range(cfg.teacher_scenes):
+            index = int(rng.integers(len(scenes)))
+            order = rng.permutation(scenes[index].images.shape[0])
+            pose_images.append(scenes[index].images[order])
+            pp = teachers(index)
+            sel = np.ix_(order, order)
+            pose_teacher.append((torch.as_tensor(pp.cam_from_cam[sel], dtype=torch.float32),
+                                 torch.as_tensor(pp.trusted[sel]), pp.focal))
+        V = pose_images[0].shape[0]
+        pose_ref = torch.ones(cfg.teacher_scenes, V, dtype=torch.bool)
+        pose_ref[:, V - n_tgt:] = False          # the last n_tgt views are queries, as in rendering
+        pose_batch = (torch.as_tensor(np.stack(pose_images)).permute(0, 1, 4, 2, 3).float() / 255.0,
+                      pose_ref, pose_teacher)
+    return batch, ref, tgt, pixels, depths, (teacher if teachers is not None else None), pose_batch
 
 
 def _teacher_lookup(scenes):

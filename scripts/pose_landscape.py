@@ -173,7 +173,8 @@ class SceneProbe:
         cfg = self.model.cfg
         K, origins, directions, gt = self._rays(target_poses, focal)
         ref = torch.as_tensor(ref_poses, dtype=torch.float32)
-        scene = Scene(self.maps, ref, torch.as_tensor(focal, dtype=torch.float32), (self.H, self.W))
+        scene = Scene(self.maps, ref, torch.as_tensor(focal, dtype=torch.float32), (self.H, self.W),
+                      self.ref_images if cfg.explicit_rgb else None)
         R = origins.shape[0]
         learned = torch.empty(R, 3)
         sweep = torch.empty(R, 3) if plane_sweep is not None else None

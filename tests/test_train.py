@@ -46,7 +46,7 @@ def test_lr_schedule_warms_up_then_decays():
 
 def test_draw_batch_splits_views_into_disjoint_reference_and_target_sets():
     cfg = TrainConfig(**SMALL)
-    images, ref, tgt, pixels, depths, teacher = draw_batch(fake_scenes(), cfg, preset("tiny"),
+    images, ref, tgt, pixels, depths, teacher, pose_batch = draw_batch(fake_scenes(), cfg, preset("tiny"),
                                                   np.random.default_rng(0))
     assert images.dtype == torch.float32 and 0 <= float(images.min()) and float(images.max()) <= 1
     for r, t, p, d in zip(ref, tgt, pixels, depths):
