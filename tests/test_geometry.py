@@ -360,6 +360,46 @@ def test_bilinear_matches_scipy(chw):
     np.testing.assert_allclose(NG.sample_bilinear(fmap, grid), ref, atol=1e-6, rtol=0)
 
 
+@pytest.mark.parametrize("chw", [(3, 64, 64), (3, 6, 9), (1, 1, 5)])
+def test_bilinear_views_matches_scipy_grid_sample_and_the_single_view_sampler(chw):
+    """``sample_bilinear_views`` (the runtime's sampler of the reference photos' RGB for
+    explicit-colour models, full 64x64 resolution included): each view equals ``sample_bilinear``
+    of that view bitwise, SciPy ``map_coordinates`` (order 1, nearest = border clamp) within
+    1e-6, torch ``grid_sample(align_corners=False, padding_mode="border")`` on the [V, C, h, w]
+    stack within 1e-6 (float64) and 1e-6 in float32 as the runtime runs it."""
+    rng = np.random.default_rng(sum(chw) + 7)
+    C, h, w = chw
+    V = 3
+    maps = rng.random((V,) + chw)
+    base = border_grid(h, w)
+    grid = np.stack([np.roll(base, 37 * k, axis=0) for k in range(V)]).reshape(V, 4, -1, 2)
+    ours = NG.sample_bilinear_views(maps, grid)
+    assert ours.shape == (V, 4, grid.shape[2], C) and ours.dtype == np.float64
+    for k in range(V):
+        np.testing.assert_array_equal(ours[k], NG.sample_bilinear(maps[k], grid[k]))
+        x_cell = ((grid[k, ..., 0] + 1.0) * w - 1.0) / 2.0
+        y_cell = ((grid[k, ..., 1] + 1.0) * h - 1.0) / 2.0
+        ref = np.stack([ndimage.map_coordinates(maps[k, c], [y_cell, x_cell], order=1,
+                                                mode="nearest") for c in range(C)], axis=-1)
+        np.testing.assert_allclose(ours[k], ref, atol=1e-6, rtol=0)
+    maps32, grid32 = maps.astype(np.float32), grid.astype(np.float32)
+    ours32 = NG.sample_bilinear_views(maps32, grid32)
+    assert ours32.dtype == np.float32
+    if torch is not None:
+        # float32 against the same float32 inputs (a float32 grid moves a 64-pixel-wide sample
+        # by up to 2e-6 px-values from the float64 one: the inputs' rounding, not the sampler's)
+        for (m, g), got in (((maps, grid), ours), ((maps32, grid32), ours32)):
+            ref = F.grid_sample(torch.from_numpy(m), torch.from_numpy(g), mode="bilinear",
+                                padding_mode="border", align_corners=False)       # [V, C, 4, N]
+            np.testing.assert_allclose(got, ref.permute(0, 2, 3, 1).double().numpy(),
+                                       atol=1e-6, rtol=0)
+            np.testing.assert_allclose(got, n(TG.sample_bilinear(torch.from_numpy(m),
+                                                                 torch.from_numpy(g))),
+                                       atol=1e-6, rtol=0)
+    with pytest.raises(ValueError, match="grid"):
+        NG.sample_bilinear_views(maps, grid[:2])
+
+
 def test_bilinear_hits_cell_values_at_cell_centres():
     fmap = np.arange(2 * 3 * 4, dtype=np.float64).reshape(2, 3, 4)
     i, j = np.meshgrid(np.arange(3), np.arange(4), indexing="ij")
