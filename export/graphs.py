@@ -15,7 +15,9 @@ itself carries no ONNX special case. Given the same numbers, they compute exactl
   must be a reference (the runtime never feeds anything else; the graph does not check it).
 * ``RendererGraph(field_maps [V', C', h, w], grid [V', R, S, 2], cues [V', R, S, 4],
   mask bool [V', R, S], positions [R, S, 3], directions [R, 3])`` -> ``rgb [R, 3]``,
-  ``weights [R, S]``. Feature sampling happens in the graph with the semantics of
+  ``weights [R, S]``; an explicit-colour model (``ModelConfig.explicit_rgb``) also takes
+  ``colours [V', R, S, 3]`` after ``directions`` (the reference RGB sampled by the caller at the
+  samples' projections, see ``RendererGraph``). Feature sampling happens in the graph with the semantics of
   ``grid_sample(align_corners=False, padding_mode="border")`` (``iris_train.geometry.sample_bilinear``);
   projection, grid coordinates, cues and masks come from the caller (``iris_runtime.geometry``).
 
@@ -149,7 +151,12 @@ class RendererGraph(nn.Module):
 
     Inputs are view-major (see ``export.io_spec.RENDERER``); ``mask`` is True where the sample
     projects validly into the view. Same computation as ``IrisModel.render_rays`` after its
-    projection step, with ``need_weights=True``.
+    projection step, with ``need_weights=True``. An explicit-colour model
+    (``ModelConfig.explicit_rgb``) also takes ``colours [V', R, S, 3]`` (last; the reference RGB
+    at each sample's projection, ``io_spec.EXPLICIT_RGB_INPUTS``): the field adds
+    ``rgb_to_maps(colours - 0.5)`` to the sampled maps and the renderer blends each sample's mean
+    colour over its valid views, exactly as ``IrisModel.field_at``/``render_rays``; other models
+    have no such input.
 
     ``sampler``: ``"grid_sample"`` (ONNX ``GridSample``), ``"dense"`` (``sample_dense``) or
     ``"auto"`` (dense for grids up to ``DENSE_SAMPLING_MAX_CELLS`` cells, as ``render_rays`` does).
@@ -166,20 +173,31 @@ class RendererGraph(nn.Module):
         self.sampler = sampler
 
     def forward(self, field_maps: torch.Tensor, grid: torch.Tensor, cues: torch.Tensor,
-                mask: torch.Tensor, positions: torch.Tensor, directions: torch.Tensor):
+                mask: torch.Tensor, positions: torch.Tensor, directions: torch.Tensor,
+                colours: torch.Tensor | None = None):
         V, R, S = mask.shape
         C = field_maps.shape[1]
+        if self.model.cfg.explicit_rgb and colours is None:
+            raise ExportArgumentError("colours: this model (explicit_rgb) renders from the "
+                                      "reference RGB sampled at the samples, [V', R, S, 3]")
         if self.sampler == "dense":
             sampled = sample_dense(field_maps, grid.reshape(V, R * S, 2)).transpose(0, 1)
         else:
             sampled = F.grid_sample(field_maps, grid.reshape(V, 1, R * S, 2), mode="bilinear",
                                     padding_mode="border", align_corners=False)  # [V, C', 1, R*S]
             sampled = sampled.reshape(V, C, R * S).permute(2, 0, 1)
+        point_colours = mean_colour = None
+        if self.model.cfg.explicit_rgb:
+            # IrisModel.field_at: every view's colour enters the field; the renderer blends each
+            # sample's mean colour over the views that see it.
+            m = mask.to(colours.dtype)[..., None]                                 # [V, R, S, 1]
+            mean_colour = (colours * m).sum(0) / m.sum(0).clamp_min(1.0)           # [R, S, 3]
+            point_colours = colours.permute(1, 2, 0, 3).reshape(R * S, V, 3)
         # sampled: the field's point-major layout [R*S, V', C'].
         f = self.model.field(sampled, cues.permute(1, 2, 0, 3).reshape(R * S, V, 4),
-                             mask.permute(1, 2, 0).reshape(R * S, V))            # [R*S, W]
+                             mask.permute(1, 2, 0).reshape(R * S, V), point_colours)  # [R*S, W]
         return self.model.renderer(f.reshape(R, S, -1), positions, directions, mask.any(0),
-                                   need_weights=True)
+                                   need_weights=True, colours=mean_colour)
 
 
 WRAPPERS = {"encoder": EncoderGraph, "renderer": RendererGraph}
@@ -203,9 +221,12 @@ def example_inputs(cfg: ModelConfig, graph: str, generator: torch.Generator | No
     if graph == "encoder":      # two references and a query: the mask's both kinds of rows
         return (torch.rand(V, 3, H, W, generator=g), torch.arange(V) < V - 1)
     mask = torch.rand(V, R, S, generator=g) > 0.3
-    return (torch.randn(V, C, h, w, generator=g), torch.rand(V, R, S, 2, generator=g) * 2 - 1,
+    args = (torch.randn(V, C, h, w, generator=g), torch.rand(V, R, S, 2, generator=g) * 2 - 1,
             torch.randn(V, R, S, 4, generator=g), mask, torch.randn(R, S, 3, generator=g),
             torch.randn(R, 3, generator=g))
+    if cfg.explicit_rgb:
+        args += (torch.rand(V, R, S, 3, generator=g),)
+    return args
 
 
 @dataclass
@@ -281,7 +302,7 @@ def _check_self_contained(proto: onnx.ModelProto, name: str) -> None:
 
 def export_graph(model: IrisModel, graph: str, path: str | Path, opset: int = DEFAULT_OPSET) -> GraphFile:
     """Export ``graph`` ("encoder" or "renderer") of ``model`` to one self-contained file ``path``."""
-    spec = io_spec.GRAPHS[graph]
+    spec = io_spec.spec_for(graph, model.cfg.explicit_rgb)
     check_opset(opset)
     wrapper = WRAPPERS[graph](model).eval()
     args = example_inputs(model.cfg, graph)

@@ -11,7 +11,9 @@ runtime's numpy projection produces it.
 from __future__ import annotations
 
 #: 2: the encoder takes ``is_reference`` (isolated references, queries located in their frame).
-IO_SPEC_VERSION = 2
+#: 3: the renderer of an explicit-colour model (``ModelConfig.explicit_rgb``) also takes
+#: ``colours`` (``EXPLICIT_RGB_INPUTS``); for every other model the two graphs are those of 2.
+IO_SPEC_VERSION = 3
 
 #: ONNX opset of the graphs unless ``--opset`` says otherwise: 20 has ``Gelu`` and the current
 #: ``GridSample``; onnxruntime >= 1.17 runs it.
@@ -67,4 +69,37 @@ RENDERER = {
     "tolerance": {"rgb": 1e-4, "weights": 1e-4},
 }
 
+#: The renderer's extra input for explicit-colour models (``ModelConfig.explicit_rgb``), listed
+#: in their spec only (``spec_for``): the reference photos' RGB in [0, 1] at each sample's
+#: projection into each view, bilinear on the full-resolution image with the same normalised
+#: ``grid`` as the field maps (align_corners=False, border-clamped), sampled by the caller in
+#: numpy (``iris_runtime.geometry.sample_bilinear_views``). Masked (view, sample) entries are
+#: ignored by the graph (any finite value). The graph adds ``rgb_to_maps(colours - 0.5)`` to the
+#: sampled field maps, takes each sample's mean colour over its valid views and blends it along
+#: the ray; ``weights`` are then the blend weights.
+#:
+#: Sampled in numpy, not in the graph, by measurement (V'=5, R=102, S=64, 64x64 images, 1 thread,
+#: busy machine): numpy ``sample_bilinear`` per view 1.8 ms per renderer call, ONNX ``GridSample``
+#: on the 3-channel images 1.5 ms, both ~3 % of the call's 59 ms; the dense tent matmul that
+#: samples the 8x8 field maps would need a [V', R*S, H*W] weight matrix (535 MB here). Numpy keeps
+#: the graph's inputs per sample (none depends on the image size) and reuses the runtime's tested
+#: sampler.
+EXPLICIT_RGB_INPUTS = {
+    "colours": {"dtype": "float32", "shape": ["V", "R", "S", 3]},
+}
+EXPLICIT_RGB_AXES = {"colours": {0: "V", 1: "R", 2: "S"}}
+
 GRAPHS = {"encoder": ENCODER, "renderer": RENDERER}
+
+
+def spec_for(graph: str, explicit_rgb: bool = False) -> dict:
+    """The I/O spec of ``graph`` for a model with or without explicit colour.
+
+    Without it: ``GRAPHS[graph]`` itself. With it, the renderer's spec gains ``colours`` as its
+    last input; the other entries (``tolerance`` included) are the same objects as ``RENDERER``'s,
+    so a change to ``RENDERER["tolerance"]`` applies to both."""
+    spec = GRAPHS[graph]
+    if graph != "renderer" or not explicit_rgb:
+        return spec
+    return {**spec, "inputs": {**spec["inputs"], **EXPLICIT_RGB_INPUTS},
+            "dynamic_axes": {**spec["dynamic_axes"], **EXPLICIT_RGB_AXES}}

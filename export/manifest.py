@@ -7,7 +7,7 @@ per graph its file name, sha256, size and I/O spec (from ``export.io_spec``), an
 report (max abs error of ONNX Runtime vs torch per output, tolerances, median times). Layout::
 
     {
-      "format": "iris-model", "version": 2, "io_spec_version": 2,
+      "format": "iris-model", "version": 2, "io_spec_version": 3,
       "created": "2025-01-01T00:00:00Z",
       "config": {...ModelConfig.to_dict()...},
       "image_size": [H, W], "patch_size": p, "feature_grid": [h, w], "field_channels": C',
@@ -32,6 +32,13 @@ queries located in their frame) and the encoder validation covers probes with qu
 isolation check; 1 = the encoder took ``images`` only and every view saw every other. The runtime
 refuses version 1 with a ``ModelFormatError`` that says to re-export with iris-export (the
 checkpoint's weights are unchanged; only the graph's contract is new).
+
+Explicit colour. Whether the model is an explicit-colour model is ``config.explicit_rgb`` (the
+one place it is recorded; absent in configs written before it = False). For such a model the
+renderer's ``inputs`` (here and in the graph) end with ``colours`` [V', R, S, 3]
+(``io_spec.EXPLICIT_RGB_INPUTS``); for every other model the renderer is the one of I/O spec 2.
+``io_spec_version`` 3 says so; the layout of this file is unchanged (still version 2), and the
+runtime reads I/O spec 2 manifests of models without explicit colour as before.
 
 JSON turns the integer axis keys of ``dynamic_axes`` into strings ("0"); non-finite numbers in the
 validation report (an int8 error can be ``inf`` if it produced NaN) are written as strings.

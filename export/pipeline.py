@@ -130,7 +130,8 @@ def export_model(model_or_ckpt: IrisModel | str | os.PathLike, out_dir: str | os
             extra = {"variant_of": base, "precision": "int8",
                      "quantization": "onnxruntime.quantization.quantize_dynamic(weight_type=QInt8)"} \
                 if name != base else {"precision": "float32"}
-            graphs[name] = graph_entry(path, io_spec.GRAPHS[base], entries[name].nodes, **extra)
+            graphs[name] = graph_entry(path, io_spec.spec_for(base, model.cfg.explicit_rgb),
+                                       entries[name].nodes, **extra)
             if name != base:          # measured and recorded, but not held to the fp32 tolerance
                 graphs[name]["tolerance"] = None
         unexpected = sorted({p.name for p in tmp.iterdir()} - {p.name for p in files.values()})

@@ -24,6 +24,10 @@
      built by the torch twin of the runtime's numpy geometry; the reference is
      ``IrisModel.render_rays`` itself, so these probes also check that the wrapper computes what
      the model computes.
+   * explicit-colour models (``ModelConfig.explicit_rgb``): the same probes with the renderer's
+     ``colours`` input: uniform random RGB in [0, 1] (for R > 2 the first ray black, the second
+     white: the blend's clamp at 0 and 1) on the random probes, the scene photos sampled at the
+     samples' projections (``IrisModel.field_at``'s rule) on the scene probes.
 
    Non-finite outputs and wrong shapes count as an infinite error.
 3b. encoder isolation inside ONNX Runtime: for each probe with queries, the references' outputs
@@ -101,9 +105,12 @@ def renderer_inputs(scene: Scene, origins: torch.Tensor, directions: torch.Tenso
     cam_from_world = G.invert_pose(scene.world_from_cam)
     uv, _, valid = G.project_points(points, scene.intrinsics(), cam_from_world, H, W)    # [V, R, S, .]
     cues = G.geometric_cue(points, origins[:, None, :], scene.world_from_cam[:, :3, 3])  # [R, S, V, 4]
-    return {"field_maps": scene.maps, "grid": G.pixels_to_grid(uv, H, W),
-            "cues": cues.permute(2, 0, 1, 3), "mask": valid, "positions": points,
-            "directions": directions}
+    grid = G.pixels_to_grid(uv, H, W)
+    inputs = {"field_maps": scene.maps, "grid": grid, "cues": cues.permute(2, 0, 1, 3),
+              "mask": valid, "positions": points, "directions": directions}
+    if scene.images is not None:       # explicit colour: the photos' RGB at the same grid
+        inputs["colours"] = G.sample_bilinear(scene.images, grid)                       # [V, R, S, 3]
+    return inputs
 
 
 def random_renderer_inputs(model: IrisModel, n_views: int, n_rays: int, n_samples: int,
@@ -118,7 +125,7 @@ def random_renderer_inputs(model: IrisModel, n_views: int, n_rays: int, n_sample
     mask[:, :, 0] = False                 # a point masked in every view, on every ray
     if R > 1:
         mask[:, -1] = False               # a ray with every sample masked
-    return {
+    inputs = {
         "field_maps": torch.randn(V, dims["C'"], dims["h"], dims["w"], generator=g),
         "grid": torch.rand(V, R, S, 2, generator=g) * 2.6 - 1.3,
         "cues": torch.cat([unit, torch.rand(V, R, S, 1, generator=g) * 2 - 1], dim=-1),
@@ -126,6 +133,12 @@ def random_renderer_inputs(model: IrisModel, n_views: int, n_rays: int, n_sample
         "positions": torch.randn(R, S, 3, generator=g) * 0.5,
         "directions": torch.randn(R, 3, generator=g),
     }
+    if model.cfg.explicit_rgb:            # reference RGB in [0, 1]; a black and a white ray
+        colours = torch.rand(V, R, S, 3, generator=g)
+        if R > 2:
+            colours[:, 0], colours[:, 1] = 0.0, 1.0
+        inputs["colours"] = colours
+    return inputs
 
 
 def _novel_pose(scene: Scene) -> torch.Tensor:
@@ -409,7 +422,7 @@ def _validate(model, files, *, quick, threads, progress) -> dict:
     probes: dict[str, list[Probe]] = {}
     for graph in files:
         base = "renderer" if graph.startswith("renderer") else "encoder"
-        spec = io_spec.GRAPHS[base]
+        spec = io_spec.spec_for(base, cfg.explicit_rgb)
         start = time.perf_counter()
         check_graph_file(files[graph], graph)
         sess = session(files[graph], graph, threads)

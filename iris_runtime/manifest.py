@@ -12,7 +12,12 @@ Checks, each failing with a typed ``ModelFileError`` that names the file and wha
   directory, or an I/O spec that lacks a name the runtime feeds or reads;
 - ``ModelFormatError``: format name other than ``"iris-model"`` or a version other than 2
   (version 1, written before the encoder isolated its references, says to re-export with
-  iris-export);
+  iris-export); an I/O spec version other than 3 and 2 (2, written before explicit-colour models
+  could be exported, has exactly 3's graphs for every other model and is read as such; a version 2
+  manifest of an explicit-colour model is refused);
+- explicit colour: ``config.explicit_rgb`` (a bool; absent = False) says whether the renderer
+  takes ``colours`` (``EXPLICIT_RGB_INPUTS``); a renderer spec that lists ``colours`` for a model
+  without it, or lacks it for a model with it, is a ``ManifestError``;
 - ``ModelIntegrityError``: a graph file whose sha256 differs from the manifest's (tampered,
   truncated or replaced); a missing graph file is a plain ``ModelFileError``;
 - external data: iris-export writes self-contained graphs. A graph whose tensors refer to ONNX
@@ -39,8 +44,12 @@ MANIFEST_NAME = "iris.json"
 FORMAT_NAME = "iris-model"
 #: 2: the encoder graph takes ``is_reference`` (isolated references; ``IrisRuntime.locate``).
 FORMAT_VERSION = 2
-#: Version of the graphs' I/O names and layouts (export/io_spec.py IO_SPEC_VERSION).
-IO_SPEC_VERSION = 2
+#: Version of the graphs' I/O names and layouts (export/io_spec.py IO_SPEC_VERSION). 3: the
+#: renderer of an explicit-colour model (``config.explicit_rgb``) also takes ``colours``.
+IO_SPEC_VERSION = 3
+#: Older I/O spec versions read as IO_SPEC_VERSION for models without explicit colour (their
+#: graphs are identical): 2 differs from 3 only by explicit colour, which it could not express.
+IO_SPEC_COMPATIBLE = (2,)
 
 #: The names the runtime feeds and reads, with their dtypes (export/io_spec.py is the source;
 #: the manifest carries it, and a model whose spec lacks one of these cannot be run).
@@ -55,6 +64,9 @@ REQUIRED_IO: dict[str, dict[str, dict[str, str]]] = {
         "outputs": {"rgb": "float32", "weights": "float32"},
     },
 }
+#: The renderer's extra input for explicit-colour models (export/io_spec.py EXPLICIT_RGB_INPUTS):
+#: float32 [V', R, S, 3], the reference RGB at each sample's projection into each view.
+EXPLICIT_RGB_INPUTS = {"colours": "float32"}
 
 _CHUNK = 1 << 20
 
@@ -81,6 +93,8 @@ class Manifest:
     samples: int
     graphs: Mapping[str, GraphEntry]
     raw: Mapping[str, Any] = field(repr=False)  # the whole document, for reports
+    #: config.explicit_rgb: the renderer takes ``colours`` (the reference RGB at the samples).
+    explicit_rgb: bool = False
 
     @property
     def field_channels(self) -> int | None:
@@ -93,6 +107,15 @@ class Manifest:
             return int(self.config["field_width"]) * (1 + 2 * int(self.config["view_blocks"]))
         except (KeyError, TypeError, ValueError):
             return None
+
+
+def required_io_for(explicit_rgb: bool) -> dict[str, dict[str, dict[str, str]]]:
+    """``REQUIRED_IO``, with the renderer's ``colours`` input for an explicit-colour model."""
+    if not explicit_rgb:
+        return REQUIRED_IO
+    renderer = REQUIRED_IO["renderer"]
+    return {**REQUIRED_IO, "renderer": {**renderer,
+                                        "inputs": {**renderer["inputs"], **EXPLICIT_RGB_INPUTS}}}
 
 
 def sha256_file(path: Path) -> str:
@@ -270,13 +293,22 @@ def read_manifest(model_dir: str | os.PathLike, *, verify_hashes: bool = True) -
                                f"iris_runtime)")
 
     io_version = doc.get("io_spec_version", IO_SPEC_VERSION)
-    if io_version != IO_SPEC_VERSION:
+    if isinstance(io_version, bool) or io_version not in (IO_SPEC_VERSION, *IO_SPEC_COMPATIBLE):
         raise ModelFormatError(f"{path}: I/O spec version {io_version!r}; this runtime feeds I/O "
-                               f"spec version {IO_SPEC_VERSION}")
+                               f"spec version {IO_SPEC_VERSION} (re-export with iris-export, or "
+                               f"upgrade iris_runtime)")
 
     config = doc.get("config", {})
     if not isinstance(config, dict):
         raise ManifestError(f"{path}: 'config' must be an object, got {type(config).__name__}")
+    explicit_rgb = config.get("explicit_rgb", False)
+    if not isinstance(explicit_rgb, bool):
+        raise ManifestError(f"{path}: config.explicit_rgb must be true or false, got "
+                            f"{explicit_rgb!r}")
+    if explicit_rgb and io_version != IO_SPEC_VERSION:
+        raise ModelFormatError(f"{path}: an explicit-colour model (config.explicit_rgb) under I/O "
+                               f"spec version {io_version!r}, which has no 'colours' input; this "
+                               f"runtime feeds version {IO_SPEC_VERSION}: re-export with iris-export")
 
     def number(key, cfg_key=None, kind=float):
         value = doc.get(key, config.get(cfg_key or key))
@@ -304,7 +336,8 @@ def read_manifest(model_dir: str | os.PathLike, *, verify_hashes: bool = True) -
         raise ManifestError(f"{path}: 'graphs' must be an object with 'encoder' and 'renderer'")
     root = model_dir.resolve()
     graphs = {}
-    for name, required in REQUIRED_IO.items():
+    required_io = required_io_for(explicit_rgb)
+    for name, required in required_io.items():
         entry = graphs_doc.get(name)
         if not isinstance(entry, dict):
             raise ManifestError(f"{path}: graphs.{name} missing (expected an object with 'file', "
@@ -314,13 +347,18 @@ def read_manifest(model_dir: str | os.PathLike, *, verify_hashes: bool = True) -
     # I/O of the graph they stand in for.
     for name, entry in graphs_doc.items():
         base = entry.get("variant_of") if isinstance(entry, dict) else None
-        if name not in graphs and base in REQUIRED_IO:
-            graphs[name] = _graph_entry(path, root, name, entry, REQUIRED_IO[base])
+        if name not in graphs and base in required_io:
+            graphs[name] = _graph_entry(path, root, name, entry, required_io[base])
+    for name, entry in graphs.items():
+        if name != "encoder" and not explicit_rgb and set(EXPLICIT_RGB_INPUTS) & set(entry.inputs):
+            raise ManifestError(f"{path}: graphs.{name}.inputs lists {sorted(EXPLICIT_RGB_INPUTS)}, "
+                                f"but config.explicit_rgb is not true (a renderer without explicit "
+                                f"colour takes no reference RGB)")
 
     manifest = Manifest(model_dir=root, version=version, config=MappingProxyType(dict(config)),
                         image_size=(int(size[0]), int(size[1])), near=near, far=far,
                         samples=samples, graphs=MappingProxyType(graphs),
-                        raw=MappingProxyType(doc))
+                        raw=MappingProxyType(doc), explicit_rgb=explicit_rgb)
     if verify_hashes:
         for entry in graphs.values():
             if not entry.path.is_file():

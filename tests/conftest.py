@@ -4,6 +4,12 @@
 how the runtime tests run in the environment without torch; otherwise, when torch is installed, a
 random tiny model (``torch.manual_seed(0); build_model(preset("tiny"))``) exported once per
 session (``torch_export``). Tests that compare with ``IrisModel`` use ``torch_export`` directly.
+
+``rgb_model_dir`` / ``torch_export_rgb`` are the same for an explicit-colour model
+(``preset("tiny-rgb")``, exported once per session with its int8 renderer; its residual rgb head,
+which a new model starts at zero, gets random weights so that parity covers it):
+``IRIS_TEST_RGB_MODEL_DIR`` when set. ``any_model_dir`` is parametrized over both models for the
+runtime tests that are cheap enough to run twice.
 """
 from __future__ import annotations
 
@@ -21,16 +27,30 @@ def has_torch() -> bool:
     return True
 
 
-def _export_random_tiny(tmp_path_factory, name: str, quantize=None):
-    """(model_dir, IrisModel): a random tiny model (seed 0) exported once (needs torch and onnx)."""
-    torch = pytest.importorskip("torch")
-    pytest.importorskip("onnx")
+def random_model(preset_name: str = "tiny"):
+    """``torch.manual_seed(0); build_model(preset(preset_name))`` in eval mode; for explicit-colour
+    models the residual rgb head (zero at initialisation) then gets N(0, 0.2) weights."""
+    import torch
+
     import iris_train
-    from export.pipeline import export_model
 
     torch.manual_seed(0)
-    model = iris_train.build_model(iris_train.preset("tiny")).eval()
-    out = tmp_path_factory.mktemp(name) / "tiny"
+    model = iris_train.build_model(iris_train.preset(preset_name)).eval()
+    if model.cfg.explicit_rgb:
+        with torch.no_grad():
+            for p in model.renderer.rgb_head[-1].parameters():
+                p.normal_(0.0, 0.2)
+    return model
+
+
+def _export_random_tiny(tmp_path_factory, name: str, quantize=None, preset_name: str = "tiny"):
+    """(model_dir, IrisModel): a random tiny model (seed 0) exported once (needs torch and onnx)."""
+    pytest.importorskip("torch")
+    pytest.importorskip("onnx")
+    from export.pipeline import export_model
+
+    model = random_model(preset_name)
+    out = tmp_path_factory.mktemp(name) / preset_name
     export_model(model, out, quick=True, progress=False, threads=1, quantize=quantize)
     return out, model
 
@@ -47,16 +67,36 @@ def torch_export_int8(tmp_path_factory):
     return _export_random_tiny(tmp_path_factory, "iris_model_int8", quantize="int8")
 
 
-def resolve_model_dir(request, export_fixture: str) -> Path:
-    """``IRIS_TEST_MODEL_DIR`` if set, else the export made by ``export_fixture`` (needs torch)."""
-    env = os.environ.get("IRIS_TEST_MODEL_DIR")
+@pytest.fixture(scope="session")
+def torch_export_rgb(tmp_path_factory):
+    """(model_dir, IrisModel): a random explicit-colour model (``tiny-rgb``) and its export, with
+    the int8 renderer (one export serves the float and the int8 tests)."""
+    return _export_random_tiny(tmp_path_factory, "iris_model_rgb", quantize="int8",
+                               preset_name="tiny-rgb")
+
+
+def resolve_model_dir(request, export_fixture: str, env_var: str = "IRIS_TEST_MODEL_DIR") -> Path:
+    """``env_var`` if set, else the export made by ``export_fixture`` (needs torch)."""
+    env = os.environ.get(env_var)
     if env:
         return Path(env)
     if not has_torch():
-        pytest.skip("no IRIS_TEST_MODEL_DIR and no torch to export a model")
+        pytest.skip(f"no {env_var} and no torch to export a model")
     return request.getfixturevalue(export_fixture)[0]
 
 
 @pytest.fixture(scope="session")
 def model_dir(request) -> Path:
     return resolve_model_dir(request, "torch_export")
+
+
+@pytest.fixture(scope="session")
+def rgb_model_dir(request) -> Path:
+    """An explicit-colour model: ``IRIS_TEST_RGB_MODEL_DIR`` or the random ``tiny-rgb`` export."""
+    return resolve_model_dir(request, "torch_export_rgb", "IRIS_TEST_RGB_MODEL_DIR")
+
+
+@pytest.fixture(scope="session", params=["tiny", "tiny-rgb"])
+def any_model_dir(request) -> Path:
+    """``model_dir`` and ``rgb_model_dir`` in turn."""
+    return request.getfixturevalue("model_dir" if request.param == "tiny" else "rgb_model_dir")

@@ -15,6 +15,10 @@ The random ``tiny`` model of conftest's ``torch_export`` (exported once per sess
   and the queries' poses match ``IrisModel.locate``; validation reports probes with queries and
   the isolation check;
 * the wrappers compute exactly what the model computes;
+* explicit colour (``preset("tiny-rgb")``, conftest ``torch_export_rgb``): the renderer takes
+  ``colours`` [V', R, S, 3] as its last input (only such models do), the manifest says so
+  (``config.explicit_rgb``, I/O spec 3), its validation covers the same probes, and the round
+  trip and masking tests above run on it too (``model_and_sessions``);
 * failures: existing OUT_DIR without --force (and --force replacing it), corrupt / truncated /
   foreign checkpoints, tolerance exceeded -> ``ValidationError``; OUT_DIR untouched each time, no
   temporary directory left behind; ``iris-export --help``.
@@ -117,6 +121,21 @@ def _session(path):
 def sessions(exported):
     return {"encoder": _session(exported / "encoder.onnx"),
             "renderer": _session(exported / "renderer.onnx")}
+
+
+@pytest.fixture(scope="module")
+def rgb_sessions(torch_export_rgb):
+    d = torch_export_rgb[0]
+    return {"encoder": _session(d / "encoder.onnx"), "renderer": _session(d / "renderer.onnx")}
+
+
+@pytest.fixture(scope="module", params=["tiny", "tiny-rgb"])
+def model_and_sessions(request):
+    """(IrisModel, ORT sessions) of the session's random tiny model and of its explicit-colour
+    twin."""
+    if request.param == "tiny":
+        return request.getfixturevalue("model"), request.getfixturevalue("sessions")
+    return request.getfixturevalue("torch_export_rgb")[1], request.getfixturevalue("rgb_sessions")
 
 
 @pytest.fixture
@@ -226,12 +245,15 @@ def _runtime_render(sessions, images, pose, uv, depths, reverse=0):
             "cues": np.ascontiguousarray(np.moveaxis(cues, 2, 0), dtype=np.float32),
             "mask": valid, "positions": points.astype(np.float32),
             "directions": directions.astype(np.float32)}
+    if "colours" in {i.name for i in sessions["renderer"].get_inputs()}:
+        feed["colours"] = RG.sample_bilinear_views(images, feed["grid"])   # full-resolution RGB
     rgb, weights = sessions["renderer"].run(None, feed)
     return rgb, weights, origins, directions, valid
 
 
 @pytest.mark.parametrize("V,R,S", [(1, 1, 64), (2, 37, 64), (5, 50, 23), (2, 8, 1)])
-def test_round_trip_against_torch_render_rays(model, sessions, V, R, S):
+def test_round_trip_against_torch_render_rays(model_and_sessions, V, R, S):
+    model, sessions = model_and_sessions
     rng = np.random.default_rng(100 * V + R + S)
     images = scene_images(V, H, W, torch.Generator().manual_seed(V)).numpy()
     # A fresh random target pose near view 0 and random pixels; some rays point backwards.
@@ -281,21 +303,25 @@ def test_encoder_graph_isolates_references(model, sessions):
     assert np.abs(fewer[1][len(refs)] - present[1][len(refs)]).max() <= 1e-6   # queries independent
 
 
-def _random_feed(V, R, S, seed):
+def _random_feed(V, R, S, seed, explicit_rgb=False):
     g = torch.Generator().manual_seed(seed)
     h, w = CFG.feature_grid
-    return {"field_maps": torch.randn(V, CFG.field_channels, h, w, generator=g),
+    feed = {"field_maps": torch.randn(V, CFG.field_channels, h, w, generator=g),
             "grid": torch.rand(V, R, S, 2, generator=g) * 2.4 - 1.2,
             "cues": torch.randn(V, R, S, 4, generator=g),
             "mask": torch.rand(V, R, S, generator=g) > 0.5,
             "positions": torch.randn(R, S, 3, generator=g),
             "directions": torch.randn(R, 3, generator=g)}
+    if explicit_rgb:
+        feed["colours"] = torch.rand(V, R, S, 3, generator=g)
+    return feed
 
 
 @pytest.mark.parametrize("case", ["all", "point", "ray"])
-def test_fully_masked_points_and_rays_stay_finite(model, sessions, case):
+def test_fully_masked_points_and_rays_stay_finite(model_and_sessions, case):
+    model, sessions = model_and_sessions
     V, R, S = 3, 4, 9
-    feed = _random_feed(V, R, S, seed=7)
+    feed = _random_feed(V, R, S, seed=7, explicit_rgb=model.cfg.explicit_rgb)
     if case == "all":
         feed["mask"][:] = False
     elif case == "point":
@@ -340,6 +366,61 @@ def test_wrappers_compute_what_the_model_computes(model):
     # render_rays samples this small grid with a dense matmul, the graph with grid_sample.
     torch.testing.assert_close(rgb, rgb_ref, rtol=0, atol=1e-6)
     torch.testing.assert_close(weights, w_ref, rtol=0, atol=1e-6)
+
+
+def test_explicit_rgb_contract(torch_export_rgb, torch_export, rgb_sessions, sessions):
+    """Only an explicit-colour model's renderer takes ``colours`` [V', R, S, 3], as its last
+    input; the manifest records it (config, I/O spec 3, the renderer's inputs) and its validation
+    covers the probes of every model (V' 1/3/8, R 1, fully masked points and rays) in tolerance."""
+    rgb_dir, rgb_model = torch_export_rgb
+    m = read_manifest(rgb_dir)
+    assert m["config"]["explicit_rgb"] is True and m["io_spec_version"] == io_spec.IO_SPEC_VERSION == 3
+    spec = io_spec.spec_for("renderer", True)
+    assert list(spec["inputs"])[-1] == "colours" and list(spec["inputs"])[:-1] == list(io_spec.RENDERER["inputs"])
+    assert spec["inputs"]["colours"] == {"dtype": "float32", "shape": ["V", "R", "S", 3]}
+    assert spec["tolerance"] is io_spec.RENDERER["tolerance"]
+    for name in ("renderer", "renderer_int8"):
+        assert m["graphs"][name]["inputs"] == json.loads(json.dumps(spec["inputs"]))
+        assert m["graphs"][name]["dynamic_axes"] == json.loads(json.dumps(spec["dynamic_axes"]))
+    inputs = rgb_sessions["renderer"].get_inputs()
+    assert [i.name for i in inputs] == list(spec["inputs"])
+    assert inputs[-1].shape == ["V", "R", "S", 3] and inputs[-1].type == "tensor(float)"
+    assert "colours" not in {i.name for i in sessions["renderer"].get_inputs()}
+    assert "colours" not in read_manifest(torch_export[0])["graphs"]["renderer"]["inputs"]
+    assert read_manifest(torch_export[0])["config"]["explicit_rgb"] is False
+    rep = m["validation"]["renderer"]
+    assert rep["passed"] and rep["enforced"]
+    assert all(0 <= rep["max_abs_error"][o] <= t for o, t in rep["tolerance"].items())
+    probes = rep["probes"]
+    assert {p["V"] for p in probes} == {1, 3, 8} and 1 in {p["R"] for p in probes}
+    assert any(p["rays_with_every_sample_masked"] for p in probes)
+    assert any(p["points_masked_in_every_view"] for p in probes)
+    assert any(p["probe"].startswith("scene") for p in probes)
+    assert m["validation"]["renderer_int8"]["enforced"] is False
+    assert 0 < m["validation"]["renderer_int8"]["max_abs_error"]["rgb"] < 0.05
+
+
+def test_explicit_rgb_wrapper_computes_what_the_model_computes(torch_export_rgb):
+    """RendererGraph on an explicit-colour model = IrisModel.render_rays (the colours sampled as
+    field_at samples them); without colours it refuses to run."""
+    model = torch_export_rgb[1]
+    g = torch.Generator().manual_seed(5)
+    with torch.no_grad():
+        scene = model.encode(scene_images(3, H, W, g))
+        origins, directions, depths = scene_rays(model, scene, 24, g)
+        inputs = renderer_inputs(scene, origins, directions, depths)
+        assert inputs["colours"].shape == (3, 24, CFG.samples, 3)
+        rgb, weights = RendererGraph(model)(**inputs)
+        rgb_ref, w_ref = model.render_rays(scene, origins, directions, depths)
+        torch.testing.assert_close(rgb, rgb_ref, rtol=0, atol=1e-6)
+        torch.testing.assert_close(weights, w_ref, rtol=0, atol=1e-6)
+        # the residual head is live (random weights): the colour is not the blend alone
+        f, points, mask, colours = model.field_at(scene, origins, directions, depths)
+        blend = (w_ref[..., None] * colours).sum(1)
+        assert (rgb - blend).abs().max() > 1e-3
+        inputs.pop("colours")
+        with pytest.raises(ExportArgumentError, match="colours"):
+            RendererGraph(model)(**inputs)
 
 
 @pytest.mark.parametrize("seed", [0, 1])
