@@ -24,6 +24,16 @@ coordinates, the validity mask and the geometric cue (target centre = the ray or
 renderer graph samples the field maps itself (GridSample) and returns rgb and per-sample weights;
 depth = sum(weights * z).
 
+Explicit-colour models (``config.explicit_rgb`` in the manifest, e.g. preset ``tiny-rgb``): per
+renderer call the reference photos' RGB is sampled in numpy at the same grid positions as the
+field maps (``geometry.sample_bilinear_views``: bilinear, align_corners=False, border-clamped,
+full model resolution, float32) for the call's views and packed samples and fed as ``colours``
+[V', R, S, 3]. Each view's photo is ``Scene.reference_images[Scene.image_index]``, so ``subset``
+and hand-built Scenes say which photo a view is; reference photos stay at the model's resolution
+whatever the output size, scale or sample count. Masked (view, sample) pairs carry colours too
+(ignored by the graph), so every culling, top_k, samples, scale, int8 and workers path feeds the
+graph exactly what it feeds without explicit colour, plus the colours of the same samples.
+
 Culling (exact): samples that project validly into no reference view, views into which no sample
 of the chunk projects, and rays without any valid sample carry no information — the renderer
 masks them out of every attention, pool and weight (see iris_train/ray_renderer.py), so dropping
@@ -173,6 +183,10 @@ class Scene:
                     encoded from, what ``IrisRuntime.locate`` runs the encoder on (all N of them,
                     also after ``subset``, which keeps the frame and so the images that define it);
                     None for a Scene built by hand (``locate`` refuses it)
+    image_index:    int64 [V], the row of ``reference_images`` that each view was encoded from
+                    (``subset`` keeps it in step with the views): where explicit-colour models
+                    read each view's photo. Default: ``arange(V)`` when there are V reference
+                    images, else None (unknown; explicit-colour renders refuse such a Scene)
     """
     field_maps: np.ndarray
     world_from_cam: np.ndarray
@@ -181,6 +195,7 @@ class Scene:
     image_size: tuple[int, int]
     model_id: str = ""
     reference_images: np.ndarray | None = field(default=None, repr=False)
+    image_index: np.ndarray | None = field(default=None, repr=False)
 
     def __post_init__(self):
         arrays = {}
@@ -222,8 +237,24 @@ class Scene:
                                  f"N >= 1, got {refs.shape}")
             if not (np.all(np.isfinite(refs)) and refs.min() >= 0.0 and refs.max() <= 1.0):
                 raise InputError("reference_images: expected values in [0, 1] (no NaN or inf)")
+        index = self.image_index
+        if index is not None:
+            if refs is None:
+                raise InputError("image_index: given without reference_images (it indexes them)")
+            try:
+                index = np.asarray(index)
+            except (TypeError, ValueError):
+                index = np.asarray(None, dtype=object)
+            if index.shape != (V,) or not np.issubdtype(index.dtype, np.integer) \
+                    or index.min() < 0 or index.max() >= refs.shape[0]:
+                raise InputError(f"image_index: expected {V} integers in 0..{refs.shape[0] - 1} "
+                                 f"(the reference image of each view), got {self.image_index!r}")
+            index = _readonly(index, np.int64)
+        elif refs is not None and refs.shape[0] == V:
+            index = _readonly(np.arange(V), np.int64)
         for name, value in (("field_maps", maps), ("world_from_cam", poses), ("focal", focal),
-                            ("image_size", size), ("K", K), ("reference_images", refs)):
+                            ("image_size", size), ("K", K), ("reference_images", refs),
+                            ("image_index", index)):
             object.__setattr__(self, name, value)
 
     @property
@@ -254,7 +285,8 @@ class Scene:
             raise InputError(f"indices: repeated view index in {idx.tolist()} (a view counted "
                              f"twice would weigh twice in the view attention)")
         return Scene(self.field_maps[idx], self.world_from_cam[idx], self.focal, self.K,
-                     self.image_size, self.model_id, self.reference_images)
+                     self.image_size, self.model_id, self.reference_images,
+                     None if self.image_index is None else self.image_index[idx])
 
     def __repr__(self) -> str:
         return (f"Scene(views={self.num_views}, field_maps={tuple(self.field_maps.shape)}, "
@@ -573,6 +605,7 @@ class IrisRuntime:
         if isinstance(images_or_scene, Scene):
             scene = images_or_scene
             self._check_scene(scene)
+            self._view_images(scene)                  # explicit colour: the photos are there
         else:
             scene = self._encode(images_or_scene, timings)
         world_from_cam = self._check_pose(pose, scene)
@@ -629,6 +662,22 @@ class IrisRuntime:
             raise InputError(f"{name}: Scene of image size {scene.image_size} with "
                              f"{scene.field_maps.shape[1]} channels; this model has "
                              f"{self.image_size} and {channels}")
+
+    def _view_images(self, scene: Scene, name: str = "images_or_scene") -> np.ndarray | None:
+        """Explicit-colour models: each view's reference photo, float32 [V, 3, H, W] in [0, 1]
+        (``scene.reference_images[scene.image_index]``), or ``InputError`` when the Scene does not
+        say which photo each view is. None for other models (they never read the photos)."""
+        if not self.manifest.explicit_rgb:
+            return None
+        if scene.reference_images is None or scene.image_index is None:
+            have = ("no reference_images" if scene.reference_images is None else
+                    f"{scene.reference_images.shape[0]} reference_images for {scene.num_views} "
+                    f"views and no image_index")
+            raise InputError(f"{name}: this model (explicit colour) renders from the reference "
+                             f"photos, and this Scene has {have}; use a Scene from "
+                             f"IrisRuntime.encode (or its subset), or pass reference_images "
+                             f"[and image_index]")
+        return np.ascontiguousarray(scene.reference_images[scene.image_index])
 
     @staticmethod
     def _check_pose(pose, scene: Scene) -> np.ndarray:
@@ -697,6 +746,8 @@ class IrisRuntime:
                     "mask": np.zeros((1, 1, 1), bool),
                     "positions": np.zeros((1, 1, 3), np.float32),
                     "directions": np.array([[0, 0, 1]], np.float32)}
+            if self.manifest.explicit_rgb:     # masked: the blend of nothing, whatever colour
+                feed["colours"] = np.zeros((1, 1, 1, 3), np.float32)
             rgb = self._session(graph).run(["rgb"], feed)[0][0]
             rgb.setflags(write=False)
             self._empty_rgb[graph] = rgb       # idempotent: a race computes the same value twice
@@ -732,6 +783,7 @@ class IrisRuntime:
                "pose": pose, "K_out": K.astype(f32), "origin": pose[:3, 3],
                "z_bins": G.sample_depths(self.near, self.far, S, 1, dtype=f32)[0],  # bin centres
                "empty": self._empty_ray_rgb(scene, graph) if self.cull else None,
+               "view_images": self._view_images(scene),                            # [V, 3, H, W]
                "width": width, "n": n, "chunk_rays": chunk_rays,
                "rgb": np.empty((n, 3), f32), "depth": np.zeros(n, f32)}
         # With per-ray view sets the geometry block spans several calls (same numpy memory as one
@@ -772,6 +824,7 @@ class IrisRuntime:
         scene, S, k, by_ray = ctx["scene"], ctx["S"], ctx["k"], ctx["by_ray"]
         origin, z_bins, centres = ctx["origin"], ctx["z_bins"], ctx["centres"]
         rgb, depth, width = ctx["rgb"], ctx["depth"], ctx["width"]
+        view_images = ctx["view_images"]
         Hm, Wm = scene.image_size
         V = scene.num_views
         cull = self.cull
@@ -832,10 +885,13 @@ class IrisRuntime:
                 maps = scene.field_maps if len(gviews) == V and cull is False \
                     else np.ascontiguousarray(scene.field_maps[gviews])
             cue = G.geometric_cue(pts, origin, centres[gviews])                # [r, s, v, 4]
-            feed = {"field_maps": maps, "grid": G.pixels_to_grid(uvc, Hm, Wm),
+            grid = G.pixels_to_grid(uvc, Hm, Wm)
+            feed = {"field_maps": maps, "grid": grid,
                     "cues": np.ascontiguousarray(np.moveaxis(cue, 2, 0)),      # view-major
                     "mask": np.ascontiguousarray(val), "positions": pts,
                     "directions": directions[rays]}
+            if view_images is not None:      # explicit colour: the photos at the same grid
+                feed["colours"] = G.sample_bilinear_views(view_images[gviews], grid)
             t1 = time.perf_counter()
             out_rgb, weights = ctx["session"].run(["rgb", "weights"], feed)
             t2 = time.perf_counter()

@@ -31,8 +31,10 @@ from iris_runtime.manifest import external_data_locations
 
 
 @pytest.fixture(scope="module")
-def rt(model_dir) -> IrisRuntime:
-    return IrisRuntime(model_dir, threads=1)
+def rt(any_model_dir) -> IrisRuntime:
+    """The tests of encode/render/locate/Scene input run on both test models (conftest
+    ``any_model_dir``: the random tiny model and its explicit-colour twin)."""
+    return IrisRuntime(any_model_dir, threads=1)
 
 
 @pytest.fixture(scope="module")

@@ -4,6 +4,9 @@ Model under test: ``IRIS_TEST_MODEL_DIR`` (an ``iris-export`` output directory) 
 how these tests run in an environment without torch; otherwise, when torch is installed, a random
 tiny model (``torch.manual_seed(0); build_model(preset("tiny"))``) exported once per session.
 Tests marked ``torch`` compare with ``IrisModel`` and always use the exported random model.
+Explicit colour (``preset("tiny-rgb")``, conftest ``rgb_model_dir``/``torch_export_rgb``): the
+parity tests run on it too (``pair``), plus its own tests (the reference photos sampled in numpy:
+subset, hand-built scenes, missing photos, chunking and culling).
 
 Renders are kept small (a few hundred rays each): the renderer costs ~1-2 ms of CPU per ray.
 """
@@ -90,6 +93,21 @@ def torch_pair(torch_export):
     return runtime, runtime.encode(images), model, _torch_scene(model, images)
 
 
+@pytest.fixture(scope="session")
+def torch_pair_rgb(torch_export_rgb):
+    """``torch_pair`` for the random explicit-colour model (``tiny-rgb``)."""
+    model_dir, model = torch_export_rgb
+    runtime = IrisRuntime(model_dir, threads=1)
+    images = _images(3, runtime.image_size, seed=1)
+    return runtime, runtime.encode(images), model, _torch_scene(model, images)
+
+
+@pytest.fixture(params=["tiny", "tiny-rgb"])
+def pair(request):
+    """``torch_pair`` and ``torch_pair_rgb`` in turn."""
+    return request.getfixturevalue("torch_pair" if request.param == "tiny" else "torch_pair_rgb")
+
+
 def _torch_render(model, tscene, pose, height, width):
     import torch
     with torch.no_grad():
@@ -111,8 +129,8 @@ def test_encode_matches_torch(torch_pair):
 @pytest.mark.parametrize("pose, size", [(_pose(), (16, 16)),      # model res is 64x64: smaller
                                         (SIDEWAYS, (12, 20)),     # other aspect, partial overlap
                                         (2, (12, 12))])           # pose of input view 2
-def test_render_matches_torch(torch_pair, pose, size):
-    runtime, scene, model, tscene = torch_pair
+def test_render_matches_torch(pair, pose, size):
+    runtime, scene, model, tscene = pair
     res = runtime.render(scene, pose, height=size[0], width=size[1], depth=True)
     # An int pose is compared with torch rendering *its own* prediction of that view: the
     # geometric cue normalises t - s, which is discontinuous where the target centre meets a
@@ -125,8 +143,8 @@ def test_render_matches_torch(torch_pair, pose, size):
 
 
 @pytest.mark.torch
-def test_subset_matches_torch(torch_pair):
-    runtime, scene, model, tscene = torch_pair
+def test_subset_matches_torch(pair):
+    runtime, scene, model, tscene = pair
     sub = scene.subset([2, 0])
     res = runtime.render(sub, _pose(angle=-0.05), height=12, width=12, depth=True)
     rgb, depth = _torch_render(model, tscene.subset([2, 0]), _pose(angle=-0.05), 12, 12)
@@ -294,6 +312,104 @@ def test_chunking_and_culling_invariance(model_dir, scene):
     assert np.abs(full.depth - ref.depth).max() <= 1e-6
 
 
+# ----------------------------------------------------------------------------------------------
+# Explicit colour: the reference photos sampled in numpy at the samples' projections
+# ----------------------------------------------------------------------------------------------
+
+@pytest.fixture(scope="session")
+def rgb_rt(rgb_model_dir) -> IrisRuntime:
+    return IrisRuntime(rgb_model_dir, threads=1)
+
+
+@pytest.fixture(scope="session")
+def rgb_scene(rgb_rt) -> Scene:
+    return rgb_rt.encode(_images(3, rgb_rt.image_size, seed=2))
+
+
+def test_rgb_model_is_recognised(rgb_rt, rt):
+    assert rgb_rt.manifest.explicit_rgb is True and rt.manifest.explicit_rgb is False
+    assert "colours" in rgb_rt.manifest.graphs["renderer"].inputs
+    assert "colours" not in rt.manifest.graphs["renderer"].inputs
+
+
+def test_rgb_chunking_culling_and_workers_are_exact(rgb_model_dir, rgb_rt, rgb_scene):
+    """The colours follow the packing of every call: chunk sizes, culling off, 2 workers and
+    a one-shot render from the images change only float rounding (<= 1e-6)."""
+    ref = rgb_rt.render(rgb_scene, SIDEWAYS, height=12, width=16, depth=True)
+    assert (ref.depth == 0).any() and (ref.depth > 0).any()
+    others = [rgb_rt.render(rgb_scene, SIDEWAYS, height=12, width=16, depth=True, chunk_rays=c)
+              for c in (7, 50)]
+    others.append(IrisRuntime(rgb_model_dir, threads=1, cull=False).render(
+        rgb_scene, SIDEWAYS, height=12, width=16, depth=True, chunk_rays=64))
+    others.append(IrisRuntime(rgb_model_dir, threads=2, workers=2).render(
+        rgb_scene, SIDEWAYS, height=12, width=16, depth=True, chunk_rays=40))
+    for res in others:
+        assert np.abs(res.image_float - ref.image_float).max() <= 1e-6
+        assert np.abs(res.depth - ref.depth).max() <= 1e-6
+    one_shot = rgb_rt.render(_images(3, rgb_rt.image_size, seed=2), SIDEWAYS, height=12,
+                             width=16, depth=True)
+    np.testing.assert_array_equal(one_shot.image_float, ref.image_float)
+
+
+def test_rgb_render_reads_each_views_photo(rgb_rt, rgb_scene):
+    """The runtime feeds each view's photo (``reference_images[image_index]``): other photos
+    behind the same field maps change the render; a subset keeps the index in step with its
+    views, and a hand-built Scene with the subset's photos renders the same."""
+    pose = _pose()
+    base = rgb_rt.render(rgb_scene, pose, height=8, width=8, depth=True)
+    swapped = dataclasses.replace(rgb_scene, reference_images=1.0 - rgb_scene.reference_images)
+    assert np.abs(rgb_rt.render(swapped, pose, height=8, width=8, depth=True).image_float
+                  - base.image_float).max() > 1e-3
+    np.testing.assert_array_equal(rgb_scene.image_index, [0, 1, 2])
+    sub = rgb_scene.subset([2, 0])
+    np.testing.assert_array_equal(sub.image_index, [2, 0])
+    np.testing.assert_array_equal(sub.subset([1]).image_index, [0])
+    a = rgb_rt.render(sub, pose, height=8, width=8, depth=True)
+    by_hand = Scene(sub.field_maps, sub.world_from_cam, sub.focal, sub.K, sub.image_size,
+                    sub.model_id, rgb_scene.reference_images[[2, 0]])       # default index 0, 1
+    b = rgb_rt.render(by_hand, pose, height=8, width=8, depth=True)
+    np.testing.assert_array_equal(a.image_float, b.image_float)
+    indexed = Scene(sub.field_maps, sub.world_from_cam, sub.focal, sub.K, sub.image_size,
+                    sub.model_id, rgb_scene.reference_images, [2, 0])
+    np.testing.assert_array_equal(rgb_rt.render(indexed, pose, height=8, width=8, depth=True)
+                                  .image_float, a.image_float)
+
+
+def test_rgb_scene_without_its_photos_is_a_typed_error(rgb_rt, rgb_scene, rt, tmp_path):
+    """An explicit-colour render needs each view's photo: a Scene without reference_images, or
+    with a different number of them and no image_index, is refused (InputError naming them);
+    a missing or unreadable photo path is an ImageError naming it. A model without explicit
+    colour renders such Scenes as before."""
+    bare = Scene(rgb_scene.field_maps, rgb_scene.world_from_cam, rgb_scene.focal, rgb_scene.K,
+                 rgb_scene.image_size, rgb_scene.model_id)
+    assert bare.image_index is None
+    with pytest.raises(InputError, match="reference_images") as info:
+        rgb_rt.render(bare, 0, height=4, width=4)
+    assert isinstance(info.value, ValueError) and "explicit colour" in str(info.value)
+    unknown = Scene(rgb_scene.field_maps[:2], rgb_scene.world_from_cam[:2], rgb_scene.focal,
+                    rgb_scene.K, rgb_scene.image_size, rgb_scene.model_id,
+                    rgb_scene.reference_images)                            # 3 photos, 2 views
+    assert unknown.image_index is None
+    with pytest.raises(InputError, match="image_index"):
+        rgb_rt.render(unknown, 0, height=4, width=4)
+    plain = rt.encode(_images(2, rt.image_size))
+    rt.render(Scene(plain.field_maps, plain.world_from_cam, plain.focal, plain.K,
+                    plain.image_size, plain.model_id), 0, height=4, width=4)
+    missing = tmp_path / "missing.png"
+    (tmp_path / "broken.png").write_bytes(b"not a png")
+    for bad in (missing, tmp_path / "broken.png"):
+        with pytest.raises(ImageError, match=bad.name) as info:
+            rgb_rt.render([_images(1, rgb_rt.image_size)[0], bad], 0, height=4, width=4)
+        assert isinstance(info.value, IrisError)
+    for index, match in (([0, 3], "image_index"), ([0], "image_index"), ([0.0, 1.0], "image_index")):
+        with pytest.raises(InputError, match=match):
+            Scene(rgb_scene.field_maps[:2], rgb_scene.world_from_cam[:2], rgb_scene.focal,
+                  rgb_scene.K, rgb_scene.image_size, "", rgb_scene.reference_images, index)
+    with pytest.raises(InputError, match="without reference_images"):
+        Scene(rgb_scene.field_maps, rgb_scene.world_from_cam, rgb_scene.focal, rgb_scene.K,
+              rgb_scene.image_size, "", None, [0, 1, 2])
+
+
 def test_progress_callback(rt, scene):
     calls = []
     rt.render(scene, 0, height=6, width=6, chunk_rays=10,
@@ -433,10 +549,43 @@ def test_graph_replaced_after_check(model_copy):
 
 
 @pytest.mark.parametrize("edit, error, match", [
+    (lambda d: d.update(io_spec_version=2), ModelFormatError, "re-export with iris-export"),
+    (lambda d: d["graphs"]["renderer"]["inputs"].pop("colours"), ManifestError, "colours"),
+    (lambda d: d["graphs"]["renderer_int8"]["inputs"].pop("colours"), ManifestError, "colours"),
+    (lambda d: d["config"].update(explicit_rgb="yes"), ManifestError, "explicit_rgb"),
+    (lambda d: d["config"].update(explicit_rgb=False), ManifestError, "colours"),
+])
+def test_bad_rgb_manifest(rgb_model_dir, tmp_path, edit, error, match):
+    """An explicit-colour manifest must say so consistently (config and the renderers' inputs)
+    under I/O spec 3."""
+    model_copy = tmp_path / "model"
+    shutil.copytree(rgb_model_dir, model_copy)
+    _edit_manifest(model_copy, edit)
+    with pytest.raises(error, match=match):
+        IrisRuntime(model_copy)
+
+
+def test_io_spec_2_is_read_for_models_without_explicit_colour(model_copy):
+    """I/O spec 2 manifests (before explicit colour) have exactly spec 3's graphs for these
+    models: read unchanged, and the same render."""
+    scene = IrisRuntime(model_copy, threads=1).encode(_images(2, (64, 64)))
+    a = IrisRuntime(model_copy, threads=1).render(scene, _pose(), height=4, width=4)
+    _edit_manifest(model_copy, lambda d: d.update(io_spec_version=2))
+    b = IrisRuntime(model_copy, threads=1).render(scene, _pose(), height=4, width=4)
+    np.testing.assert_array_equal(a, b)
+    _edit_manifest(model_copy, lambda d: d["graphs"]["renderer"]["inputs"].update(
+        colours={"dtype": "float32", "shape": ["V", "R", "S", 3]}))
+    with pytest.raises(ManifestError, match="explicit_rgb"):
+        IrisRuntime(model_copy)
+
+
+@pytest.mark.parametrize("edit, error, match", [
     (lambda d: d.update(version=1), ModelFormatError, "re-export with iris-export"),
     (lambda d: d.update(version=3), ModelFormatError, "version 2"),
     (lambda d: d.update(format="something-else"), ModelFormatError, "iris-model"),
     (lambda d: d.update(io_spec_version=7), ModelFormatError, "I/O spec"),
+    (lambda d: d.update(io_spec_version=1), ModelFormatError, "I/O spec"),
+    (lambda d: d.update(io_spec_version=True), ModelFormatError, "I/O spec"),
     (lambda d: d["graphs"]["renderer"].update(file="../renderer.onnx"), ManifestError, r"'\.\.'"),
     (lambda d: d["graphs"]["renderer"].update(file="/etc/passwd"), ManifestError, "relative"),
     (lambda d: d["graphs"]["encoder"].update(file="sub/../../x.onnx"), ManifestError, r"'\.\.'"),

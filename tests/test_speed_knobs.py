@@ -7,7 +7,9 @@
 - the presets exist and map to their documented settings.
 
 Model: ``IRIS_TEST_MODEL_DIR`` (an iris-export output; how these run without torch) or, with torch
-installed, a random tiny model exported once per session (with its int8 renderer). Renders are
+installed, a random tiny model exported once per session (with its int8 renderer); every test
+runs again on an explicit-colour model (``IRIS_TEST_RGB_MODEL_DIR`` or the random ``tiny-rgb``
+export with its int8 renderer), whose renderer calls also carry the reference RGB. Renders are
 small (16x16 or 24x24 pixels).
 """
 from __future__ import annotations
@@ -24,10 +26,13 @@ from iris_runtime import quality as Q
 from iris_runtime.runtime import QUALITY_PRESETS, RenderSettings
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="session", params=["tiny", "tiny-rgb"])
 def model_dir(request) -> Path:
-    """The knobs need the int8 renderer: a model exported with it (or IRIS_TEST_MODEL_DIR)."""
-    return resolve_model_dir(request, "torch_export_int8")
+    """The knobs need the int8 renderer: a model exported with it (or IRIS_TEST_MODEL_DIR), and
+    the explicit-colour model (exported with it too, or IRIS_TEST_RGB_MODEL_DIR)."""
+    if request.param == "tiny":
+        return resolve_model_dir(request, "torch_export_int8")
+    return resolve_model_dir(request, "torch_export_rgb", "IRIS_TEST_RGB_MODEL_DIR")
 
 
 @pytest.fixture(scope="session")
@@ -214,9 +219,10 @@ def test_int8_precision_per_call(rt, scene, full):
 # ----------------------------------------------------------------------------------------------
 
 @pytest.mark.torch
-def test_exact_parallel_path_matches_torch(torch_export_int8):
+@pytest.mark.parametrize("export", ["torch_export_int8", "torch_export_rgb"])
+def test_exact_parallel_path_matches_torch(request, export):
     import torch
-    model_dir, model = torch_export_int8
+    model_dir, model = request.getfixturevalue(export)
     rt = IrisRuntime(model_dir, threads=2, workers=2)
     rng = np.random.default_rng(5)
     images = rng.integers(0, 256, (4, 64, 64, 3), dtype=np.uint8)

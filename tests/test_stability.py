@@ -14,6 +14,12 @@ Three layers, each against a float64 reference where one exists:
 
 Plus determinism (bitwise across calls, 1e-6 across thread counts) and the 8-thread load test.
 
+The stiff-scene renders, constant images and determinism also run on an explicit-colour model
+(``stiff``: conftest's random ``tiny-rgb`` export), whose renderer calls carry the reference RGB
+sampled in numpy; the recorded colours are checked against a float64 bilinear sampling of the
+photos at the reference projections (tolerance: the projection's, times the photos' Lipschitz
+bound of 1 per pixel per axis).
+
 Tolerances. u = 2^-24 is float32's unit roundoff. A float32 dot product of length 3 errs by at
 most ~3u times the sum of the absolute terms, and every float64 input is first rounded to float32
 (another u relative), so camera coordinates X = R x + t carry |dX| <= 8u (|x| + |t|) (we use 16u
@@ -126,10 +132,26 @@ def maps(rt) -> np.ndarray:
     return scene.field_maps
 
 
-def make_scene(maps, poses, focal=(1.0, 1.0), size=(64, 64)) -> Scene:
+@pytest.fixture(scope="module", params=["tiny", "tiny-rgb"])
+def stiff(request):
+    """(model_dir, runtime, field maps, photos) of the 32 noise images of ``maps``: the tiny
+    model (photos None: it never reads them) and its explicit-colour twin."""
+    if request.param == "tiny":
+        return (request.getfixturevalue("model_dir"), request.getfixturevalue("rt"),
+                request.getfixturevalue("maps"), None)
+    model_dir = request.getfixturevalue("rgb_model_dir")
+    runtime = IrisRuntime(model_dir, threads=1)
+    rng = np.random.default_rng(5)
+    scene = runtime.encode([rng.integers(0, 256, (*runtime.image_size, 3), dtype=np.uint8)
+                            for _ in range(32)])
+    return model_dir, runtime, scene.field_maps, scene.reference_images
+
+
+def make_scene(maps, poses, focal=(1.0, 1.0), size=(64, 64), images=None) -> Scene:
     poses = np.asarray(poses, float)
     focal = np.asarray(focal, float)
-    return Scene(maps[:len(poses)], poses, focal, G.intrinsics_from_focal(focal, *size), size)
+    return Scene(maps[:len(poses)], poses, focal, G.intrinsics_from_focal(focal, *size), size,
+                 reference_images=None if images is None else images[:len(poses)])
 
 
 # ----------------------------------------------------------------------------------------------
@@ -220,6 +242,14 @@ def check_feed(rec: Recorder, ref: dict, scene: Scene, S: int):
     gtol = 2 * duv / min(Hm, Wm) + 4 * U32
     assert np.all(gerr[both] <= gtol[both]), (gerr[both].max(), gtol[both].min())
     assert np.all(np.abs(feed["grid"]) <= G.GRID_CLIP)
+    if "colours" in feed:        # explicit colour: the photos at the projections, float64 reference
+        photos = scene.reference_images[scene.image_index].astype(np.float64)
+        assert feed["colours"].shape == (V, N, S, 3) and feed["colours"].dtype == np.float32
+        assert np.all((feed["colours"] >= 0) & (feed["colours"] <= 1))
+        want = G.sample_bilinear_views(photos, grid_ref)
+        cerr = np.abs(feed["colours"] - want).max(-1)
+        ctol = 2 * duv + 1e-6                  # photos in [0, 1]: 1 per pixel per axis at most
+        assert np.all(cerr[both] <= ctol[both]), (cerr[both].max(), ctol[both].min())
     # Cues (view-major in the feed).
     cue = np.moveaxis(feed["cues"], 0, 2)
     cerr = np.abs(cue - ref["cue"]).max(-1)
@@ -413,14 +443,15 @@ def bin_centre(rt, m) -> float:
 
 
 @pytest.mark.parametrize("offset", [0.0, 1e-12, -1e-12, "behind"])
-def test_samples_on_in_front_of_and_behind_a_reference_camera_plane(model_dir, rt, maps, offset):
+def test_samples_on_in_front_of_and_behind_a_reference_camera_plane(stiff, offset):
     """View 1 sits on the central ray at the depth of sample 20 (then 1e-12 in front / behind,
     or past the far plane): samples on its camera plane (Z = 0, +-1e-12) and behind it are masked,
     everything stays finite, the inputs match the float64 reference."""
+    model_dir, rt, maps, images = stiff
     zc = bin_centre(rt, 20) + (0.0 if offset == "behind" else offset)
     if offset == "behind":
         zc = 2.0 * rt.far
-    scene = make_scene(maps, [np.eye(4), pose(t=(0.0, 0.0, zc))])
+    scene = make_scene(maps, [np.eye(4), pose(t=(0.0, 0.0, zc))], images=images)
     K = G.intrinsics_from_focal(np.array([1.0, 1.0]), 5, 5)
     res, feed, ref = render_and_check(model_dir, scene, np.eye(4), K, (5, 5))
     Z1 = ref["X"][1, ..., 2]
@@ -432,21 +463,24 @@ def test_samples_on_in_front_of_and_behind_a_reference_camera_plane(model_dir, r
 
 
 @pytest.mark.parametrize("shift", [0.0, 0.05])
-def test_rays_grazing_a_reference_image_plane(model_dir, maps, shift):
+def test_rays_grazing_a_reference_image_plane(stiff, shift):
     """The target looks along view 0's x axis: its central column of rays lies in view 0's
     camera plane (Z = 0, projections 0/0), its other columns just in front of / behind it."""
+    model_dir, _, maps, images = stiff
     target = pose(rotation((0, 1, 0), np.pi / 2), (0.0, 0.0, shift))
-    scene = make_scene(maps, [np.eye(4), pose(rotation((0, 1, 0), 0.3), (0.2, 0.0, -0.1))])
+    scene = make_scene(maps, [np.eye(4), pose(rotation((0, 1, 0), 0.3), (0.2, 0.0, -0.1))],
+                       images=images)
     K = G.intrinsics_from_focal(np.array([1.0, 1.0]), 5, 5)
     render_and_check(model_dir, scene, target, K, (5, 5))
 
 
 @pytest.mark.parametrize("nudge", [0.0, 1e-9, 1e-6])
-def test_target_centre_equal_to_a_reference_centre(model_dir, rt, maps, nudge):
+def test_target_centre_equal_to_a_reference_centre(stiff, nudge):
     """Rendering at (or 1e-9 / 1e-6 from) a reference camera: t = s for every sample, the cue is
     [0, 0, 0, 1] up to the CUE_EPS-bounded rounding, and the image moves continuously."""
+    model_dir, rt, maps, images = stiff
     views = [np.eye(4), pose(rotation((0.3, 1, 0), 0.1), (0.05, -0.02, 0.01))]
-    scene = make_scene(maps, views)
+    scene = make_scene(maps, views, images=images)
     target = views[1].copy()
     target[:3, 3] += nudge
     K = scene.intrinsics(6, 6)
@@ -461,12 +495,13 @@ def test_target_centre_equal_to_a_reference_centre(model_dir, rt, maps, nudge):
     assert np.abs(res.image_float - at.image_float).max() <= bound
 
 
-def test_points_projecting_exactly_onto_image_borders(model_dir, maps):
+def test_points_projecting_exactly_onto_image_borders(stiff):
     """fx = 32 (a power of two) and a target principal point shifted by half a pixel: pixel (i, j)
     of the target projects exactly to (u, v) = (j, i) in view 0. u = 0 and v = 0 are inside,
     u = W and v = H outside (strict <). A 2 x 65 and a 65 x 2 render cover all four borders."""
+    model_dir, _, maps, images = stiff
     focal = np.array([0.5, 0.5])                     # fx = fy = 32 on the 64 x 64 model image
-    scene = make_scene(maps, [np.eye(4)], focal=focal)
+    scene = make_scene(maps, [np.eye(4)], focal=focal, images=images)
     Kr = scene.K
     for H, W, row0, col0 in ((2, 65, 0, 0), (65, 2, 0, 62)):
         K_out = np.array([[Kr[0, 0], 0, Kr[0, 2] + 0.5 - col0],
@@ -483,34 +518,37 @@ def test_points_projecting_exactly_onto_image_borders(model_dir, maps):
 
 
 @pytest.mark.parametrize("focal", [0.05, 50.0])
-def test_extreme_intrinsics(model_dir, maps, focal):
+def test_extreme_intrinsics(stiff, focal):
     """fx/W of 0.05 (a 170-degree view) and 50 (0.6 degrees), for the references and the target."""
+    model_dir, _, maps, images = stiff
     views = [np.eye(4), pose(rotation((0, 1, 0), 0.02), (0.01, 0.0, 0.0))]
-    scene = make_scene(maps, views, focal=(focal, focal))
+    scene = make_scene(maps, views, focal=(focal, focal), images=images)
     K = G.intrinsics_from_focal(np.array([focal, focal]), 6, 6)
     render_and_check(model_dir, scene, pose(rotation((1, 0, 0), 0.01), (0.0, 0.005, 0.02)), K,
                      (6, 6))
 
 
 @pytest.mark.parametrize("scale", [1e-6, 1e6])
-def test_extreme_scene_scales(model_dir, maps, scale):
+def test_extreme_scene_scales(stiff, scale):
     """Every camera translation scaled by 1e-6 / 1e6 (the depth range stays [near, far]): finite,
     and the float32 inputs within the conditioning bound, which at 1e6 is loose by necessity
     (float32 positions there are spaced 0.06 apart)."""
     views = [np.eye(4), pose(rotation((0, 1, 0), 0.05), np.array([0.3, 0.1, -0.2]) * scale),
              pose(rotation((1, 0, 0), -0.05), np.array([-0.2, 0.3, 0.1]) * scale)]
-    scene = make_scene(maps, views)
+    model_dir, _, maps, images = stiff
+    scene = make_scene(maps, views, images=images)
     target = pose(rotation((0, 1, 1), 0.03), np.array([0.1, -0.1, 0.05]) * scale)
     render_and_check(model_dir, scene, target, scene.intrinsics(5, 5), (5, 5))
 
 
 @pytest.mark.parametrize("where, turn", [((0.0, 0.0, -1e6), 0.0), ((1e6, 0.0, 0.0), 0.0),
                                          ((0.0, 0.0, -3.0), np.pi)])
-def test_pose_far_outside_the_depth_range(model_dir, rt, maps, where, turn):
+def test_pose_far_outside_the_depth_range(stiff, where, turn):
     """No sample of any ray sees a reference view (behind them, or 1e6 off to the side): every
     pixel is the empty-ray colour, depth 0, with and without culling (culling then skips every
     renderer call; the graph's answer to all-masked inputs is finite)."""
-    scene = make_scene(maps, [np.eye(4), pose(t=(0.1, 0.0, 0.0))])
+    model_dir, rt, maps, images = stiff
+    scene = make_scene(maps, [np.eye(4), pose(t=(0.1, 0.0, 0.0))], images=images)
     target = pose(rotation((0, 1, 0), turn), where)
     res, feed, ref = render_and_check(model_dir, scene, target, scene.intrinsics(4, 4), (4, 4))
     assert not feed["mask"].any() and np.all(res.depth == 0)
@@ -518,17 +556,20 @@ def test_pose_far_outside_the_depth_range(model_dir, rt, maps, where, turn):
 
 
 @pytest.mark.parametrize("V", [1, 32])
-def test_one_and_32_reference_views(model_dir, maps, V):
+def test_one_and_32_reference_views(stiff, V):
+    model_dir, _, maps, images = stiff
     rng = np.random.default_rng(V)
     views = [np.eye(4)] + [pose(rotation(rng.normal(size=3), 0.1 * rng.random()),
                                 0.05 * rng.normal(size=3)) for _ in range(V - 1)]
-    scene = make_scene(maps, views)
+    scene = make_scene(maps, views, images=images)
     render_and_check(model_dir, scene, pose(rotation((0, 1, 0), 0.05), (0.02, 0, 0)),
                      scene.intrinsics(4, 4), (4, 4))
 
 
 @pytest.mark.parametrize("kind", ["black", "white", "constant", "noise"])
-def test_constant_black_white_noise_images(rt, kind):
+def test_constant_black_white_noise_images(stiff, kind):
+    """Also the explicit-colour model's blend at exactly 0 and 1 (black, white photos): finite."""
+    rt = stiff[1]
     H, W = rt.image_size
     rng = np.random.default_rng(0)
     make = {"black": lambda: np.zeros((H, W, 3), np.uint8),
@@ -547,7 +588,8 @@ def test_constant_black_white_noise_images(rt, kind):
 # 3. Determinism
 # ----------------------------------------------------------------------------------------------
 
-def test_bitwise_deterministic_across_calls(rt, maps):
+def test_bitwise_deterministic_across_calls(stiff):
+    rt = stiff[1]
     rng = np.random.default_rng(8)
     images = [rng.integers(0, 256, (*rt.image_size, 3), dtype=np.uint8) for _ in range(3)]
     a, b = rt.encode(images), rt.encode(images)
@@ -653,6 +695,17 @@ def torch_models(torch_export):
     return model_dir, model, copy.deepcopy(model).double().eval()
 
 
+@pytest.fixture(scope="module", params=["tiny", "tiny-rgb"])
+def any_torch_models(request):
+    """``torch_models`` and the same for the explicit-colour model (``torch_export_rgb``)."""
+    if request.param == "tiny":
+        return request.getfixturevalue("torch_models")
+    import copy
+    pytest.importorskip("torch")
+    model_dir, model = request.getfixturevalue("torch_export_rgb")
+    return model_dir, model, copy.deepcopy(model).double().eval()
+
+
 def _ort(path):
     import onnxruntime as ort
     opts = ort.SessionOptions()
@@ -663,12 +716,17 @@ def _ort(path):
 def _renderer_feed(V, R_, S, seed, cfg):
     rng = np.random.default_rng(seed)
     h, w = cfg.feature_grid
-    return {"field_maps": rng.normal(size=(V, cfg.field_channels, h, w)).astype(F32),
+    feed = {"field_maps": rng.normal(size=(V, cfg.field_channels, h, w)).astype(F32),
             "grid": rng.uniform(-1.2, 1.2, size=(V, R_, S, 2)).astype(F32),
             "cues": rng.normal(size=(V, R_, S, 4)).astype(F32),
             "mask": rng.random((V, R_, S)) > 0.4,
             "positions": rng.normal(size=(R_, S, 3)).astype(F32),
             "directions": rng.normal(size=(R_, 3)).astype(F32)}
+    if cfg.explicit_rgb:     # ray 0 black, ray 1 white (the blend's clamp), the others random
+        colours = rng.random((V, R_, S, 3)).astype(F32)
+        colours[:, 0], colours[:, 1] = 0.0, 1.0
+        feed["colours"] = colours
+    return feed
 
 
 def _torch64(model64, feed):
@@ -683,11 +741,12 @@ def _torch64(model64, feed):
 
 @pytest.mark.torch
 @pytest.mark.parametrize("case", ["borders", "large_logits", "masked", "one_view", "32_views"])
-def test_renderer_graph_vs_float64_torch(torch_models, case):
+def test_renderer_graph_vs_float64_torch(any_torch_models, case):
     """ONNX renderer vs the torch renderer in float64. Tolerance 1e-4 (DESIGN's export
     tolerance; measured ~1e-7); for logits scaled by 1e4 the softmax amplifies float32's relative
-    error u |logit| ~ 1e-3 in the exponent, hence 1e-2 there (measured below it)."""
-    model_dir, model, model64 = torch_models
+    error u |logit| ~ 1e-3 in the exponent, hence 1e-2 there (measured below it). Both models
+    (the explicit-colour one with black, white and random colours)."""
+    model_dir, model, model64 = any_torch_models
     cfg = model.cfg
     V, R_, S = {"one_view": 1, "32_views": 32}.get(case, 3), 6, 9
     feed = _renderer_feed(V, R_, S, 11, cfg)
