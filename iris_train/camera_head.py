@@ -17,6 +17,7 @@ from .geometry import rotation_from_6d
 from .layers import MLP
 
 _IDENTITY_6D = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0)   # first two columns of I
+POSE_INIT_STD = 0.02
 
 
 class CameraHead(nn.Module):
@@ -25,10 +26,11 @@ class CameraHead(nn.Module):
         d = cfg.encoder_width
         self.pose_mlp = MLP(2 * d, d, 9)
         self.focal_mlp = MLP(d, d // 2, 2)
-        # Near-zero (not zero) last layers: cameras start at the identity with the unit focal, yet
-        # every parameter receives gradient from the first step.
-        for last in (self.pose_mlp[-1], self.focal_mlp[-1]):
-            nn.init.normal_(last.weight, std=1e-3)
+        # Small last layers: cameras start near the identity with the unit focal. The pose layer's
+        # std is 0.02, not ~0: the gradient that reaches the encoder through the head scales with
+        # it, and at 1e-3 the encoder's camera pathway learned ~nothing (docs/TRAINING.md, R3).
+        for last, std in ((self.pose_mlp[-1], POSE_INIT_STD), (self.focal_mlp[-1], 1e-3)):
+            nn.init.normal_(last.weight, std=std)
             nn.init.zeros_(last.bias)
         self.log_focal_min = math.log(cfg.focal_min)
         self.log_focal_range = math.log(cfg.focal_max) - math.log(cfg.focal_min)

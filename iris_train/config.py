@@ -34,6 +34,11 @@ class ModelConfig:
     # False: the paper's renderer (colour from the rgb head alone, depth from the last ray
     # attention), which is what checkpoints without this field hold.
     explicit_rgb: bool = False
+    # Canonical-view marker (VGGT's first-frame tokens): a learnable embedding added to every token
+    # of view 0, so that cross-view attention can tell the canonical view's patches from the
+    # others'. Without it no token knows which view the poses are relative to, and the camera head
+    # cannot learn relative rotations (docs/TRAINING.md). Views 1..V-1 stay order-free.
+    canonical_marker: bool = False
     # Ray sampling (DESIGN.md: camera depths in [0.1, 1.0], 64 samples).
     near: float = 0.1
     far: float = 1.0
@@ -79,7 +84,7 @@ PRESETS: dict[str, ModelConfig] = {
     # Trainable on 2 CPU cores.
     "tiny": ModelConfig(),
     # The tiny preset with explicit colour: the default for new runs (docs/TRAINING.md).
-    "tiny-rgb": ModelConfig(explicit_rgb=True),
+    "tiny-rgb": ModelConfig(explicit_rgb=True, canonical_marker=True),
     # Muskie-base-like widths at 256x256, patch 16 (needs a GPU to train).
     "paper": ModelConfig(image_height=256, image_width=256, patch_size=16, encoder_width=768,
                          encoder_pairs=6, encoder_heads=12, field_width=256, view_blocks=1,

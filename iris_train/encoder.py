@@ -2,8 +2,10 @@
 cross-view attention (a small Muskie/VGGT-style backbone).
 
 There is deliberately no image-index embedding: every view gets the same learnable camera token and
-the same 2D positional encoding, so the encoder is permutation-equivariant over views. The only
-thing that singles out view 0 is the camera head, which expresses every pose relative to it.
+the same 2D positional encoding, so the encoder is permutation-equivariant over views 1..V-1. View
+0 is the canonical frame: the camera head expresses every pose relative to it, and with
+``ModelConfig.canonical_marker`` its tokens also carry a learnable marker (as VGGT's first frame),
+which the relative poses need (docs/TRAINING.md).
 
 **References are isolated.** Views are either references (they build the scene) or queries (views
 whose camera is wanted but whose image must not leak into the scene: training targets, evaluation
@@ -32,6 +34,7 @@ class MultiViewEncoder(nn.Module):
         self.patch_size = cfg.patch_size
         self.patch_embed = nn.Conv2d(3, d, kernel_size=cfg.patch_size, stride=cfg.patch_size)
         self.camera_token = nn.Parameter(torch.randn(1, 1, d) * 0.02)
+        self.canonical_embed = nn.Parameter(torch.randn(1, 1, d) * 0.02) if cfg.canonical_marker else None
         # Even blocks attend within a view, odd blocks across all views of the scene.
         self.blocks = nn.ModuleList(SelfAttentionBlock(d, cfg.encoder_heads, cfg.mlp_ratio)
                                     for _ in range(2 * cfg.encoder_pairs))
@@ -51,6 +54,10 @@ class MultiViewEncoder(nn.Module):
         tokens = x.flatten(2).transpose(1, 2) + pos                                 # [BV, hw, D]
         tokens = torch.cat([self.camera_token.expand(B * V, 1, D), tokens], dim=1)  # [BV, T, D]
         T = tokens.shape[1]
+        if self.canonical_embed is not None:
+            is_canonical = (torch.arange(V, device=tokens.device) == 0).to(tokens.dtype)
+            marker = is_canonical.repeat(B)[:, None, None] * self.canonical_embed       # [BV, 1, D]
+            tokens = tokens + marker
         attend = None if is_reference is None else cross_view_mask(is_reference, T)
         for i, block in enumerate(self.blocks):
             if i % 2 == 0:

@@ -170,6 +170,12 @@ class PhotometricLoss(nn.Module):
         return total, {k: float(v.detach()) for k, v in means.items()}
 
 
+#: Translations shorter than this (model units; scene baselines are ~0.1-0.5) count as "no
+#: direction yet": unit(t) = t / sqrt(|t|^2 + floor^2) keeps the direction loss's gradient bounded
+#: while the cameras sit near one point (with a 1e-3 floor it was 50x the rotation term's, R3).
+DIRECTION_FLOOR = 0.05
+
+
 def teacher_losses(world_from_cam: torch.Tensor, focal: torch.Tensor, cam_from_cam: torch.Tensor,
                    trusted: torch.Tensor, teacher_focal: float) -> dict[str, torch.Tensor]:
     """Epipolar pseudo-pose losses of one scene's predicted ``world_from_cam [V, 4, 4]`` and
@@ -182,7 +188,7 @@ def teacher_losses(world_from_cam: torch.Tensor, focal: torch.Tensor, cam_from_c
     R_pred, R_t = pred[..., :3, :3], cam_from_cam[..., :3, :3]
     cos = ((R_pred * R_t).sum((-1, -2)) - 1) / 2
     t = pred[..., :3, 3]
-    unit = t / torch.sqrt((t ** 2).sum(-1, keepdim=True) + 1e-6)
+    unit = t / torch.sqrt((t ** 2).sum(-1, keepdim=True) + DIRECTION_FLOOR ** 2)
     out = {"teacher_rot": ((1 - cos) * w).sum() / n,
            "teacher_dir": (((unit - cam_from_cam[..., :3, 3]) ** 2).sum(-1) / 2 * w).sum() / n}
     out["teacher_focal"] = ((torch.log(focal) - math.log(teacher_focal)) ** 2).mean()

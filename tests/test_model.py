@@ -291,7 +291,9 @@ def test_locate(spread_model, images):
         of_references = model.locate(refs, refs)
     assert poses.shape == (2, 4, 4) and torch.isfinite(poses).all()
     assert torch.equal(poses, expected)
-    assert (one_by_one - poses).abs().max() <= 1e-6 and (swapped.flip(0) - poses).abs().max() <= 1e-6
+    # Together vs one by one: attention rows of different lengths round differently in float32
+    # (measured 1.8e-6 on entries of order 1 with the 0.02 pose-layer init; ~15 ulp).
+    assert (one_by_one - poses).abs().max() <= 1e-5 and (swapped.flip(0) - poses).abs().max() <= 1e-5
     R = poses[:, :3, :3]
     torch.testing.assert_close(R.transpose(1, 2) @ R, torch.eye(3).expand(2, 3, 3), atol=1e-5, rtol=0)
     assert torch.equal(poses[:, 3], torch.tensor([0.0, 0.0, 0.0, 1.0]).expand(2, 4))
