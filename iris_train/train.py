@@ -89,8 +89,15 @@ class PhotometricLoss(nn.Module):
         super().__init__()
         self.model = model
         self.cfg = cfg
-        # Training-only head (saved as the checkpoint's "aux"): the blend's per-sample logit.
-        self.sample_logit = nn.Linear(model.cfg.field_width, 1)
+        # Training-only head (saved as the checkpoint's "aux") of the paper renderer's warp
+        # auxiliary; explicit-colour models use their own blend weights instead.
+        self.sample_logit = None if model.cfg.explicit_rgb else nn.Linear(model.cfg.field_width, 1)
+
+    def aux_parameters(self) -> list:
+        return [] if self.sample_logit is None else list(self.sample_logit.parameters())
+
+    def aux_state(self) -> dict:
+        return {} if self.sample_logit is None else self.sample_logit.state_dict()
 
     def forward(self, images: torch.Tensor, ref: list[torch.Tensor], tgt: list[torch.Tensor],
                 pixels: list[torch.Tensor], depths: list[torch.Tensor], teacher: list | None = None,
@@ -309,12 +316,13 @@ def train(cfg: TrainConfig, out: Path, resume: bool = False, scenes=None, thread
     torch.manual_seed(cfg.seed)
     model = build_model(mcfg)
     loss_module = PhotometricLoss(model, cfg)
-    optimizer = make_optimizer(model, cfg, list(loss_module.sample_logit.parameters()))
+    optimizer = make_optimizer(model, cfg, loss_module.aux_parameters())
     start_step, elapsed_before = 0, 0.0
     if resume and ckpt_path.exists():
         payload = read_checkpoint(ckpt_path)
         model.load_state_dict(payload["model"])
-        loss_module.sample_logit.load_state_dict(payload["aux"])
+        if loss_module.sample_logit is not None:
+            loss_module.sample_logit.load_state_dict(payload["aux"])
         optimizer.load_state_dict(payload["optimizer"])
         start_step = int(payload["step"])
         elapsed_before = float(payload.get("elapsed", 0.0))
@@ -369,7 +377,7 @@ def train(cfg: TrainConfig, out: Path, resume: bool = False, scenes=None, thread
             out_of_time = max_seconds is not None and elapsed > max_seconds
             if (step + 1) % cfg.ckpt_every == 0 or done or out_of_time:
                 save_checkpoint(ckpt_path, model, optimizer=optimizer.state_dict(), step=step + 1,
-                                aux=loss_module.sample_logit.state_dict(),
+                                aux=loss_module.aux_state(),
                                 elapsed=elapsed_before + elapsed, train_config=dataclasses.asdict(cfg))
             if out_of_time:
                 break
