@@ -19,6 +19,11 @@ direction losses on the pairs the teacher trusts), next to the photometric losse
 scale. Nothing here reads a camera label; evaluation compares them with the true poses only to
 report how good a teacher they are (``python -m iris_train.pseudo_poses --heldout --score``).
 
+The geometry itself is ``iris_runtime.epipolar`` (numpy + OpenCV, torch-free: the runtime's
+``IrisRuntime.encode(images, cameras="epipolar")`` uses the same code); this module adds the cache,
+the pre-generation CLI and the score against the true poses, which also scores the global solve
+(``iris_runtime.epipolar.solve_cameras``) over all pairs.
+
 The result is cached beside the scene cache as ``pseudo_<seed:07d>_v<n>.npz`` (``TEACHER_VERSION``
 is part of the file; a different version is recomputed).
 """
@@ -28,109 +33,32 @@ import argparse
 import json
 import math
 import sys
-from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
 import numpy as np
 
+# The two-view geometry lives in the torch-free runtime (one implementation for the teacher, the
+# runtime's cameras="epipolar" and iris-eval); its constants are re-exported here.
+from iris_runtime.epipolar import (ESTIMATOR, FB_TOLERANCE, FLOW_UPSAMPLE,  # noqa: F401
+                                   FOCAL_GRID, FOCAL_SEARCH_POINTS, MIN_INLIER_RATIO, MIN_INLIERS,
+                                   RANSAC_THRESHOLD, PairwisePoses, flow_matches, intrinsics,
+                                   pairwise_poses, solve_global)
+
 TEACHER_VERSION = 3
-#: Upsampling before flow (DIS works on 4x4+ patches; at 64x64 the flow is too coarse without it).
-FLOW_UPSAMPLE = 4
-#: Forward-backward disagreement (pixels of the model image) above which a flow vector is dropped.
-FB_TOLERANCE = 0.5
-#: Focal candidates fx/W (vertical fields of view from about 35 to 80 degrees).
-FOCAL_GRID = tuple(float(f) for f in np.geomspace(0.6, 1.6, 11))
-#: A pair is trusted when RANSAC keeps at least this many flow vectors and this fraction of them.
-MIN_INLIERS = 100
-MIN_INLIER_RATIO = 0.5
-#: Robust estimator of the essential matrix and its inlier threshold (pixels of the model image).
-#: USAC_ACCURATE (local optimisation + final polishing on all inliers) at 0.25 px against RANSAC at
-#: 0.5 px, 16 held-out scenes with the true focal: teacher RPA@15 0.641 vs 0.480, median rotation
-#: error 2.1 vs 3.9 degrees, translation direction 8.3 vs 15.0 (docs/TRAINING.md, "teacher").
-ESTIMATOR = cv2.USAC_ACCURATE
-RANSAC_THRESHOLD = 0.25
-FOCAL_SEARCH_POINTS = 1500
 
-
-@dataclass(frozen=True)
-class PseudoPoses:
-    """``cam_from_cam [V, V, 4, 4]``: entry [i, j] maps camera i's coordinates to camera j's
-    (x_j = R x_i + t, |t| = 1); ``trusted [V, V]`` bool (symmetric, False on the diagonal);
-    ``inliers [V, V]``; ``focal`` fx/W of the grid search (shared, square pixels)."""
-    cam_from_cam: np.ndarray
-    trusted: np.ndarray
-    inliers: np.ndarray
-    focal: float
-
-
-def _flow_matches(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Pixel correspondences ``p -> q`` ``[N, 2]`` (model-image pixels, centres at +0.5) from
-    forward-backward-consistent DIS flow between uint8 RGB images a and b."""
-    up = FLOW_UPSAMPLE
-    H, W = a.shape[:2]
-    grey = [cv2.resize(cv2.cvtColor(x, cv2.COLOR_RGB2GRAY), (W * up, H * up),
-                       interpolation=cv2.INTER_CUBIC) for x in (a, b)]
-    dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
-    fwd = dis.calc(grey[0], grey[1], None)
-    bwd = dis.calc(grey[1], grey[0], None)
-    step = up // 2
-    ys, xs = np.mgrid[0:H * up:step, 0:W * up:step]
-    p = np.stack([xs.ravel(), ys.ravel()], 1).astype(np.float32) + 0.5
-    f = fwd[ys.ravel(), xs.ravel()]
-    q = p + f
-    back = cv2.remap(bwd, q[:, :1] - 0.5, q[:, 1:] - 0.5, cv2.INTER_LINEAR).reshape(-1, 2)
-    ok = ((np.linalg.norm(f + back, axis=1) < FB_TOLERANCE * up)
-          & (q[:, 0] > 0) & (q[:, 1] > 0) & (q[:, 0] < W * up) & (q[:, 1] < H * up))
-    return p[ok] / up, q[ok] / up
-
-
-def _intrinsics(focal: float, H: int, W: int) -> np.ndarray:
-    return np.array([[focal * W, 0.0, W / 2], [0.0, focal * W, H / 2], [0.0, 0.0, 1.0]])
+#: The teacher's result: ``iris_runtime.epipolar.PairwisePoses`` (cam_from_cam [V, V, 4, 4],
+#: trusted, inliers, focal), under the name the training code knows it by.
+PseudoPoses = PairwisePoses
+# Kept for callers of the old private names.
+_flow_matches = flow_matches
+_intrinsics = intrinsics
 
 
 def estimate(images: np.ndarray) -> PseudoPoses:
-    """``images`` uint8 ``[V, H, W, 3]`` of one static scene -> ``PseudoPoses``."""
-    cv2.setRNGSeed(0)                      # RANSAC draws: same images, same teacher
-    V, H, W = images.shape[:3]
-    matches = {(i, j): _flow_matches(images[i], images[j]) for i in range(V) for j in range(i + 1, V)}
-    # The focal search scores 11 focals on ~11 pairs: a fixed random subset of each pair's flow
-    # vectors keeps it at a third of the scene's time (the final fit below uses all of them).
-    rng = np.random.default_rng(0)
-    subsets = {k: rng.permutation(len(p))[:FOCAL_SEARCH_POINTS] for k, (p, _) in matches.items()}
-    scores = []
-    for f in FOCAL_GRID:
-        K = _intrinsics(f, H, W)
-        ratios = []
-        for (i, j), (p, q) in matches.items():
-            if j - i not in (2, 3) or len(p) < MIN_INLIERS:
-                continue
-            p, q = p[subsets[i, j]], q[subsets[i, j]]
-            E, inl = cv2.findEssentialMat(p, q, K, ESTIMATOR, 0.999, RANSAC_THRESHOLD)
-            if E is not None and E.shape == (3, 3):
-                ratios.append(float(inl.mean()))
-        scores.append(np.mean(ratios) if ratios else 0.0)
-    focal = FOCAL_GRID[int(np.argmax(scores))]
-    K = _intrinsics(focal, H, W)
-    cam_from_cam = np.tile(np.eye(4), (V, V, 1, 1))
-    trusted = np.zeros((V, V), dtype=bool)
-    inliers = np.zeros((V, V), dtype=np.int32)
-    for (i, j), (p, q) in matches.items():
-        if len(p) < MIN_INLIERS:
-            continue
-        E, inl = cv2.findEssentialMat(p, q, K, ESTIMATOR, 0.999, RANSAC_THRESHOLD)
-        if E is None or E.shape != (3, 3):
-            continue
-        n, R, t, _ = cv2.recoverPose(E, p, q, K, mask=inl.copy())
-        T = np.eye(4)
-        T[:3, :3], T[:3, 3] = R, t.ravel() / max(np.linalg.norm(t), 1e-12)
-        cam_from_cam[i, j] = T
-        Ti = np.eye(4)
-        Ti[:3, :3], Ti[:3, 3] = R.T, -R.T @ T[:3, 3]
-        cam_from_cam[j, i] = Ti
-        inliers[i, j] = inliers[j, i] = int(n)
-        trusted[i, j] = trusted[j, i] = n >= MIN_INLIERS and n >= MIN_INLIER_RATIO * len(p)
-    return PseudoPoses(cam_from_cam, trusted, inliers, float(focal))
+    """``images`` uint8 ``[V, H, W, 3]`` of one static scene -> ``PseudoPoses`` at the
+    grid-searched focal (``iris_runtime.epipolar.pairwise_poses(images)``)."""
+    return pairwise_poses(images)
 
 
 # -- cache ------------------------------------------------------------------------------------
@@ -198,6 +126,21 @@ def pair_errors(pp: PseudoPoses, world_from_cam: np.ndarray) -> np.ndarray:
     return np.array(out)
 
 
+def global_errors(pp: PseudoPoses, world_from_cam: np.ndarray, *, robust: bool = True
+                  ) -> np.ndarray:
+    """``[P, 2]`` rotation and (sign-free) translation-direction errors in degrees of every pair
+    i < j of the globally solved cameras (``iris_runtime.epipolar.solve_global``) against true
+    poses (``iris_train.metrics.relative_pose_errors``); pairs with a view the solve does not
+    reach count as 180."""
+    from .metrics import relative_pose_errors
+    sol = solve_global(pp, robust=robust)
+    T = np.where(sol.solved[:, None, None], sol.world_from_cam, np.eye(4))
+    rot, trans = relative_pose_errors(T, world_from_cam)
+    i, j = np.triu_indices(len(T), 1)
+    bad = ~(sol.solved[i] & sol.solved[j])
+    return np.stack([np.where(bad, 180.0, rot), np.where(bad, 180.0, trans)], 1)
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m iris_train.pseudo_poses",
                                      description=__doc__.split("\n\n")[0])
@@ -205,7 +148,9 @@ def main(argv=None) -> int:
     parser.add_argument("--heldout", action="store_true", help="the held-out scenes")
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--score", action="store_true",
-                        help="compare with the true poses (held-out scenes): RPA of the teacher")
+                        help="compare with the true poses (held-out scenes): RPA of the teacher "
+                             "(trusted pairs; the others count as failures) and, under 'global', "
+                             "of the globally solved cameras over all pairs")
     args = parser.parse_args(argv)
     from .data import HELDOUT_SEEDS, SyntheticScenes
     if args.train:
@@ -214,20 +159,27 @@ def main(argv=None) -> int:
         pregenerate(HELDOUT_SEEDS, args.workers)
         if args.score:
             scenes = SyntheticScenes(HELDOUT_SEEDS)
-            errs, trusted, focal_ratio = [], [], []
+            errs, glob, trusted, focal_ratio = [], [], [], []
             for i in range(len(scenes)):
                 pp = load_or_estimate(scenes, i)
                 d = scenes[i]
                 errs.append(pair_errors(pp, d.world_from_cam))
+                glob.append(global_errors(pp, d.world_from_cam))
                 trusted.append(pp.trusted[np.triu_indices(d.images.shape[0], 1)].mean())
                 focal_ratio.append(pp.focal / (d.K[0, 0] / d.images.shape[2]))
             e = np.concatenate(errs)
             ep = e.max(1)
+            g = np.concatenate(glob)
             print(json.dumps({"pairs": len(e), "trusted": float(np.mean(trusted)),
                               **{f"rpa@{t}": float(np.mean(ep < t)) for t in (5, 15, 30)},
                               "median_rotation_error_trusted": float(np.median(e[e[:, 0] < 180, 0])),
                               "median_translation_error_trusted": float(np.median(e[e[:, 1] < 180, 1])),
-                              "focal_ratio_median": float(np.median(focal_ratio))}, indent=1))
+                              "focal_ratio_median": float(np.median(focal_ratio)),
+                              "global": {
+                                  **{f"rpa@{t}": float(np.mean(g.max(1) < t)) for t in (5, 15, 30)},
+                                  "median_rotation_error": float(np.median(g[:, 0])),
+                                  "median_translation_error": float(np.median(g[:, 1]))}},
+                             indent=1))
     return 0
 
 
