@@ -12,6 +12,12 @@ A thin command line over ``IrisRuntime``. It encodes the input images once, then
   written to ``located_poses.json`` and rendered from the inputs as ``located_NNN``;
 - nothing of the above: every input view (``--view`` 0..V-1).
 
+``--cameras epipolar`` replaces the model's predicted cameras of the inputs by the global epipolar
+solve of the photos (``IrisRuntime.encode(images, cameras="epipolar")``: optical flow, essential
+matrices at a grid-searched focal, rotation and translation averaging, centres scaled to the
+model's units); every output (renders, ``--view`` poses, orbit, camera files) then uses those
+cameras and that focal. ``--locate`` keeps the model's prediction of the photo's pose.
+
 Written to OUT (created if needed; files of the same name are replaced):
 
 - ``<name>.png``: the rendered view (8-bit RGB), ``<name>`` = ``view_003``, ``pose_000``,
@@ -110,6 +116,10 @@ def build_parser() -> argparse.ArgumentParser:
                              "the scene): printed, written to located_poses.json (4x4 "
                              "world_from_cam each) and rendered as located_NNN; give it after "
                              "IMAGES")
+    p.add_argument("--cameras", choices=["model", "epipolar"], default="model",
+                   help="cameras of the inputs: the model's prediction (default) or the global "
+                        "epipolar solve of the photos, scaled to the model's units (~1 s per 8 "
+                        "views; views it cannot reach keep the model's camera)")
     out = p.add_argument_group("output and speed")
     out.add_argument("--size", metavar="HxW", type=_size,
                      help="output size (default: the model's resolution)")
@@ -240,10 +250,18 @@ def run(args: argparse.Namespace) -> int:
 
     # 2. Encode once.
     t0 = time.perf_counter()
-    scene = rt.encode(inputs)
+    scene = rt.encode(inputs, cameras=args.cameras)
     t_encode = time.perf_counter() - t0
     say(f"encoded {V} view(s) at {H}x{W} in {t_encode:.2f} s (model check + image loading "
         f"{t_load:.2f} s); focal fx/W={scene.focal[0]:.4f} fy/H={scene.focal[1]:.4f}")
+    if args.cameras != "model":
+        say(f"cameras of the inputs: {scene.camera_source}"
+            + {"epipolar": " (every view from the epipolar solve)",
+               "mixed": " (views the epipolar solve could not reach keep the model's camera)",
+               "model": " (the epipolar solve reached no view: the model's cameras)"}
+            [scene.camera_source]
+            + ("" if scene.encoder_focal is None else
+               f"; the model's focal was fx/W={scene.encoder_focal[0]:.4f}"))
     located = None
     if photos:
         t0 = time.perf_counter()
@@ -276,8 +294,9 @@ def run(args: argparse.Namespace) -> int:
     camera_io.write_transforms_json(out / "transforms.json", cams, scene.K, (H, W),
                                     [f"inputs/{n}" for n in names])
     camera_io.write_colmap_text(out / "colmap", cams, scene.K, (H, W), names)
+    what = "predicted" if scene.camera_source == "model" else scene.camera_source
     _write_png(out / "cameras.png", draw_cameras(cams, scene.K, size=(480, 640),
-                                                 title=f"predicted cameras of the {V} input(s)"))
+                                                 title=f"{what} cameras of the {V} input(s)"))
     if orbit is not None:
         (out / "orbit_poses.json").write_text(json.dumps(orbit.tolist()) + "\n")
     if located is not None:

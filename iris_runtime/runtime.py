@@ -60,13 +60,20 @@ from .errors import InputError, ManifestError, ModelFileError
 from .images import fit_to_model, load_image
 from .manifest import MANIFEST_NAME, Manifest, read_graph_bytes, read_manifest
 
-__all__ = ["IrisRuntime", "Scene", "RenderResult", "check_pose", "RENDER_BUDGET", "MAX_CHUNK_RAYS",
+__all__ = ["IrisRuntime", "Scene", "RenderResult", "check_pose", "CAMERAS", "CAMERA_SOURCES",
+           "RENDER_BUDGET", "MAX_CHUNK_RAYS",
            "MAX_OUTPUT_PIXELS", "MAX_ENCODER_TOKENS", "MAX_CHUNK_SAMPLES", "MAX_LOCATE_CALLS",
            "render_memory_bound",
            "PRECISIONS", "RenderSettings", "QUALITY_PRESETS"]
 
 RenderSettings = Q.RenderSettings
 QUALITY_PRESETS = Q.QUALITY_PRESETS
+
+#: Values of ``IrisRuntime.encode(images, cameras=...)``: the encoder's cameras, or the global
+#: epipolar solve of the images (``iris_runtime.epipolar.refine_cameras``).
+CAMERAS = ("model", "epipolar")
+#: Values of ``Scene.camera_source``.
+CAMERA_SOURCES = ("model", "epipolar", "mixed")
 
 #: Rays per renderer call: ``min(MAX_CHUNK_RAYS, RENDER_BUDGET // (S * V))``, V the scene's
 #: reference views (the worst case of the culled V'): 256 rays for 1-2 views, 128 for 4, 64 for 8
@@ -187,6 +194,15 @@ class Scene:
                     (``subset`` keeps it in step with the views): where explicit-colour models
                     read each view's photo. Default: ``arange(V)`` when there are V reference
                     images, else None (unknown; explicit-colour renders refuse such a Scene)
+    camera_source:  where ``world_from_cam`` comes from: "model" (the encoder's prediction),
+                    "epipolar" (``encode(..., cameras="epipolar")``: every view from the global
+                    epipolar solve, ``iris_runtime.epipolar.refine_cameras``) or "mixed" (the
+                    solve reached only some views through trusted pairs; the others keep the
+                    model's camera). ``subset`` keeps the value of the scene it was cut from
+    encoder_focal:  float64 [2], the focal the encoder predicted when ``focal`` is another one
+                    (``cameras="epipolar"`` puts the grid-searched focal in ``focal`` and ``K``);
+                    None when ``focal`` is the encoder's. ``locate`` checks the reference images
+                    against it
     """
     field_maps: np.ndarray
     world_from_cam: np.ndarray
@@ -196,6 +212,8 @@ class Scene:
     model_id: str = ""
     reference_images: np.ndarray | None = field(default=None, repr=False)
     image_index: np.ndarray | None = field(default=None, repr=False)
+    camera_source: str = "model"
+    encoder_focal: np.ndarray | None = field(default=None, repr=False)
 
     def __post_init__(self):
         arrays = {}
@@ -252,9 +270,23 @@ class Scene:
             index = _readonly(index, np.int64)
         elif refs is not None and refs.shape[0] == V:
             index = _readonly(np.arange(V), np.int64)
+        if not isinstance(self.camera_source, str) or self.camera_source not in CAMERA_SOURCES:
+            raise InputError(f"camera_source: expected one of {list(CAMERA_SOURCES)}, got "
+                             f"{self.camera_source!r}")
+        enc_focal = self.encoder_focal
+        if enc_focal is not None:
+            try:
+                enc_focal = _readonly(enc_focal, np.float64)
+            except (TypeError, ValueError):
+                raise InputError(f"encoder_focal: expected [2] numbers or None, got "
+                                 f"{type(self.encoder_focal).__name__}") from None
+            if enc_focal.shape != (2,) or not (np.all(np.isfinite(enc_focal))
+                                               and np.all(enc_focal > 0)):
+                raise InputError(f"encoder_focal: expected [2] positive finite numbers or None, "
+                                 f"got {enc_focal.tolist()}")
         for name, value in (("field_maps", maps), ("world_from_cam", poses), ("focal", focal),
                             ("image_size", size), ("K", K), ("reference_images", refs),
-                            ("image_index", index)):
+                            ("image_index", index), ("encoder_focal", enc_focal)):
             object.__setattr__(self, name, value)
 
     @property
@@ -286,11 +318,13 @@ class Scene:
                              f"twice would weigh twice in the view attention)")
         return Scene(self.field_maps[idx], self.world_from_cam[idx], self.focal, self.K,
                      self.image_size, self.model_id, self.reference_images,
-                     None if self.image_index is None else self.image_index[idx])
+                     None if self.image_index is None else self.image_index[idx],
+                     self.camera_source, self.encoder_focal)
 
     def __repr__(self) -> str:
         return (f"Scene(views={self.num_views}, field_maps={tuple(self.field_maps.shape)}, "
-                f"image_size={self.image_size}, focal={np.round(self.focal, 4).tolist()})")
+                f"image_size={self.image_size}, focal={np.round(self.focal, 4).tolist()}, "
+                f"camera_source={self.camera_source!r})")
 
 
 @dataclass(frozen=True, eq=False)
@@ -487,14 +521,36 @@ class IrisRuntime:
                                  f"or inf for finite images in [0, 1] (broken weights?)")
         return maps, world_from_cam, focal
 
-    def encode(self, images) -> Scene:
+    def encode(self, images, cameras: str = "model") -> Scene:
         """Run the encoder on ``images`` (a sequence of HxWx3 uint8 RGB arrays, PIL images or
         file paths, any size: centre-cropped to the model's aspect ratio and resized, see
         ``iris_runtime.images.fit_to_model``), every image a reference -> an immutable ``Scene``
-        (which keeps the model-resolution images for ``locate``)."""
-        return self._encode(images, {})
+        (which keeps the model-resolution images for ``locate``).
 
-    def _encode(self, images, timings: dict) -> Scene:
+        cameras: "model" (default): the encoder's predicted cameras and focal.
+                 "epipolar": the field maps are the encoder's as always, but the poses are the
+                 global epipolar solve of the model-resolution images
+                 (``iris_runtime.epipolar.refine_cameras``: DIS flow, an essential matrix per
+                 pair at the grid-searched focal, rotation and translation averaging), with the
+                 centres scaled by least squares onto the encoder's centres (so the renderer
+                 keeps its units; collapsed or opposed model centres: the model's mean baseline
+                 or ``epipolar.DEFAULT_BASELINE``, see ``epipolar.fit_scale``). The grid-searched
+                 focal becomes the Scene's ``focal`` and ``K`` (rendering uses the focal the
+                 poses were solved at); the encoder's is kept in ``Scene.encoder_focal``. Views
+                 that view 0 does not reach through trusted pairs keep the encoder's camera
+                 (``Scene.camera_source`` "mixed"; "model" if none is reached). Costs ~1 s per 8
+                 views on one core (V (V - 1) / 2 pairs of flow), beside the encoder.
+                 Held-out figures: README, "Epipolar cameras".
+        """
+        return self._encode(images, {}, self._check_cameras(cameras))
+
+    @staticmethod
+    def _check_cameras(cameras) -> str:
+        if not isinstance(cameras, str) or cameras not in CAMERAS:
+            raise InputError(f"cameras: expected one of {list(CAMERAS)}, got {cameras!r}")
+        return cameras
+
+    def _encode(self, images, timings: dict, cameras: str = "model") -> Scene:
         t0 = time.perf_counter()
         batch = self._load_images(images)
         t1 = time.perf_counter()
@@ -504,9 +560,20 @@ class IrisRuntime:
         timings["encode"] = timings.get("encode", 0.0) + (t2 - t1)
         H, W = self.image_size
         focal64 = focal.astype(np.float64)
-        return Scene(maps, world_from_cam.astype(np.float64), focal64,
-                     G.intrinsics_from_focal(focal64, H, W), (H, W),
-                     self.manifest.graphs["encoder"].sha256, batch)
+        poses64 = world_from_cam.astype(np.float64)
+        model_id = self.manifest.graphs["encoder"].sha256
+        if cameras == "model":
+            return Scene(maps, poses64, focal64, G.intrinsics_from_focal(focal64, H, W), (H, W),
+                         model_id, batch)
+        from . import epipolar
+        # The batch is uint8 / 255 in float32: rint(x * 255) gives the uint8 pixels back exactly.
+        pixels = np.rint(batch * 255.0).astype(np.uint8).transpose(0, 2, 3, 1)
+        ref = epipolar.refine_cameras(pixels, poses64, focal64)
+        timings["cameras"] = timings.get("cameras", 0.0) + (time.perf_counter() - t2)
+        same_focal = bool(np.array_equal(ref.focal, focal64))
+        return Scene(maps, ref.world_from_cam, ref.focal,
+                     G.intrinsics_from_focal(ref.focal, H, W), (H, W), model_id, batch,
+                     camera_source=ref.source, encoder_focal=None if same_focal else focal64)
 
     # -- locating ---------------------------------------------------------------------------
     def locate(self, scene: Scene, image) -> np.ndarray:
@@ -523,6 +590,13 @@ class IrisRuntime:
         call; at most ``MAX_LOCATE_CALLS`` calls). Returns ``world_from_cam`` float64 ``[4, 4]``
         for one photo, ``[Q, 4, 4]`` for a sequence (OpenCV axes, the scene's canonical frame:
         its first reference is the identity; the scene's shared focal applies).
+
+        The pose is always the model's prediction, also for a Scene encoded with
+        ``cameras="epipolar"``: it is then in the frame of the encoder's cameras of the
+        references, which shares view 0 (= I) and, through the scale fit, the unit with the
+        scene's epipolar cameras, but not the other views' rotations. (An epipolar pose of a
+        query with the references fixed is ``iris_runtime.epipolar.locate_views``; iris-eval
+        measures it, see README "Epipolar cameras"; not wired in here yet.)
         """
         if not isinstance(scene, Scene):
             raise InputError(f"scene: expected a Scene from IrisRuntime.encode, got "
@@ -545,10 +619,11 @@ class IrisRuntime:
             chunk = queries[start:start + per_call]
             batch = np.concatenate([refs, chunk])
             _, world_from_cam, focal = self._run_encoder(batch, np.arange(batch.shape[0]) < N)
-            if np.abs(focal.astype(np.float64) - scene.focal).max() > 1e-6:   # bitwise when real
+            expected = scene.focal if scene.encoder_focal is None else scene.encoder_focal
+            if np.abs(focal.astype(np.float64) - expected).max() > 1e-6:   # bitwise when real
                 raise InputError(f"scene: its reference_images give focal {focal.tolist()}, not "
-                                 f"the scene's {scene.focal.tolist()} (not the images it was "
-                                 f"encoded from)")
+                                 f"the encoder's {expected.tolist()} of the scene (not the "
+                                 f"images it was encoded from)")
             poses.append(world_from_cam[N:].astype(np.float64))
         poses = np.concatenate(poses)
         return poses[0] if single else poses

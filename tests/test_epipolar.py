@@ -1,0 +1,424 @@
+"""iris_runtime.epipolar: two-view geometry, the global camera solve, the refinement of a model's
+cameras and ``IrisRuntime.encode(images, cameras="epipolar")``.
+
+The first half is numpy + OpenCV only (synthetic relative poses and correspondences, runs
+torch-free); the second half renders a synthetic scene (``iris_train.synthetic``, marked torch)."""
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from iris_runtime import epipolar as E
+from iris_runtime.errors import InputError
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+# ----------------------------------------------------------------------------------------------
+# helpers
+# ----------------------------------------------------------------------------------------------
+
+def _rotation(rng, max_angle=np.pi):
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    angle = rng.uniform(-max_angle, max_angle)
+    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
+
+
+def _random_cameras(rng, n, max_angle=np.pi):
+    """Random rigid world_from_cam [n, 4, 4] re-based so that view 0 = I."""
+    T = np.tile(np.eye(4), (n, 1, 1))
+    for k in range(n):
+        T[k, :3, :3] = _rotation(rng, max_angle)
+        T[k, :3, 3] = rng.normal(size=3)
+    return np.linalg.inv(T[0]) @ T
+
+
+def _exact_pairwise(world_from_cam, trusted=None, inliers=500) -> E.PairwisePoses:
+    """The relative poses of true cameras: cam_from_cam[i, j] = cam_from_world_j @ world_from_cam_i
+    with the translation made unit, as the essential matrix gives them."""
+    V = len(world_from_cam)
+    cfc = np.tile(np.eye(4), (V, V, 1, 1))
+    for i in range(V):
+        for j in range(V):
+            if i != j:
+                T = np.linalg.inv(world_from_cam[j]) @ world_from_cam[i]
+                T[:3, 3] /= np.linalg.norm(T[:3, 3])
+                cfc[i, j] = T
+    if trusted is None:
+        trusted = ~np.eye(V, dtype=bool)
+    inl = np.where(trusted, inliers, 0).astype(np.int32)
+    return E.PairwisePoses(cfc, np.asarray(trusted, bool), inl, 1.0)
+
+
+def _rotation_errors_deg(A, B):
+    cos = (np.einsum("kij,kij->k", A[:, :3, :3], B[:, :3, :3]) - 1) / 2
+    return np.degrees(np.arccos(np.clip(cos, -1, 1)))
+
+
+def _fitted_centres(solved, truth):
+    """Solved centres scaled by least squares onto the true ones (the solve has no unit)."""
+    c, t = solved[:, :3, 3], truth[:, :3, 3]
+    s = np.sum(c * t) / np.sum(c * c)
+    return s, s * c
+
+
+# ----------------------------------------------------------------------------------------------
+# global solve from pairwise poses (numpy only)
+# ----------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("robust", [True, False])
+def test_global_solve_recovers_exact_cameras(seed, robust):
+    rng = np.random.default_rng(seed)
+    truth = _random_cameras(rng, 6)
+    pp = _exact_pairwise(truth)
+    sol = E.solve_global(pp, robust=robust)
+    T = sol.world_from_cam
+    assert sol.solved.all() and T.shape == (6, 4, 4)
+    np.testing.assert_array_equal(T[0], np.eye(4))
+    np.testing.assert_allclose(T[:, :3, :3], truth[:, :3, :3], atol=1e-9)
+    np.testing.assert_allclose(np.linalg.norm(T[:, :3, 3]), 1.0, atol=1e-12)   # unit-free
+    s, c = _fitted_centres(T, truth)
+    assert s > 0                                             # the sign vote got the sign right
+    np.testing.assert_allclose(c, truth[:, :3, 3], atol=1e-9)
+    np.testing.assert_allclose(T[:, 3], np.tile([0, 0, 0, 1.0], (6, 1)), atol=0)
+    assert sol.translation_gap < 1e-6                        # a well-posed translation problem
+    np.testing.assert_array_equal(E.solve_cameras(pp, robust=robust), T)
+
+
+def test_global_solve_with_a_sparse_but_rigid_graph_and_two_views():
+    rng = np.random.default_rng(5)
+    truth = _random_cameras(rng, 5)
+    trusted = np.zeros((5, 5), bool)
+    for i, j in [(0, 1), (1, 2), (2, 3), (3, 4), (0, 2), (1, 3), (2, 4)]:   # triangles
+        trusted[i, j] = trusted[j, i] = True
+    T = E.solve_cameras(_exact_pairwise(truth, trusted))
+    np.testing.assert_allclose(T[:, :3, :3], truth[:, :3, :3], atol=1e-9)
+    np.testing.assert_allclose(_fitted_centres(T, truth)[1], truth[:, :3, 3], atol=1e-9)
+    # Two views: the direction of the one baseline, with its sign.
+    T2 = E.solve_cameras(_exact_pairwise(truth[:2]))
+    np.testing.assert_allclose(T2[1, :3, 3], truth[1, :3, 3] / np.linalg.norm(truth[1, :3, 3]),
+                               atol=1e-12)
+
+
+def test_global_solve_is_robust_to_a_few_corrupted_pairs():
+    rng = np.random.default_rng(3)
+    truth = _random_cameras(rng, 8, max_angle=0.5)
+    pp = _exact_pairwise(truth)
+    cfc = pp.cam_from_cam.copy()
+    for i, j in [(0, 5), (2, 3), (4, 7)]:              # 3 of 28 pairs: wrong by 30-90 degrees
+        T = np.eye(4)
+        T[:3, :3] = _rotation(rng, np.pi / 2) @ cfc[i, j][:3, :3]
+        t = rng.normal(size=3)
+        T[:3, 3] = t / np.linalg.norm(t)
+        cfc[i, j], cfc[j, i] = T, np.linalg.inv(T)
+    bad = E.PairwisePoses(cfc, pp.trusted, pp.inliers, 1.0)
+    robust = E.solve_cameras(bad)
+    plain = E.solve_cameras(bad, robust=False)
+    err_robust = _rotation_errors_deg(robust, truth)
+    err_plain = _rotation_errors_deg(plain, truth)
+    assert err_robust.max() < 1.0, err_robust
+    assert err_robust.max() < err_plain.max()
+    # Translation: still the right sign and the right shape on the whole.
+    s, c = _fitted_centres(robust, truth)
+    assert s > 0
+    cos = np.sum(c[1:] * truth[1:, :3, 3], axis=1) / (
+        np.linalg.norm(c[1:], axis=1) * np.linalg.norm(truth[1:, :3, 3], axis=1))
+    assert np.median(np.degrees(np.arccos(np.clip(cos, -1, 1)))) < 10
+
+
+def test_disconnected_graph_solves_the_component_of_view_0_only():
+    rng = np.random.default_rng(4)
+    truth = _random_cameras(rng, 6)
+    trusted = np.zeros((6, 6), bool)
+    for i, j in [(0, 1), (1, 2), (0, 2), (3, 4), (4, 5), (3, 5)]:   # {0, 1, 2} and {3, 4, 5}
+        trusted[i, j] = trusted[j, i] = True
+    pp = _exact_pairwise(truth, trusted)
+    np.testing.assert_array_equal(E.reachable_views(trusted), [1, 1, 1, 0, 0, 0])
+    sol = E.solve_global(pp)
+    np.testing.assert_array_equal(sol.solved, [1, 1, 1, 0, 0, 0])
+    assert np.isnan(sol.world_from_cam[3:]).all()
+    np.testing.assert_allclose(sol.world_from_cam[:3, :3, :3], truth[:3, :3, :3], atol=1e-9)
+    np.testing.assert_allclose(_fitted_centres(sol.world_from_cam[:3], truth[:3])[1],
+                               truth[:3, :3, 3], atol=1e-9)
+    # Nothing trusted: only view 0, the identity.
+    none = E.solve_global(_exact_pairwise(truth, np.zeros((6, 6), bool)))
+    np.testing.assert_array_equal(none.solved, [1, 0, 0, 0, 0, 0])
+    np.testing.assert_array_equal(none.world_from_cam[0], np.eye(4))
+
+
+# ----------------------------------------------------------------------------------------------
+# scale fit and refine_cameras' fallbacks (numpy only: the pairwise poses are given)
+# ----------------------------------------------------------------------------------------------
+
+def test_fit_scale_least_squares_and_its_fallbacks():
+    rng = np.random.default_rng(6)
+    ce = rng.normal(size=(5, 3))
+    ce[0] = 0
+    s, how = E.fit_scale(0.3 * ce, ce)
+    assert how == "fit" and s == pytest.approx(0.3, rel=1e-12)
+    noisy = 0.3 * ce + 0.01 * rng.normal(size=ce.shape)
+    s, _ = E.fit_scale(noisy, ce)
+    assert s == pytest.approx(np.sum(noisy * ce) / np.sum(ce * ce), rel=1e-12)
+    # Opposed centres: the model's mean baseline instead (magnitude only).
+    s, how = E.fit_scale(-0.3 * ce, ce)
+    assert how == "baseline" and s == pytest.approx(0.3, rel=1e-12)
+    # Collapsed model centres: the documented constant mean baseline.
+    s, how = E.fit_scale(np.full((5, 3), 1e-9), ce)
+    i, j = np.triu_indices(5, 1)
+    assert how == "constant"
+    assert s * np.linalg.norm(ce[i] - ce[j], axis=1).mean() == pytest.approx(E.DEFAULT_BASELINE)
+
+
+def _refine_with(monkeypatch, pp, model_poses, focal=(0.9, 0.9)):
+    """refine_cameras with the pairwise step replaced by ``pp`` (no images needed)."""
+    monkeypatch.setattr(E, "pairwise_poses", lambda images, focal=None, **kw: pp)
+    images = np.zeros((len(model_poses), 16, 16, 3), np.uint8)
+    return E.refine_cameras(images, model_poses, np.asarray(focal))
+
+
+def test_refine_cameras_replaces_poses_in_the_model_units(monkeypatch):
+    rng = np.random.default_rng(7)
+    truth = _random_cameras(rng, 5, max_angle=0.3)
+    model = np.tile(np.eye(4), (5, 1, 1))
+    model[:, :3, 3] = 0.25 * truth[:, :3, 3]              # right centres in its own unit, no rotation
+    pp = _exact_pairwise(truth)
+    ref = _refine_with(monkeypatch, pp, model)
+    assert ref.source == "epipolar" and ref.solved.all() and ref.scale_source == "fit"
+    np.testing.assert_allclose(ref.world_from_cam[:, :3, :3], truth[:, :3, :3], atol=1e-9)
+    np.testing.assert_allclose(ref.world_from_cam[:, :3, 3], model[:, :3, 3], atol=1e-9)
+    np.testing.assert_array_equal(ref.world_from_cam[0], np.eye(4))
+    # Focal: the pairwise step's (searched), fy/H from fx/W for these square images.
+    np.testing.assert_allclose(ref.focal, [1.0, 1.0])
+
+
+def test_refine_cameras_keeps_the_model_for_unreachable_views(monkeypatch):
+    rng = np.random.default_rng(8)
+    truth = _random_cameras(rng, 5, max_angle=0.3)
+    model = np.tile(np.eye(4), (5, 1, 1))
+    model[:, :3, 3] = 0.5 * truth[:, :3, 3] + 0.01
+    model[0] = np.eye(4)
+    trusted = np.zeros((5, 5), bool)
+    for i, j in [(0, 1), (1, 2), (0, 2), (3, 4)]:
+        trusted[i, j] = trusted[j, i] = True
+    ref = _refine_with(monkeypatch, _exact_pairwise(truth, trusted), model)
+    assert ref.source == "mixed"
+    np.testing.assert_array_equal(ref.solved, [1, 1, 1, 0, 0])
+    np.testing.assert_array_equal(ref.world_from_cam[3:], model[3:])          # the model's
+    np.testing.assert_allclose(ref.world_from_cam[:3, :3, :3], truth[:3, :3, :3], atol=1e-9)
+    # Scale fitted over the solved views only.
+    c = E.solve_cameras(_exact_pairwise(truth, trusted))[:3, :3, 3]
+    assert ref.scale == pytest.approx(np.sum(model[:3, :3, 3] * c) / np.sum(c * c), rel=1e-9)
+    # Nothing reached: the model's cameras and focal, unchanged.
+    ref = _refine_with(monkeypatch, _exact_pairwise(truth, np.zeros((5, 5), bool)), model,
+                       focal=(0.7, 0.6))
+    assert ref.source == "model" and not ref.solved.any()
+    np.testing.assert_array_equal(ref.world_from_cam, model)
+    np.testing.assert_array_equal(ref.focal, [0.7, 0.6])
+
+
+def test_refine_cameras_single_view_and_bad_arguments():
+    one = E.refine_cameras(np.zeros((1, 8, 8, 3), np.uint8), np.eye(4)[None], [1.0, 1.0])
+    assert one.source == "model"
+    np.testing.assert_array_equal(one.world_from_cam, np.eye(4)[None])
+    with pytest.raises(ValueError, match="images"):
+        E.refine_cameras(np.zeros((2, 8, 8, 3), np.float32), np.tile(np.eye(4), (2, 1, 1)), [1, 1])
+    with pytest.raises(ValueError, match="world_from_cam"):
+        E.refine_cameras(np.zeros((2, 8, 8, 3), np.uint8), np.eye(4)[None], [1, 1])
+    with pytest.raises(ValueError, match="focal_mode"):
+        E.refine_cameras(np.zeros((2, 8, 8, 3), np.uint8), np.tile(np.eye(4), (2, 1, 1)), [1, 1],
+                         focal_mode="true")
+
+
+# ----------------------------------------------------------------------------------------------
+# two-view geometry on synthetic correspondences (numpy + OpenCV)
+# ----------------------------------------------------------------------------------------------
+
+def _project(points_world, world_from_cam, K):
+    cam = (np.linalg.inv(world_from_cam) @ np.c_[points_world, np.ones(len(points_world))].T)[:3].T
+    uv = (K @ cam.T).T
+    return (uv[:, :2] / uv[:, 2:]).astype(np.float32), cam[:, 2]
+
+
+def test_relative_poses_follow_the_cam_from_cam_convention():
+    rng = np.random.default_rng(9)
+    H = W = 64
+    K = E.intrinsics(1.0, H, W)
+    truth = np.tile(np.eye(4), (4, 1, 1))
+    centre = np.array([0.0, 0.0, 0.6])
+    for k in range(1, 4):            # cameras on an arc around the cloud, looking at its centre
+        a = 0.15 * k
+        truth[k, :3, :3] = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0],
+                                     [-np.sin(a), 0, np.cos(a)]])
+        truth[k, :3, 3] = centre - truth[k, :3, :3] @ centre + [0, 0.02 * k, 0]
+    points = rng.uniform([-0.2, -0.2, 0.45], [0.2, 0.2, 0.75], size=(600, 3))
+    matches = {}
+    for i in range(4):
+        for j in range(i + 1, 4):
+            p, zi = _project(points, truth[i], K)
+            q, zj = _project(points, truth[j], K)
+            ok = (zi > 0) & (zj > 0)
+            matches[i, j] = (p[ok], q[ok])
+    import cv2
+    cv2.setRNGSeed(0)
+    pp = E.relative_poses(matches, 4, K)
+    assert pp.trusted[np.triu_indices(4, 1)].all() and pp.focal == pytest.approx(1.0)
+    for i in range(4):
+        for j in range(4):
+            if i == j:
+                continue
+            true = np.linalg.inv(truth[j]) @ truth[i]
+            got = pp.cam_from_cam[i, j]
+            assert _rotation_errors_deg(got[None], true[None])[0] < 0.1
+            t = true[:3, 3] / np.linalg.norm(true[:3, 3])
+            assert np.degrees(np.arccos(np.clip(got[:3, 3] @ t, -1, 1))) < 1.0   # signed
+    T = E.solve_cameras(pp)
+    assert _rotation_errors_deg(T, truth).max() < 0.1
+    s, c = _fitted_centres(T, truth)
+    assert s > 0 and np.abs(c - truth[:, :3, 3]).max() < 2e-3
+
+
+def test_epipolar_imports_torch_free():
+    code = ("import sys; sys.modules['torch'] = None; sys.modules['scipy'] = None\n"
+            "import numpy as np\n"
+            "from iris_runtime import epipolar as E\n"
+            "rng = np.random.default_rng(0)\n"
+            "im = rng.integers(0, 256, (3, 32, 32, 3), dtype=np.uint8)\n"
+            "pp = E.pairwise_poses(im, 1.0)\n"
+            "T = E.solve_cameras(pp)\n"
+            "assert T.shape == (3, 4, 4)\n"
+            "print('ok')\n")
+    out = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True)
+    assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr
+
+
+# ----------------------------------------------------------------------------------------------
+# on a rendered scene (needs iris_train: torch + pyrender)
+# ----------------------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def rendered():
+    pytest.importorskip("torch")
+    pytest.importorskip("pyrender")
+    from iris_train.synthetic import render_scene
+    return render_scene(1_000_003, n_views=8, size=(64, 64))
+
+
+def _canonical(world_from_cam):
+    return np.linalg.inv(world_from_cam[0]) @ world_from_cam
+
+
+@pytest.mark.torch
+def test_global_solve_on_a_rendered_scene(rendered):
+    from iris_train.metrics import relative_pose_errors, rpa
+    pp = E.pairwise_poses(rendered.images)
+    T = E.solve_cameras(pp)
+    assert np.isfinite(T).all()
+    rot, _ = relative_pose_errors(T, rendered.world_from_cam)
+    assert np.median(rot) < 8.0
+    assert rpa(T, rendered.world_from_cam)["rpa@30"] >= 0.7
+    # Deterministic.
+    np.testing.assert_array_equal(E.solve_cameras(E.pairwise_poses(rendered.images)), T)
+
+
+@pytest.mark.torch
+def test_locate_views_with_the_references_fixed(rendered):
+    truth = _canonical(rendered.world_from_cam)
+    refs, queries = [0, 2, 3, 5, 7], [1, 4, 6]
+    focal = rendered.K[0, 0] / rendered.images.shape[2]
+    T, ok = E.locate_views(rendered.images[refs], truth[refs], focal, rendered.images[queries])
+    assert ok.all()
+    assert _rotation_errors_deg(T, truth[queries]).max() < 5.0
+    baseline = np.linalg.norm(truth[refs, :3, 3] - truth[0, :3, 3], axis=1).mean()
+    assert np.linalg.norm(T[:, :3, 3] - truth[queries, :3, 3], axis=1).max() < 0.35 * baseline
+    # Too few links asked for: unsolved, NaN.
+    T, ok = E.locate_views(rendered.images[refs], truth[refs], focal, rendered.images[queries],
+                           min_links=6)
+    assert not ok.any() and np.isnan(T).all()
+
+
+@pytest.mark.torch
+def test_runtime_epipolar_cameras_beat_the_model(rendered, model_dir):
+    from iris_runtime import IrisRuntime
+    from iris_train.metrics import relative_pose_errors, rpa
+    rt = IrisRuntime(model_dir, threads=1)
+    images = list(rendered.images)
+    model = rt.encode(images)
+    epi = rt.encode(images, cameras="epipolar")
+    assert epi.camera_source == "epipolar" and model.camera_source == "model"
+    np.testing.assert_array_equal(epi.field_maps, model.field_maps)    # the encoder's, as always
+    gt = rendered.world_from_cam
+    assert rpa(epi.world_from_cam, gt)["rpa@15"] > rpa(model.world_from_cam, gt)["rpa@15"]
+    assert np.median(relative_pose_errors(epi.world_from_cam, gt)[0]) < 8.0
+    np.testing.assert_array_equal(epi.world_from_cam[0], np.eye(4))
+    # Units: the centres are scaled onto the model's (least squares over the views).
+    cm, ce = model.world_from_cam[:, :3, 3], epi.world_from_cam[:, :3, 3]
+    if np.sqrt(np.mean(np.sum(cm * cm, 1))) >= E.COLLAPSED_SPREAD and np.sum(cm * ce) > 0:
+        assert np.sum(cm * ce) / np.sum(ce * ce) == pytest.approx(1.0, rel=1e-9)
+    # The grid-searched focal is the scene's, the encoder's is kept (locate checks against it).
+    assert epi.focal[0] in E.FOCAL_GRID
+    np.testing.assert_allclose(epi.K, epi.intrinsics())
+    np.testing.assert_array_equal(epi.encoder_focal, model.focal)
+    np.testing.assert_array_equal(rt.locate(epi, images[1]), rt.locate(model, images[1]))
+    assert rt.render(epi, 2).shape == (64, 64, 3)
+    sub = epi.subset([0, 3])
+    assert sub.camera_source == "epipolar"
+    np.testing.assert_array_equal(sub.encoder_focal, epi.encoder_focal)
+
+
+@pytest.mark.torch
+def test_runtime_model_cameras_are_bitwise_unchanged(rendered, model_dir):
+    from iris_runtime import IrisRuntime
+    rt = IrisRuntime(model_dir, threads=1)
+    images = list(rendered.images[:4])
+    default, model = rt.encode(images), rt.encode(images, cameras="model")
+    batch = rt._load_images(images)
+    maps, poses, focal = rt._run_encoder(batch, np.ones(4, bool))      # the graph's own outputs
+    for scene in (default, model):
+        np.testing.assert_array_equal(scene.field_maps, maps)
+        np.testing.assert_array_equal(scene.world_from_cam, poses.astype(np.float64))
+        np.testing.assert_array_equal(scene.focal, focal.astype(np.float64))
+        assert scene.camera_source == "model" and scene.encoder_focal is None
+    np.testing.assert_array_equal(rt.render(default, 1), rt.render(model, 1))
+
+
+def test_bad_cameras_values_raise_typed_errors(model_dir):
+    from iris_runtime import IrisRuntime
+    from iris_runtime.runtime import Scene
+    rt = IrisRuntime(model_dir, threads=1)
+    images = [np.zeros((64, 64, 3), np.uint8)] * 2
+    for bad in ("Epipolar", "colmap", None, 1, ["model"]):
+        with pytest.raises(InputError, match="cameras"):
+            rt.encode(images, cameras=bad)
+    scene = rt.encode(images)
+    kwargs = dict(field_maps=scene.field_maps, world_from_cam=scene.world_from_cam,
+                  focal=scene.focal, K=scene.K, image_size=scene.image_size)
+    with pytest.raises(InputError, match="camera_source"):
+        Scene(**kwargs, camera_source="colmap")
+    with pytest.raises(InputError, match="encoder_focal"):
+        Scene(**kwargs, encoder_focal=[0.0, 1.0])
+
+
+def test_cli_cameras_flag(model_dir, tmp_path):
+    from PIL import Image
+    rng = np.random.default_rng(0)
+    paths = []
+    for k in range(3):
+        p = tmp_path / f"{k}.png"
+        Image.fromarray(rng.integers(0, 256, (64, 64, 3), dtype=np.uint8)).save(p)
+        paths.append(str(p))
+    base = [sys.executable, "-c", "import sys; sys.modules['torch'] = None; "
+            "from iris_runtime.cli import main; sys.exit(main())", str(model_dir), *paths]
+    out = subprocess.run(base + ["-o", str(tmp_path / "o"), "--cameras", "epipolar", "--view", "1",
+                                 "--no-depth"], capture_output=True, text=True, cwd=REPO)
+    assert out.returncode == 0, out.stderr
+    assert "cameras of the inputs: " in out.stdout and (tmp_path / "o" / "view_001.png").is_file()
+    bad = subprocess.run(base + ["-o", str(tmp_path / "p"), "--cameras", "sfm"],
+                         capture_output=True, text=True, cwd=REPO)
+    assert bad.returncode == 2 and "--cameras" in bad.stderr and len(bad.stderr.splitlines()) == 1
