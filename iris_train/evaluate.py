@@ -49,6 +49,14 @@ Protocol (DESIGN.md "Evaluation protocol", the paper's appendix scaled down):
 - Scenes without ground-truth cameras (users' folders) count towards the model's PSNR/SSIM and the
   mean-colour baseline only; pose metrics and the nearest-reference baseline average over the
   scenes with cameras (``null`` in the JSON when there are none).
+- ``--cameras epipolar``: the references' cameras (and the focal) are the global epipolar solve
+  of the reference images, scaled to the model's units (``iris_runtime.epipolar.refine_cameras``:
+  ``IrisRuntime.encode(images, cameras="epipolar")`` for an exported model, the same function on
+  the torch model's poses and focal for a checkpoint), and the targets are posed by
+  ``iris_runtime.epipolar.locate_views`` against those fixed reference cameras (a target with
+  fewer than two trusted links to the references keeps the model's located pose); ``--locate
+  model`` keeps the model's ``locate`` for the targets instead. The JSON then says per order how
+  many scenes got which camera source and the fraction of targets the epipolar solve posed.
 - LPIPS is left out: it needs pretrained network weights that cannot be fetched here.
 
 PSNR per image is capped at ``PSNR_CAP`` dB (an identical image would otherwise give inf).
@@ -191,12 +199,26 @@ class _TorchBackend:
         self.model = model
         self.image_size = (model.cfg.image_height, model.cfg.image_width)
         self.depth_range = (model.cfg.near, model.cfg.far)
+        self.last_source = "model"
 
-    def encode(self, images: np.ndarray):
+    def encode(self, images: np.ndarray, cameras: str = "model"):
+        """``cameras="epipolar"``: the model's poses and focal replaced by
+        ``iris_runtime.epipolar.refine_cameras`` of the images, as ``IrisRuntime.encode`` does."""
+        import dataclasses
+
         import torch
         x = torch.from_numpy(np.ascontiguousarray(images)).permute(0, 3, 1, 2).float() / 255.0
         with torch.no_grad():
-            return self.model.encode(x)
+            scene = self.model.encode(x)
+        self.last_source = "model"
+        if cameras == "epipolar":
+            from iris_runtime.epipolar import refine_cameras
+            ref = refine_cameras(np.ascontiguousarray(images), self.poses(scene), _focal_of(scene))
+            scene = dataclasses.replace(
+                scene, world_from_cam=torch.as_tensor(ref.world_from_cam).to(scene.world_from_cam),
+                focal=torch.as_tensor(ref.focal).to(scene.focal))
+            self.last_source = ref.source
+        return scene
 
     def poses(self, scene) -> np.ndarray:
         return scene.world_from_cam.detach().double().numpy()
@@ -223,9 +245,15 @@ class _RuntimeBackend:
     def __init__(self, runtime):
         self.rt = runtime
         self.image_size, self.depth_range = _runtime_geometry(runtime)
+        self.last_source = "model"
 
-    def encode(self, images: np.ndarray):
-        return self.rt.encode(list(images))
+    def encode(self, images: np.ndarray, cameras: str = "model"):
+        if cameras == "model":                  # (duck-typed runtimes need not know cameras=)
+            scene = self.rt.encode(list(images))
+        else:
+            scene = self.rt.encode(list(images), cameras=cameras)
+        self.last_source = getattr(scene, "camera_source", "model")
+        return scene
 
     def poses(self, scene) -> np.ndarray:
         return np.asarray(scene.world_from_cam, dtype=np.float64)
@@ -357,7 +385,7 @@ def _mean_or_none(values: list[float]):
 
 def evaluate(model, scenes: Iterable, *, views: int = DEFAULT_VIEWS, seed: int = RAND_SEED,
              grid: str | os.PathLike | None = None, progress: bool = True,
-             total: int | None = None) -> dict:
+             total: int | None = None, cameras: str = "model", locate: str | None = None) -> dict:
     """Evaluate ``model`` (an ``IrisModel`` or an ``iris_runtime.IrisRuntime``) on ``scenes``.
 
     ``scenes``: objects with ``images`` uint8 ``[V, H, W, 3]`` (trajectory order) and
@@ -373,7 +401,26 @@ def evaluate(model, scenes: Iterable, *, views: int = DEFAULT_VIEWS, seed: int =
     {"rpa@5", "rpa@15", "rpa@30", "locate_rpa@5", "locate_rpa@15", "locate_rpa@30"}}}``: means
     over scenes (see the module docstring for the protocol; ``depth_spearman`` is None when no
     scene has a true depth). Raises ``ValueError`` when no scene has ``views`` frames.
+
+    ``cameras``: "model" (default) or "epipolar": the references' cameras (and focal) are the
+    global epipolar solve of the reference images scaled to the model's units
+    (``iris_runtime.epipolar.refine_cameras``; ``IrisRuntime.encode(images, cameras="epipolar")``
+    for an exported model, the same function on the torch model's outputs for a checkpoint).
+    ``locate``: how the targets are posed, "model" (``locate``) or "epipolar"
+    (``iris_runtime.epipolar.locate_views``: each target's pairwise poses to the references, its
+    rotation and centre solved with the references' cameras fixed; a target with fewer than two
+    trusted links keeps the model's located pose); default: the value of ``cameras``. With
+    anything but model cameras each ``R`` also holds ``"cameras": {"references", "targets",
+    "sources": {camera source: scenes}, "targets_epipolar": fraction of targets posed by the
+    epipolar solve}``.
     """
+    if cameras not in ("model", "epipolar"):
+        raise ValueError(f"cameras: expected 'model' or 'epipolar', got {cameras!r}")
+    locate = cameras if locate is None else locate
+    if locate not in ("model", "epipolar"):
+        raise ValueError(f"locate: expected 'model' or 'epipolar', got {locate!r}")
+    report_cameras = cameras != "model" or locate != "model"
+    camera_stats = {order: {"sources": {}, "targets": []} for order in ORDERS}
     backend = _backend(model)
     refs, targets = split_frames(views)
     refs_a, targets_a = np.asarray(refs), np.asarray(targets)
@@ -413,10 +460,20 @@ def evaluate(model, scenes: Iterable, *, views: int = DEFAULT_VIEWS, seed: int =
             for order in ORDERS:
                 ref_order, target_order = presentation_order(order, refs, targets, index, seed)
                 # References encoded isolated (view 0 = ref_order[0]); targets located as queries.
-                encoded = backend.encode(images[ref_order])
+                encoded = backend.encode(images[ref_order], cameras=cameras)
                 pred = np.empty((views, 4, 4))             # frame order
                 pred[ref_order] = backend.poses(encoded)
-                pred[target_order] = backend.locate(encoded, images[ref_order], images[target_order])
+                located = backend.locate(encoded, images[ref_order], images[target_order])
+                solved = np.zeros(len(target_order), dtype=bool)
+                if locate == "epipolar":
+                    from iris_runtime.epipolar import locate_views
+                    epi, solved = locate_views(images[ref_order], pred[ref_order],
+                                               float(_focal_of(encoded)[0]), images[target_order])
+                    located = np.where(solved[:, None, None], epi, located)
+                pred[target_order] = located
+                stats = camera_stats[order]
+                stats["sources"][backend.last_source] = stats["sources"].get(backend.last_source, 0) + 1
+                stats["targets"].extend(solved.tolist())
                 rgb, depth = backend.render(encoded, pred[targets_a])
                 if not (np.isfinite(rgb).all() and np.isfinite(pred).all()):
                     raise ValueError(f"scene {index} ({order}): the model returned NaN or inf "
@@ -456,11 +513,16 @@ def evaluate(model, scenes: Iterable, *, views: int = DEFAULT_VIEWS, seed: int =
     if n_skipped:
         warnings.warn(f"iris-eval: skipped {n_skipped} scene(s) with fewer than {views} frames")
 
-    def summary(a):
-        return {"model": {k: _mean_or_none(v) for k, v in a["model"].items()},
-                "baselines": {name: {k: _mean_or_none(v) for k, v in a[name].items()}
-                              for name in ("nearest_reference", "mean_colour", "identity_poses")}}
-    return {order: summary(acc[order]) for order in ORDERS}
+    def summary(a, stats):
+        out = {"model": {k: _mean_or_none(v) for k, v in a["model"].items()},
+               "baselines": {name: {k: _mean_or_none(v) for k, v in a[name].items()}
+                             for name in ("nearest_reference", "mean_colour", "identity_poses")}}
+        if report_cameras:
+            out["cameras"] = {"references": cameras, "targets": locate,
+                              "sources": dict(sorted(stats["sources"].items())),
+                              "targets_epipolar": _mean_or_none(stats["targets"])}
+        return out
+    return {order: summary(acc[order], camera_stats[order]) for order in ORDERS}
 
 
 # ----------------------------------------------------------------------------------------------
@@ -639,6 +701,14 @@ def main(argv: list[str] | None = None) -> int:
                         help="intra-op threads of torch (checkpoint) or ONNX Runtime (exported "
                              "model); default: the library's choice. On a busy machine 1 can be "
                              "much faster than oversubscribed cores")
+    parser.add_argument("--cameras", choices=("model", "epipolar"), default="model",
+                        help="cameras of the references: the model's (default) or the global "
+                             "epipolar solve of their images scaled to the model's units "
+                             "(iris_runtime.epipolar.refine_cameras)")
+    parser.add_argument("--locate", choices=("model", "epipolar"), default=None,
+                        help="poses of the targets: the model's locate, or the epipolar solve "
+                             "against the references' cameras (iris_runtime.epipolar."
+                             "locate_views; model fallback per target); default: as --cameras")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     args = parser.parse_args(argv)
     if args.scenes is not None and args.scenes < 1:
@@ -658,7 +728,8 @@ def main(argv: list[str] | None = None) -> int:
         backend = _backend(model)
         scenes, count = load_scenes(args.data, backend.image_size, args.views, args.scenes)
         results = evaluate(model, scenes, views=args.views, seed=args.seed, grid=args.grid,
-                           progress=not args.no_progress, total=count)
+                           progress=not args.no_progress, total=count, cameras=args.cameras,
+                           locate=args.locate)
     except (IrisError, ValueError, FileNotFoundError) as exc:   # bad model, data or arguments
         print(f"iris-eval: error: {exc}", file=sys.stderr)
         return 2
@@ -666,6 +737,14 @@ def main(argv: list[str] | None = None) -> int:
     print(f"iris-eval: {args.model} on {args.data}: {count} scene(s), {args.views} frames, "
           f"references {refs}, targets {targets}")
     print(format_table(results))
+    if "cameras" in results["seq"]:
+        for order in ORDERS:
+            c = results[order]["cameras"]
+            frac = c["targets_epipolar"]
+            print(f"{order.capitalize()}: references' cameras {c['references']} (scenes by source: "
+                  f"{c['sources']}), targets {c['targets']}"
+                  + ("" if frac is None or c["targets"] == "model" else
+                     f" ({100 * frac:.0f}% of targets posed by the epipolar solve)"))
     if args.json is not None:
         write_json(args.json, results)
         print(f"wrote {args.json}")
