@@ -1,17 +1,31 @@
-"""Plot training loss (EMA) of one or more iris-train runs from their log.jsonl files.
+"""Plot the training curves of one or more iris-train runs from their log.jsonl files.
 
-    python scripts/plot_training.py models/iris-tiny.log.jsonl models/iris-tiny-run1.log.jsonl -o models/iris-tiny-loss.png
+    python scripts/plot_training.py models/iris-tiny-rgb.log.jsonl -o models/iris-tiny-rgb-loss.png
+
+Left: training PSNR of the learned renderer (its own term when the log has per-term values, else
+the whole loss). Right, for runs with the epipolar teacher: the teacher's rotation term as an
+angle (arccos(1 - loss), degrees) and its translation-direction term. Curves are smoothed with a
+moving average over 10 log rows.
 """
 from __future__ import annotations
 
 import argparse
 import json
+import math
 from pathlib import Path
 
 import matplotlib
+import numpy as np
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
+
+
+def _smooth(x, n=10):
+    x = np.asarray(x, dtype=float)
+    if len(x) < n:
+        return x
+    return np.convolve(x, np.ones(n) / n, mode="valid")
 
 
 def main() -> None:
@@ -19,15 +33,25 @@ def main() -> None:
     parser.add_argument("logs", nargs="+", type=Path)
     parser.add_argument("-o", "--out", type=Path, required=True)
     args = parser.parse_args()
-    fig, ax = plt.subplots(figsize=(6, 3.5), dpi=100)
+    fig, (ax, ax2) = plt.subplots(1, 2, figsize=(10, 3.5), dpi=100)
     for log in args.logs:
         rows = [json.loads(line) for line in log.read_text().splitlines() if line.strip()]
-        ax.plot([r["step"] for r in rows], [-10 * __import__("math").log10(r["loss_ema"]) for r in rows],
-                label=log.name)
+        steps = [r["step"] for r in rows]
+        render = [r["terms"]["render"] if "terms" in r else r["loss"] for r in rows]
+        s = _smooth(steps)
+        ax.plot(s, [-10 * math.log10(max(v, 1e-10)) for v in _smooth(render)], label=log.name)
+        if rows and "teacher_rot" in rows[0].get("terms", {}):
+            rot = [math.degrees(math.acos(max(-1.0, 1 - r["terms"]["teacher_rot"]))) for r in rows]
+            ax2.plot(s, _smooth(rot), label=f"{log.name}: rotation (deg)")
+            ax2.plot(s, 10 * _smooth([r["terms"]["teacher_dir"] for r in rows]),
+                     label=f"{log.name}: direction term x10")
     ax.set_xlabel("step")
-    ax.set_ylabel("training PSNR of the loss EMA (dB)")
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
+    ax.set_ylabel("training PSNR of the render term (dB)")
+    ax2.set_xlabel("step")
+    ax2.set_ylabel("epipolar teacher terms")
+    for a in (ax, ax2):
+        a.grid(alpha=0.3)
+        a.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(args.out)
     print(f"wrote {args.out}")
