@@ -1,6 +1,6 @@
 """Error against run time: every speed/quality knob of IrisRuntime.render, two anchors, one run.
 
-    python benchmarks/error_vs_time.py                       # models/iris-tiny.pt, all parts
+    python benchmarks/error_vs_time.py                       # models/iris-tiny-rgb.pt, all parts
                                                              # (~12 min on 2 cores, with export)
     python benchmarks/error_vs_time.py --checkpoint runs/tiny/last.pt --scenes 1 --parts knobs
 
@@ -711,7 +711,7 @@ def evaluate_targets(results: dict) -> list[dict]:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--checkpoint", type=Path, default=REPO / "models" / "iris-tiny.pt")
+    ap.add_argument("--checkpoint", type=Path, default=REPO / "models" / "iris-tiny-rgb.pt")
     ap.add_argument("--model-dir", type=Path, help="an iris-export output of the checkpoint "
                     "(default: export it, with --quantize int8, to a temporary directory)")
     ap.add_argument("--scenes", type=int, default=1)

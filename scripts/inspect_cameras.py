@@ -1,6 +1,6 @@
 """Print the cameras a checkpoint predicts on held-out scenes, and their RPA against the truth.
 
-    python scripts/inspect_cameras.py models/iris-tiny.pt [--scenes 8]
+    python scripts/inspect_cameras.py models/iris-tiny-rgb.pt [--scenes 8]
 
 Used for the model card's evidence that the shipped model's cameras are collapsed.
 """

@@ -1,6 +1,6 @@
 """Photometric landscape along identity -> true cameras: does the renderer care where the cameras are?
 
-    python scripts/pose_landscape.py models/iris-tiny.pt [--scenes 8] [--alphas 0,0.25,0.5,0.75,1]
+    python scripts/pose_landscape.py models/iris-tiny-rgb.pt [--scenes 8] [--alphas 0,0.25,0.5,0.75,1]
                                      [--rays 512] [--json out.json] [--threads 1]
 
 For each of the first N held-out synthetic scenes (``iris_train.data.HELDOUT_SEEDS``, 8 frames,

@@ -4,7 +4,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}
-MODEL=${IRIS_MODEL:-models/iris-tiny.pt}
+MODEL=${IRIS_MODEL:-models/iris-tiny-rgb.pt}
 SCENE=${IRIS_SCENE:-samples/heldout-1000003}
 OUT=${IRIS_OUT:-out}
 

@@ -241,7 +241,8 @@ def test_encoder_isolates_references_in_the_runtime(rt):
     scene = rt.encode([np.rint(r.transpose(1, 2, 0) * 255).astype(np.uint8) for r in refs])
     maps, poses, focal = runs[1]
     with_queries = Scene(maps[:3], poses[:3].astype(np.float64), focal.astype(np.float64), scene.K,
-                         scene.image_size, scene.model_id)
+                         scene.image_size, scene.model_id, reference_images=scene.reference_images,
+                         image_index=scene.image_index)
     a = rt.render(scene, _pose(), height=6, width=6, depth=True)
     b = rt.render(with_queries, _pose(), height=6, width=6, depth=True)
     assert np.abs(a.image_float - b.image_float).max() <= 1e-6
@@ -770,7 +771,7 @@ def test_cli_locate(model_dir, tmp_path):
 # ----------------------------------------------------------------------------------------------
 
 REPO = Path(__file__).resolve().parents[1]
-SHIPPED = REPO / "models" / "iris-tiny.pt"
+SHIPPED = REPO / "models" / "iris-tiny-rgb.pt"
 SAMPLE = REPO / "samples" / "heldout-1000003"
 
 
