@@ -74,11 +74,12 @@ def _fitted_centres(solved, truth):
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 @pytest.mark.parametrize("robust", [True, False])
-def test_global_solve_recovers_exact_cameras(seed, robust):
+@pytest.mark.parametrize("translation", E.TRANSLATION_SOLVERS)
+def test_global_solve_recovers_exact_cameras(seed, robust, translation):
     rng = np.random.default_rng(seed)
     truth = _random_cameras(rng, 6)
     pp = _exact_pairwise(truth)
-    sol = E.solve_global(pp, robust=robust)
+    sol = E.solve_global(pp, robust=robust, translation=translation)
     T = sol.world_from_cam
     assert sol.solved.all() and T.shape == (6, 4, 4)
     np.testing.assert_array_equal(T[0], np.eye(4))
@@ -89,7 +90,20 @@ def test_global_solve_recovers_exact_cameras(seed, robust):
     np.testing.assert_allclose(c, truth[:, :3, 3], atol=1e-9)
     np.testing.assert_allclose(T[:, 3], np.tile([0, 0, 0, 1.0], (6, 1)), atol=0)
     assert sol.translation_gap < 1e-6                        # a well-posed translation problem
-    np.testing.assert_array_equal(E.solve_cameras(pp, robust=robust), T)
+    np.testing.assert_array_equal(E.solve_cameras(pp, robust=robust, translation=translation), T)
+
+
+@pytest.mark.parametrize("translation", E.TRANSLATION_SOLVERS)
+def test_global_solve_flags_ill_posed_centres_and_bad_arguments(translation):
+    rng = np.random.default_rng(10)
+    truth = _random_cameras(rng, 3)
+    chain = np.zeros((3, 3), bool)
+    chain[0, 1] = chain[1, 0] = chain[1, 2] = chain[2, 1] = True   # two independent baselines
+    sol = E.solve_global(_exact_pairwise(truth, chain), translation=translation)
+    assert sol.solved.all() and sol.translation_gap == 1.0
+    np.testing.assert_allclose(sol.world_from_cam[:, :3, :3], truth[:, :3, :3], atol=1e-9)
+    with pytest.raises(ValueError, match="translation"):
+        E.solve_global(_exact_pairwise(truth), translation="svd")
 
 
 def test_global_solve_with_a_sparse_but_rigid_graph_and_two_views():
