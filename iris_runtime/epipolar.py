@@ -433,8 +433,11 @@ def refine_cameras(images, world_from_cam, focal, *, focal_mode: str = "search",
                     model (models/iris-tiny.pt, whose focal is 0.34, ~3x too short), RPA@15 / @30
                     of the refined cameras of all 8 views: "search" 0.652 / 0.853 (median
                     rotation error 2.7 deg), "model" 0.167 / 0.344 (10.8 deg); the model's own
-                    0.004 / 0.009. A model focal is only as good as the camera head, the search
-                    needs none (median 1.06x the true focal)
+                    0.004 / 0.009. With models/iris-tiny-rgb.pt (focal ~1.2x the truth) the
+                    model's focal gives slightly better cameras (5 references: 0.556 / 0.719 vs
+                    0.538 / 0.694) but lower held-out PSNR (19.8 vs 20.4 dB). A model focal is
+                    only as good as the camera head; the search needs none (median 1.06x the
+                    true focal)
 
     The solve's rotations replace the model's; its unit-free centres are scaled by ``fit_scale``
     against the model's centres of the solved views. Views view 0 does not reach through trusted
