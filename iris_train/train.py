@@ -361,8 +361,15 @@ def train(cfg: TrainConfig, out: Path, resume: bool = False, scenes=None, thread
         loss_value = float(loss.detach())
         ema_loss = loss_value if ema_loss is None else 0.98 * ema_loss + 0.02 * loss_value
         rays_done += sum(int(d.shape[0]) for d in batch[4]) * world
+        elapsed = time.time() - t0
+        out_of_time = max_seconds is not None and elapsed > max_seconds
+        if world > 1:
+            # Rank 0's clock decides, so every rank stops after the same step (a rank that ran one
+            # step further would wait forever in DDP's all-reduce).
+            flag = torch.tensor([float(out_of_time)])
+            dist.broadcast(flag, src=0)
+            out_of_time = bool(flag.item())
         if rank == 0:
-            elapsed = time.time() - t0
             if progress is not None:
                 progress.update(1)
                 progress.set_postfix(loss=f"{ema_loss:.4f}", rays_s=f"{rays_done / max(elapsed, 1e-9):.0f}")
@@ -374,13 +381,12 @@ def train(cfg: TrainConfig, out: Path, resume: bool = False, scenes=None, thread
                 with log_path.open("a") as f:
                     f.write(json.dumps(record) + "\n")
             done = step == cfg.steps - 1
-            out_of_time = max_seconds is not None and elapsed > max_seconds
             if (step + 1) % cfg.ckpt_every == 0 or done or out_of_time:
                 save_checkpoint(ckpt_path, model, optimizer=optimizer.state_dict(), step=step + 1,
                                 aux=loss_module.aux_state(),
                                 elapsed=elapsed_before + elapsed, train_config=dataclasses.asdict(cfg))
-            if out_of_time:
-                break
+        if out_of_time:
+            break
     if progress is not None:
         progress.close()
     if world > 1:
