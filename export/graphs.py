@@ -15,67 +15,42 @@ itself carries no ONNX special case. Given the same numbers, they compute exactl
   must be a reference (the runtime never feeds anything else; the graph does not check it).
 * ``RendererGraph(field_maps [V', C', h, w], grid [V', R, S, 2], cues [V', R, S, 4],
   mask bool [V', R, S], positions [R, S, 3], directions [R, 3])`` -> ``rgb [R, 3]``,
-  ``weights [R, S]``; an explicit-colour model (``ModelConfig.explicit_rgb``) also takes
-  ``colours [V', R, S, 3]`` after ``directions`` (the reference RGB sampled by the caller at the
-  samples' projections, see ``RendererGraph``). Feature sampling happens in the graph with the semantics of
-  ``grid_sample(align_corners=False, padding_mode="border")`` (``iris_train.geometry.sample_bilinear``);
-  projection, grid coordinates, cues and masks come from the caller (``iris_runtime.geometry``).
+  ``weights [R, S]``: ``IrisModel.render_samples``; an explicit-colour model
+  (``ModelConfig.explicit_rgb``) also takes ``colours [V', R, S, 3]`` after ``directions`` (the
+  reference RGB sampled by the caller at the samples' projections). Feature sampling happens in
+  the graph, with the model's own sampler; projection, grid coordinates, cues and masks come from
+  the caller (``iris_runtime.geometry``; ``Scene.project_samples`` is their torch twin).
 
-Names, dtypes, layouts and dynamic axes come from ``export.io_spec`` (unchanged by anything below).
+Names, dtypes, layouts and dynamic axes come from the I/O spec (``iris_runtime.io_spec``).
+Measurements behind the choices below: docs/PERFORMANCE.md, "Renderer and encoder graphs".
 
-Sampling by measurement. ONNX ``GridSample`` was 48 % of the renderer's ONNX Runtime time (per-op
-profile, R=256, S=64, V'=4, C'=192 on an 8x8 grid). For small feature grids the graph samples
-instead with a dense bilinear weight matrix built from per-axis tent functions and one MatMul
-(``sample_dense``), the same rule ``IrisModel.render_rays`` uses (dense up to 1024 cells; the tiny
-preset's 8x8 and the paper preset's 16x16 grids are both dense). Same values as ``grid_sample``
-(torch: bit-identical here; ONNX Runtime vs torch <= 6e-8 on rgb); the sampling alone in ONNX
-Runtime, 4 x 192 ch x 16384 points: GridSample + transpose 1.88 s, dense 0.32 s (busy machine, 1
-thread). ``RendererGraph(model, sampler="grid_sample")`` keeps the ``GridSample`` graph.
+Sampling. Small feature grids (up to ``iris_train.model.DENSE_SAMPLING_MAX_CELLS`` cells: the
+tiny and paper presets) are sampled with a dense bilinear weight matrix built from per-axis tent
+functions and one MatMul (``geometry.sample_bilinear_dense``), because ONNX ``GridSample`` was
+the largest single cost of the renderer graph; same values as ``grid_sample`` up to rounding.
+``RendererGraph(model, sampler="grid_sample")`` keeps the ``GridSample`` graph.
 
 Masking. ``layers.masked_softmax`` / ``masked_max`` fill with the finite ``MASK_FILL = -1e30`` and
 multiply by the mask afterwards, and the non-final ray blocks use an additive ``-1e30`` bias in
 ``scaled_dot_product_attention``; ONNX ``Softmax`` subtracts the row max, so an all-masked row
 becomes a uniform softmax times a zero mask = 0, never NaN. Checked in validation and tests on
-points masked in every view and rays with every sample masked: ORT outputs are finite and match
-torch to ~1e-7.
+points masked in every view and rays with every sample masked.
 
-Exporter choice and measurements (tiny preset, opset 20, torch 2.13 / onnxruntime 1.31, 2 vCPU).
-The machine ran a 2-process training job throughout (load 8-11 on 2 cores), so absolute times are
-~6x inflated and noisy; the ORT/torch ratios come from interleaved runs (median of 3) and are the
-figures to use. Renderer timing input: R=1024, S=64, V'=4, random mask (``export.validate``).
+Exporter. ``torch.onnx.export(dynamo=True)``: both it and the legacy TorchScript exporter give
+correct graphs of the same speed in ONNX Runtime, but dynamo is torch's maintained path (the
+TorchScript exporter is deprecated), its graphs are smaller and readable, and it names dynamic
+axes from the spec directly. Its traps are handled here: the example inputs never use a size of 1
+on a dynamic axis (1 would freeze it), the program is taken in memory and saved by ``onnx.save``
+(no side ``.data`` file), and ``ir_version`` is lowered to the minimum the opset needs (9 for
+opset 20) so that older onnxruntime releases load the files.
 
-=============================  ========================  ========================
-                               dynamo (chosen)           legacy TorchScript
-=============================  ========================  ========================
-encoder nodes                  267                       625 (210 Constant)
-renderer nodes (dense / GS)    213 / 186                 498 / 420
-parity vs torch (rgb, weights) <= 9e-8, <= 2e-8          <= 6e-8, <= 6e-8
-renderer ORT / torch, dense    0.80 (7.16 s / 8.91 s)    0.80 (7.09 s), 1 thread
-                               0.77 (8.90 s / 11.57 s)   0.80 (9.31 s), 2 threads
-renderer ORT / torch, GS       1.57 (1 thr.), 1.36 (2)   -
-  (idle machine, earlier)      GS: 1.25 s / 1.34 s       GS: 1.25 s / 1.21 s
-export time, both graphs       13 s idle; 40-130 busy    ~1 s
-=============================  ========================  ========================
+Reference isolation. A bool ``is_reference [V]`` input exports as is with dynamo
+(``cross_view_mask``'s ``eye``/``|``/``repeat_interleave`` become Range/Equal/Or/Expand/Reshape),
+so no float stand-in or second entry point is needed; isolation inside ONNX Runtime is bitwise,
+and the mask costs a few ms per scene, so one graph serves both encode and locate.
 
-Reference isolation in the encoder graph, by measurement (tiny preset, opset 20, 1 thread, busy
-machine). A bool ``is_reference [V]`` input exports as is with dynamo (``cross_view_mask``'s
-``eye``/``|``/``repeat_interleave`` become Range/Equal/Or/Expand/Reshape; 290 nodes instead of
-267), so no float 0/1 stand-in or second entry point is needed. ONNX Runtime vs torch with queries
-present: field_maps <= 1.4e-6, world_from_cam <= 1e-8; isolation inside ONNX Runtime is bitwise: the
-references' outputs with queries present equal those without them exactly (max abs 0.0), and an
-all-True mask gives exactly the outputs of the earlier maskless graph. Cost of the mask (median of
-7, all-reference input): V=4 4.4 ms vs 4.1 ms maskless, V=8 10.8 vs 8.3, V=16 33 vs 22 — a few ms
-per scene against seconds of rendering, so one graph serves both encode and locate.
-
-Both exporters give correct graphs of the same speed in ONNX Runtime (its graph optimiser folds
-the legacy exporter's constants away). ``torch.onnx.export(dynamo=True)`` is chosen: it is
-torch's maintained path (the TorchScript exporter is deprecated), its graphs are 2.3x smaller
-and readable, and it names dynamic axes from the spec directly. Its traps are handled here: the
-example inputs never use a size of 1 on a dynamic axis (1 would freeze it), the program is taken
-in memory and saved by ``onnx.save`` (no side ``.data`` file), and ``ir_version`` is lowered to
-the minimum the opset needs (9 for opset 20) so that older onnxruntime releases load the files.
-int8 (dynamic, ``quantize_int8``): rgb error <= 1.4e-3 vs torch (random weights), no speed-up at
-this size (1 thread: 1.30x torch vs 1.38x for fp32 with the GridSample graph).
+int8 (dynamic, ``quantize_int8``): recorded in the manifest, not held to the fp32 tolerance, and
+no faster at this model size.
 """
 from __future__ import annotations
 
@@ -89,10 +64,10 @@ from pathlib import Path
 import onnx
 import torch
 import torch.nn as nn
-import torch.nn.functional as F
 
 from iris_train.config import ModelConfig
-from iris_train.model import IrisModel
+from iris_train.model import SAMPLERS as MODEL_SAMPLERS
+from iris_train.model import IrisModel, sampler_for
 
 from . import io_spec
 from .errors import ExportArgumentError, ExportError
@@ -121,83 +96,37 @@ class EncoderGraph(nn.Module):
         return self.model.field.prepare(features[0]), world_from_cam[0], focal[0]
 
 
-#: Feature grids up to this many cells are sampled in the renderer graph as a matmul with a dense
-#: bilinear weight matrix (same rule as ``IrisModel.render_rays``); larger ones with ``GridSample``.
-DENSE_SAMPLING_MAX_CELLS = 1024
-SAMPLERS = ("auto", "dense", "grid_sample")
-
-
-def sample_dense(field_maps: torch.Tensor, grid: torch.Tensor) -> torch.Tensor:
-    """Bilinear sampling as a matmul: ``field_maps [V, C, h, w]``, ``grid [V, N, 2]`` -> ``[V, N, C]``.
-
-    ``grid_sample(align_corners=False, padding_mode="border")`` semantics: the continuous cell
-    coordinate is clamped to [0, size - 1] and the weight of cell y along an axis is the tent
-    max(0, 1 - |y - g|), so the weight matrix factorises into per-axis tents and needs no gather
-    or scatter (plain Sub/Abs/Max/Mul/MatMul in ONNX). Equal to grid_sample up to float rounding.
-    """
-    V, C, h, w = field_maps.shape
-    gx = (((grid[..., 0] + 1.0) * w - 1.0) / 2.0).clamp(0.0, w - 1.0)
-    gy = (((grid[..., 1] + 1.0) * h - 1.0) / 2.0).clamp(0.0, h - 1.0)
-    xs = torch.arange(w, dtype=field_maps.dtype, device=field_maps.device)
-    ys = torch.arange(h, dtype=field_maps.dtype, device=field_maps.device)
-    wx = (1.0 - (gx[..., None] - xs).abs()).clamp_min(0.0)                       # [V, N, w]
-    wy = (1.0 - (gy[..., None] - ys).abs()).clamp_min(0.0)                       # [V, N, h]
-    dense = (wy[..., :, None] * wx[..., None, :]).reshape(V, -1, h * w)          # [V, N, h*w]
-    return dense @ field_maps.reshape(V, C, h * w).transpose(1, 2)               # [V, N, C]
+SAMPLERS = ("auto", *MODEL_SAMPLERS)
 
 
 class RendererGraph(nn.Module):
     """Feature sampling + latent field + ray renderer for one chunk of rays, for ONNX export only.
 
-    Inputs are view-major (see ``export.io_spec.RENDERER``); ``mask`` is True where the sample
-    projects validly into the view. Same computation as ``IrisModel.render_rays`` after its
-    projection step, with ``need_weights=True``. An explicit-colour model
-    (``ModelConfig.explicit_rgb``) also takes ``colours [V', R, S, 3]`` (last; the reference RGB
-    at each sample's projection, ``io_spec.EXPLICIT_RGB_INPUTS``): the field adds
-    ``rgb_to_maps(colours - 0.5)`` to the sampled maps and the renderer blends each sample's mean
-    colour over its valid views, exactly as ``IrisModel.field_at``/``render_rays``; other models
-    have no such input.
+    ``IrisModel.render_samples`` with ``need_weights=True``: ``render_rays`` after its projection
+    step, on the view-major inputs of ``io_spec.RENDERER`` (``mask`` is True where the sample
+    projects validly into the view). An explicit-colour model (``ModelConfig.explicit_rgb``) also
+    takes ``colours [V', R, S, 3]`` (last; the reference RGB at each sample's projection,
+    ``io_spec.EXPLICIT_RGB_INPUTS``); other models have no such input.
 
-    ``sampler``: ``"grid_sample"`` (ONNX ``GridSample``), ``"dense"`` (``sample_dense``) or
-    ``"auto"`` (dense for grids up to ``DENSE_SAMPLING_MAX_CELLS`` cells, as ``render_rays`` does).
+    ``sampler``: ``"dense"`` (``geometry.sample_bilinear_dense``, a matmul), ``"grid_sample"``
+    (ONNX ``GridSample``) or ``"auto"``: the model's own choice (``iris_train.model.sampler_for``).
     """
 
     def __init__(self, model: IrisModel, sampler: str = "auto"):
         super().__init__()
         if sampler not in SAMPLERS:
             raise ExportArgumentError(f"sampler: expected one of {SAMPLERS}, got {sampler!r}")
-        if sampler == "auto":
-            h, w = model.cfg.feature_grid
-            sampler = "dense" if h * w <= DENSE_SAMPLING_MAX_CELLS else "grid_sample"
         self.model = model
-        self.sampler = sampler
+        self.sampler = sampler_for(*model.cfg.feature_grid) if sampler == "auto" else sampler
 
     def forward(self, field_maps: torch.Tensor, grid: torch.Tensor, cues: torch.Tensor,
                 mask: torch.Tensor, positions: torch.Tensor, directions: torch.Tensor,
                 colours: torch.Tensor | None = None):
-        V, R, S = mask.shape
-        C = field_maps.shape[1]
         if self.model.cfg.explicit_rgb and colours is None:
             raise ExportArgumentError("colours: this model (explicit_rgb) renders from the "
                                       "reference RGB sampled at the samples, [V', R, S, 3]")
-        if self.sampler == "dense":
-            sampled = sample_dense(field_maps, grid.reshape(V, R * S, 2)).transpose(0, 1)
-        else:
-            sampled = F.grid_sample(field_maps, grid.reshape(V, 1, R * S, 2), mode="bilinear",
-                                    padding_mode="border", align_corners=False)  # [V, C', 1, R*S]
-            sampled = sampled.reshape(V, C, R * S).permute(2, 0, 1)
-        point_colours = mean_colour = None
-        if self.model.cfg.explicit_rgb:
-            # IrisModel.field_at: every view's colour enters the field; the renderer blends each
-            # sample's mean colour over the views that see it.
-            m = mask.to(colours.dtype)[..., None]                                 # [V, R, S, 1]
-            mean_colour = (colours * m).sum(0) / m.sum(0).clamp_min(1.0)           # [R, S, 3]
-            point_colours = colours.permute(1, 2, 0, 3).reshape(R * S, V, 3)
-        # sampled: the field's point-major layout [R*S, V', C'].
-        f = self.model.field(sampled, cues.permute(1, 2, 0, 3).reshape(R * S, V, 4),
-                             mask.permute(1, 2, 0).reshape(R * S, V), point_colours)  # [R*S, W]
-        return self.model.renderer(f.reshape(R, S, -1), positions, directions, mask.any(0),
-                                   need_weights=True, colours=mean_colour)
+        return self.model.render_samples(field_maps, grid, cues, mask, positions, directions,
+                                         colours, need_weights=True, sampler=self.sampler)
 
 
 WRAPPERS = {"encoder": EncoderGraph, "renderer": RendererGraph}
@@ -346,7 +275,11 @@ def quantize_int8(src: str | Path, dst: str | Path) -> GraphFile:
         quant_logger.setLevel(logging.ERROR)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            quantize_dynamic(proto, str(dst), weight_type=QuantType.QInt8)
+            # DefaultTensorType: onnx's shape inference gives no type past ONNX Runtime's
+            # contrib ops (export.fast_renderer's "fast-contrib" graph); float32 is every
+            # tensor's type here. Graphs whose types are all inferred are unaffected.
+            quantize_dynamic(proto, str(dst), weight_type=QuantType.QInt8,
+                             extra_options={"DefaultTensorType": onnx.TensorProto.FLOAT})
     finally:
         quant_logger.setLevel(level)
     proto = set_min_ir_version(onnx.load_model(str(dst)))
@@ -357,4 +290,4 @@ def quantize_int8(src: str | Path, dst: str | Path) -> GraphFile:
 
 __all__ = ["EncoderGraph", "RendererGraph", "WRAPPERS", "DEFAULT_OPSET", "MIN_OPSET", "EXPORTER",
            "fixed_dims", "example_inputs", "export_graph", "quantize_int8", "check_opset",
-           "set_min_ir_version", "GraphFile", "sample_dense", "SAMPLERS", "DENSE_SAMPLING_MAX_CELLS"]
+           "set_min_ir_version", "GraphFile", "SAMPLERS"]

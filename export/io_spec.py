@@ -1,19 +1,13 @@
-"""The declarative I/O spec of the two IRIS graphs: names, dtypes, axes, tolerances.
+"""The I/O spec of the two IRIS graphs, as export sees it.
 
-Export builds the graphs with these names and dynamic axes, validation checks the tolerances, and
-the manifest (``iris.json``) carries this spec so that the runtime reads the same names without
-importing this package (``iris_runtime`` never imports torch or ``export``).
-
-Axis names: V views, R rays, S samples per ray; C' field channels, h x w feature grid, H x W the
-model's image size. Everything per view is view-major ([V', R, S, ...]) because that is how the
-runtime's numpy projection produces it.
+The spec itself (names, dtypes, axes, tolerances, ``IO_SPEC_VERSION``) is declared once, in the
+torch-free ``iris_runtime.io_spec``, and re-exported here (the same objects: a change to
+``RENDERER["tolerance"]`` is seen by both). This module adds only the exporter's own settings.
 """
 from __future__ import annotations
 
-#: 2: the encoder takes ``is_reference`` (isolated references, queries located in their frame).
-#: 3: the renderer of an explicit-colour model (``ModelConfig.explicit_rgb``) also takes
-#: ``colours`` (``EXPLICIT_RGB_INPUTS``); for every other model the two graphs are those of 2.
-IO_SPEC_VERSION = 3
+from iris_runtime.io_spec import (ENCODER, EXPLICIT_RGB_AXES, EXPLICIT_RGB_INPUTS, GRAPHS,
+                                  IO_SPEC_VERSION, RENDERER, spec_for)
 
 #: ONNX opset of the graphs unless ``--opset`` says otherwise: 20 has ``Gelu`` and the current
 #: ``GridSample``; onnxruntime >= 1.17 runs it.
@@ -21,85 +15,5 @@ DEFAULT_OPSET = 20
 #: The dynamo exporter silently raises lower opsets to 18, so export refuses them instead.
 MIN_OPSET = 18
 
-ENCODER = {
-    "file": "encoder.onnx",
-    "inputs": {
-        # RGB in [0, 1] at the model's resolution (H, W fixed, recorded in the manifest).
-        "images": {"dtype": "float32", "shape": ["V", 3, "H", "W"]},
-        # True: a reference (its tokens attend to references only, so its outputs never depend on
-        # the queries); False: a query (attends to the references and to itself; its pose comes
-        # out in the references' frame). View 0 must be a reference. All True = encode a scene.
-        "is_reference": {"dtype": "bool", "shape": ["V"]},
-    },
-    "outputs": {
-        # Per-scene field maps (LatentField.prepare of the encoder features): what the renderer samples.
-        "field_maps": {"dtype": "float32", "shape": ["V", "C'", "h", "w"]},
-        "world_from_cam": {"dtype": "float32", "shape": ["V", 4, 4]},    # view 0 = I
-        "focal": {"dtype": "float32", "shape": [2]},                    # (fx/W, fy/H)
-    },
-    "dynamic_axes": {"images": {0: "V"}, "is_reference": {0: "V"}, "field_maps": {0: "V"},
-                     "world_from_cam": {0: "V"}},
-    # Max abs error of ONNX Runtime vs torch on the probe inputs.
-    "tolerance": {"field_maps": 1e-4, "world_from_cam": 1e-5, "focal": 1e-5},
-    # Max abs change of the references' outputs in ONNX Runtime when queries are added, changed or
-    # removed (export.validate.isolation_errors).
-    "isolation_tolerance": 1e-6,
-}
-
-RENDERER = {
-    "file": "renderer.onnx",
-    "inputs": {
-        "field_maps": {"dtype": "float32", "shape": ["V", "C'", "h", "w"]},
-        # Normalised sample positions in each view, grid_sample convention (align_corners=False).
-        "grid": {"dtype": "float32", "shape": ["V", "R", "S", 2]},
-        "cues": {"dtype": "float32", "shape": ["V", "R", "S", 4]},         # geometric cue Δ
-        "mask": {"dtype": "bool", "shape": ["V", "R", "S"]},               # valid projection
-        "positions": {"dtype": "float32", "shape": ["R", "S", 3]},
-        "directions": {"dtype": "float32", "shape": ["R", 3]},
-    },
-    "outputs": {
-        "rgb": {"dtype": "float32", "shape": ["R", 3]},
-        "weights": {"dtype": "float32", "shape": ["R", "S"]},
-    },
-    "dynamic_axes": {
-        "field_maps": {0: "V"}, "grid": {0: "V", 1: "R", 2: "S"}, "cues": {0: "V", 1: "R", 2: "S"},
-        "mask": {0: "V", 1: "R", 2: "S"}, "positions": {0: "R", 1: "S"}, "directions": {0: "R"},
-        "rgb": {0: "R"}, "weights": {0: "R", 1: "S"},
-    },
-    "tolerance": {"rgb": 1e-4, "weights": 1e-4},
-}
-
-#: The renderer's extra input for explicit-colour models (``ModelConfig.explicit_rgb``), listed
-#: in their spec only (``spec_for``): the reference photos' RGB in [0, 1] at each sample's
-#: projection into each view, bilinear on the full-resolution image with the same normalised
-#: ``grid`` as the field maps (align_corners=False, border-clamped), sampled by the caller in
-#: numpy (``iris_runtime.geometry.sample_bilinear_views``). Masked (view, sample) entries are
-#: ignored by the graph (any finite value). The graph adds ``rgb_to_maps(colours - 0.5)`` to the
-#: sampled field maps, takes each sample's mean colour over its valid views and blends it along
-#: the ray; ``weights`` are then the blend weights.
-#:
-#: Sampled in numpy, not in the graph, by measurement (V'=5, R=102, S=64, 64x64 images, 1 thread,
-#: busy machine): numpy ``sample_bilinear`` per view 1.8 ms per renderer call, ONNX ``GridSample``
-#: on the 3-channel images 1.5 ms, both ~3 % of the call's 59 ms; the dense tent matmul that
-#: samples the 8x8 field maps would need a [V', R*S, H*W] weight matrix (535 MB here). Numpy keeps
-#: the graph's inputs per sample (none depends on the image size) and reuses the runtime's tested
-#: sampler.
-EXPLICIT_RGB_INPUTS = {
-    "colours": {"dtype": "float32", "shape": ["V", "R", "S", 3]},
-}
-EXPLICIT_RGB_AXES = {"colours": {0: "V", 1: "R", 2: "S"}}
-
-GRAPHS = {"encoder": ENCODER, "renderer": RENDERER}
-
-
-def spec_for(graph: str, explicit_rgb: bool = False) -> dict:
-    """The I/O spec of ``graph`` for a model with or without explicit colour.
-
-    Without it: ``GRAPHS[graph]`` itself. With it, the renderer's spec gains ``colours`` as its
-    last input; the other entries (``tolerance`` included) are the same objects as ``RENDERER``'s,
-    so a change to ``RENDERER["tolerance"]`` applies to both."""
-    spec = GRAPHS[graph]
-    if graph != "renderer" or not explicit_rgb:
-        return spec
-    return {**spec, "inputs": {**spec["inputs"], **EXPLICIT_RGB_INPUTS},
-            "dynamic_axes": {**spec["dynamic_axes"], **EXPLICIT_RGB_AXES}}
+__all__ = ["IO_SPEC_VERSION", "DEFAULT_OPSET", "MIN_OPSET", "ENCODER", "RENDERER",
+           "EXPLICIT_RGB_INPUTS", "EXPLICIT_RGB_AXES", "GRAPHS", "spec_for"]

@@ -3,7 +3,7 @@
 It is everything the torch-free runtime needs to use the graphs without importing ``export``:
 format name and version, the model config and the numbers derived from it (image size, patch size,
 feature grid, field channels, near/far, samples), the exporter's settings and library versions,
-per graph its file name, sha256, size and I/O spec (from ``export.io_spec``), and the validation
+per graph its file name, sha256, size and I/O spec (``iris_runtime.io_spec``), and the validation
 report (max abs error of ONNX Runtime vs torch per output, tolerances, median times). Layout::
 
     {
@@ -42,31 +42,22 @@ runtime reads I/O spec 2 manifests of models without explicit colour as before.
 
 JSON turns the integer axis keys of ``dynamic_axes`` into strings ("0"); non-finite numbers in the
 validation report (an int8 error can be ``inf`` if it produced NaN) are written as strings.
+
+The format name, versions and file name are declared once, in ``iris_runtime.io_spec`` (the
+runtime's reader checks against the same constants); ``FORMAT`` and ``VERSION`` are their names here.
 """
 from __future__ import annotations
 
-import hashlib
-import json
 import math
 import os
 from datetime import datetime, timezone
 from pathlib import Path
 
+from iris_runtime.fileio import atomic_write_json, read_json, sha256_file
+from iris_runtime.io_spec import FORMAT_NAME as FORMAT
+from iris_runtime.io_spec import FORMAT_VERSION as VERSION
+from iris_runtime.io_spec import IO_SPEC_VERSION, MANIFEST_NAME
 from iris_train.config import ModelConfig
-
-from . import io_spec
-
-FORMAT = "iris-model"
-VERSION = 2
-MANIFEST_NAME = "iris.json"
-
-
-def sha256_file(path: str | os.PathLike, chunk: int = 1 << 20) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(chunk), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def graph_entry(path: str | os.PathLike, spec: dict, nodes: int, **extra) -> dict:
@@ -93,7 +84,7 @@ def build_manifest(cfg: ModelConfig, graphs: dict[str, dict], validation: dict, 
     return {
         "format": FORMAT,
         "version": VERSION,
-        "io_spec_version": io_spec.IO_SPEC_VERSION,
+        "io_spec_version": IO_SPEC_VERSION,
         "created": datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
         "config": cfg.to_dict(),
         "image_size": [cfg.image_height, cfg.image_width],
@@ -124,17 +115,19 @@ def _json_safe(x):
 
 
 def write_manifest(path: str | os.PathLike, manifest: dict) -> Path:
+    """Write ``manifest`` as strict JSON (non-finite numbers as strings), atomically."""
     path = Path(path)
-    path.write_text(json.dumps(_json_safe(manifest), indent=2, allow_nan=False) + "\n")
+    atomic_write_json(path, _json_safe(manifest))
     return path
 
 
 def read_manifest(path_or_dir: str | os.PathLike) -> dict:
-    """Read ``iris.json`` (given the file or its directory); for tests and tools."""
+    """Read ``iris.json`` (given the file or its directory) unchecked, for tests and tools
+    (``iris_runtime.manifest.read_manifest`` is the checked reader)."""
     path = Path(path_or_dir)
     if path.is_dir():
         path = path / MANIFEST_NAME
-    return json.loads(path.read_text())
+    return read_json(path, what=f"the {MANIFEST_NAME} manifest written by iris-export")
 
 
 __all__ = ["FORMAT", "VERSION", "MANIFEST_NAME", "sha256_file", "graph_entry", "build_manifest",

@@ -18,12 +18,13 @@ from pathlib import Path
 
 import onnx
 
+from iris_runtime.fileio import sha256_file
 from iris_train.model import CheckpointError, IrisModel, load_model
 
 from . import io_spec
 from .errors import ExportArgumentError, ExportError, OutputExistsError
 from .graphs import DEFAULT_OPSET, EXPORTER, RendererGraph, check_opset, export_graph, quantize_int8
-from .manifest import MANIFEST_NAME, build_manifest, graph_entry, sha256_file, write_manifest
+from .manifest import MANIFEST_NAME, build_manifest, graph_entry, write_manifest
 from .validate import validate
 
 QUANTIZE_CHOICES = ("int8",)

@@ -3,7 +3,8 @@
 ``validate(model, files)`` runs, for each graph:
 
 1. ``onnx.checker.check_model(full_check=True)`` (strict shape inference included);
-2. the I/O contract: ONNX Runtime's input/output names, dtypes and axes equal ``export.io_spec``;
+2. the I/O contract: ONNX Runtime's input/output names, dtypes and axes equal the I/O spec
+   (``iris_runtime.io_spec``);
 3. probe inputs through ONNX Runtime and through the torch reference, max abs error per output
    against the spec's tolerance (read from ``io_spec`` at call time). Probes, all seeded:
 
@@ -21,7 +22,8 @@
      ``RendererGraph`` in torch.
    * renderer, scene: the scene encoded by torch, rays through random pixels of a novel pose near
      the last view (plus rays pointing backwards, whose samples lie behind the cameras), inputs
-     built by the torch twin of the runtime's numpy geometry; the reference is
+     built by ``Scene.project_samples`` (the torch twin of the runtime's numpy geometry, and
+     ``render_rays``' own projection step); the reference is
      ``IrisModel.render_rays`` itself, so these probes also check that the wrapper computes what
      the model computes.
    * explicit-colour models (``ModelConfig.explicit_rgb``): the same probes with the renderer's
@@ -95,21 +97,15 @@ def scene_images(n_views: int, height: int, width: int, generator: torch.Generat
 
 def renderer_inputs(scene: Scene, origins: torch.Tensor, directions: torch.Tensor,
                     depths: torch.Tensor) -> dict[str, torch.Tensor]:
-    """The renderer graph's inputs for rays ``origins, directions [R, 3]`` at depths ``[R, S]``.
-
-    The torch twin of what the runtime computes in numpy (``iris_runtime.geometry``), with exactly
-    the operations of ``IrisModel.render_rays``: project, grid coordinates, cues, view-major layout.
-    """
-    H, W = scene.image_size
-    points = origins[:, None, :] + depths[..., None] * directions[:, None, :]            # [R, S, 3]
-    cam_from_world = G.invert_pose(scene.world_from_cam)
-    uv, _, valid = G.project_points(points, scene.intrinsics(), cam_from_world, H, W)    # [V, R, S, .]
-    cues = G.geometric_cue(points, origins[:, None, :], scene.world_from_cam[:, :3, 3])  # [R, S, V, 4]
-    grid = G.pixels_to_grid(uv, H, W)
-    inputs = {"field_maps": scene.maps, "grid": grid, "cues": cues.permute(2, 0, 1, 3),
-              "mask": valid, "positions": points, "directions": directions}
-    if scene.images is not None:       # explicit colour: the photos' RGB at the same grid
-        inputs["colours"] = G.sample_bilinear(scene.images, grid)                       # [V, R, S, 3]
+    """The renderer graph's inputs for rays ``origins, directions [R, 3]`` at depths ``[R, S]``:
+    ``Scene.project_samples`` (the projection step of ``IrisModel.render_rays``, the torch twin of
+    the runtime's numpy geometry) under the graph's input names; ``colours`` when the scene
+    carries its photos (explicit colour)."""
+    s = scene.project_samples(origins, directions, depths)
+    inputs = {"field_maps": s.field_maps, "grid": s.grid, "cues": s.cues, "mask": s.mask,
+              "positions": s.positions, "directions": s.directions}
+    if s.colours is not None:
+        inputs["colours"] = s.colours
     return inputs
 
 
@@ -196,7 +192,7 @@ def encoder_probes(model: IrisModel, view_counts=VIEW_COUNTS, query_counts=QUERY
             scene = model.encode(images)
             probes.append(Probe(f"{kind} V={V}", {"images": images,
                                                   "is_reference": torch.ones(V, dtype=torch.bool)},
-                                _encoder_reference(scene.maps, scene.world_from_cam, scene.focal),
+                                _encoder_reference(scene.field_maps, scene.world_from_cam, scene.focal),
                                 {"V": V, "queries": 0}))
     for V, Q in query_counts:
         views = scene_images(V + Q, H, W, g)
@@ -207,7 +203,7 @@ def encoder_probes(model: IrisModel, view_counts=VIEW_COUNTS, query_counts=QUERY
         is_reference = torch.arange(V + Q) < V
         scene = model.encode(images[:V])
         features, _, _ = model.encode_batch(images[None], is_reference)
-        maps = torch.cat([scene.maps, model.field.prepare(features[0, V:])])
+        maps = torch.cat([scene.field_maps, model.field.prepare(features[0, V:])])
         poses = torch.cat([scene.world_from_cam, model.locate(images[:V], images[V:])])
         probes.append(Probe(f"scene V={V} + Q={Q} queries", {"images": images,
                                                               "is_reference": is_reference},

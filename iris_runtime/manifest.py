@@ -2,19 +2,21 @@
 
 The manifest is the only thing the runtime knows about a model: the format tag and version, the
 model's config, its image size, the ray sampling (near, far, samples), and per graph the file
-name, its sha256 and its I/O spec (the names and dtypes of ``export/io_spec.py``, copied into the
-manifest so that the runtime never imports ``export`` or torch).
+name, its sha256 and its I/O spec (``iris_runtime.io_spec``, the one declaration that export
+builds the graphs from, copied into the manifest; the runtime never imports ``export`` or torch).
 
 Checks, each failing with a typed ``ModelFileError`` that names the file and what was expected:
 
-- ``ManifestError``: ``iris.json`` missing, not JSON, a field missing or of the wrong type, a
+- ``ManifestError``: ``iris.json`` missing, not JSON, a field missing or of the wrong type
+  (``io_spec_version``, ``config``, ``image_size``, ``near``, ``far``, ``samples``,
+  ``field_channels`` and ``graphs`` are all required: every format-2 exporter wrote them), a
   graph path that is absolute, contains ``..`` or resolves (through symlinks) outside the model
   directory, or an I/O spec that lacks a name the runtime feeds or reads;
 - ``ModelFormatError``: format name other than ``"iris-model"`` or a version other than 2
   (version 1, written before the encoder isolated its references, says to re-export with
-  iris-export); an I/O spec version other than 3 and 2 (2, written before explicit-colour models
-  could be exported, has exactly 3's graphs for every other model and is read as such; a version 2
-  manifest of an explicit-colour model is refused);
+  iris-export); an ``io_spec_version`` other than 3 and 2 (2, written before explicit-colour
+  models could be exported, has exactly 3's graphs for every other model and is read as such; a
+  version 2 manifest of an explicit-colour model is refused);
 - explicit colour: ``config.explicit_rgb`` (a bool; absent = False) says whether the renderer
   takes ``colours`` (``EXPLICIT_RGB_INPUTS``); a renderer spec that lists ``colours`` for a model
   without it, or lacks it for a model with it, is a ``ManifestError``;
@@ -29,7 +31,6 @@ Checks, each failing with a typed ``ModelFileError`` that names the file and wha
 """
 from __future__ import annotations
 
-import hashlib
 import math
 import os
 from dataclasses import dataclass, field
@@ -37,38 +38,17 @@ from pathlib import Path, PurePosixPath, PureWindowsPath
 from types import MappingProxyType
 from typing import Any, Mapping
 
-from .camera_io import read_json_object
 from .errors import ManifestError, ModelFileError, ModelFormatError, ModelIntegrityError
+from .fileio import read_json, sha256_bytes
+from .io_spec import (EXPLICIT_RGB_INPUTS, FORMAT_NAME, FORMAT_VERSION, GRAPHS, IO_SPEC_COMPATIBLE,
+                      IO_SPEC_VERSION, MANIFEST_NAME, required_dtypes)
 
-MANIFEST_NAME = "iris.json"
-FORMAT_NAME = "iris-model"
-#: 2: the encoder graph takes ``is_reference`` (isolated references; ``IrisRuntime.locate``).
-FORMAT_VERSION = 2
-#: Version of the graphs' I/O names and layouts (export/io_spec.py IO_SPEC_VERSION). 3: the
-#: renderer of an explicit-colour model (``config.explicit_rgb``) also takes ``colours``.
-IO_SPEC_VERSION = 3
-#: Older I/O spec versions read as IO_SPEC_VERSION for models without explicit colour (their
-#: graphs are identical): 2 differs from 3 only by explicit colour, which it could not express.
-IO_SPEC_COMPATIBLE = (2,)
 
-#: The names the runtime feeds and reads, with their dtypes (export/io_spec.py is the source;
-#: the manifest carries it, and a model whose spec lacks one of these cannot be run).
-REQUIRED_IO: dict[str, dict[str, dict[str, str]]] = {
-    "encoder": {
-        "inputs": {"images": "float32", "is_reference": "bool"},
-        "outputs": {"field_maps": "float32", "world_from_cam": "float32", "focal": "float32"},
-    },
-    "renderer": {
-        "inputs": {"field_maps": "float32", "grid": "float32", "cues": "float32", "mask": "bool",
-                   "positions": "float32", "directions": "float32"},
-        "outputs": {"rgb": "float32", "weights": "float32"},
-    },
-}
-#: The renderer's extra input for explicit-colour models (export/io_spec.py EXPLICIT_RGB_INPUTS):
-#: float32 [V', R, S, 3], the reference RGB at each sample's projection into each view.
-EXPLICIT_RGB_INPUTS = {"colours": "float32"}
-
-_CHUNK = 1 << 20
+def required_io_for(explicit_rgb: bool) -> dict[str, dict[str, dict[str, str]]]:
+    """Per graph, the input and output names the runtime feeds and reads, with their dtypes
+    (``io_spec.required_dtypes``): a model whose manifest lacks one of these cannot be run. An
+    explicit-colour model's renderer also takes ``colours``."""
+    return {graph: required_dtypes(graph, explicit_rgb) for graph in GRAPHS}
 
 
 @dataclass(frozen=True)
@@ -91,39 +71,11 @@ class Manifest:
     near: float
     far: float
     samples: int
+    field_channels: int                         # C' of the field maps
     graphs: Mapping[str, GraphEntry]
     raw: Mapping[str, Any] = field(repr=False)  # the whole document, for reports
     #: config.explicit_rgb: the renderer takes ``colours`` (the reference RGB at the samples).
     explicit_rgb: bool = False
-
-    @property
-    def field_channels(self) -> int | None:
-        """C' of the field maps: the manifest's ``field_channels``, else from the config
-        (field_width * (1 + 2 * view_blocks)); None when neither says."""
-        value = self.raw.get("field_channels")
-        if isinstance(value, int) and not isinstance(value, bool) and value > 0:
-            return value
-        try:
-            return int(self.config["field_width"]) * (1 + 2 * int(self.config["view_blocks"]))
-        except (KeyError, TypeError, ValueError):
-            return None
-
-
-def required_io_for(explicit_rgb: bool) -> dict[str, dict[str, dict[str, str]]]:
-    """``REQUIRED_IO``, with the renderer's ``colours`` input for an explicit-colour model."""
-    if not explicit_rgb:
-        return REQUIRED_IO
-    renderer = REQUIRED_IO["renderer"]
-    return {**REQUIRED_IO, "renderer": {**renderer,
-                                        "inputs": {**renderer["inputs"], **EXPLICIT_RGB_INPUTS}}}
-
-
-def sha256_file(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        while chunk := f.read(_CHUNK):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 def read_graph_bytes(entry: GraphEntry) -> bytes:
@@ -135,7 +87,7 @@ def read_graph_bytes(entry: GraphEntry) -> bytes:
         raise ModelFileError(f"{entry.path}: {entry.name} graph file is missing") from None
     except OSError as exc:
         raise ModelFileError(f"{entry.path}: cannot read the {entry.name} graph: {exc}") from None
-    _check_digest(entry, hashlib.sha256(data).hexdigest())
+    _check_digest(entry, sha256_bytes(data))
     check_self_contained(entry, data)
     return data
 
@@ -275,14 +227,14 @@ def read_manifest(model_dir: str | os.PathLike, *, verify_hashes: bool = True) -
         raise ModelFileError(f"model directory {str(model_dir)!r}: no such directory "
                              f"(expected the output directory of iris-export)")
     path = model_dir / MANIFEST_NAME
-    doc = read_json_object(path, ManifestError, missing=f" (expected the {MANIFEST_NAME} manifest "
-                                                        "written by iris-export)")
+    doc = read_json(path, what=f"the {MANIFEST_NAME} manifest written by iris-export",
+                    error=ManifestError)
 
     fmt, version = doc.get("format"), doc.get("version")
     if fmt != FORMAT_NAME:
         raise ModelFormatError(f"{path}: format {fmt!r}, expected {FORMAT_NAME!r} "
                                f"(the manifest of an iris-export model directory)")
-    if version == 1 and not isinstance(version, bool):
+    if version == 1 and not isinstance(version, bool):       # the one earlier format that shipped
         raise ModelFormatError(f"{path}: {FORMAT_NAME} version 1, written before the encoder "
                                f"isolated its references (its graph has no 'is_reference' input); "
                                f"this runtime reads version {FORMAT_VERSION}: re-export with "
@@ -292,13 +244,13 @@ def read_manifest(model_dir: str | os.PathLike, *, verify_hashes: bool = True) -
                                f"version {FORMAT_VERSION} (re-export with iris-export, or upgrade "
                                f"iris_runtime)")
 
-    io_version = doc.get("io_spec_version", IO_SPEC_VERSION)
+    io_version = doc.get("io_spec_version")
     if isinstance(io_version, bool) or io_version not in (IO_SPEC_VERSION, *IO_SPEC_COMPATIBLE):
         raise ModelFormatError(f"{path}: I/O spec version {io_version!r}; this runtime feeds I/O "
                                f"spec version {IO_SPEC_VERSION} (re-export with iris-export, or "
                                f"upgrade iris_runtime)")
 
-    config = doc.get("config", {})
+    config = doc.get("config")
     if not isinstance(config, dict):
         raise ManifestError(f"{path}: 'config' must be an object, got {type(config).__name__}")
     explicit_rgb = config.get("explicit_rgb", False)
@@ -310,8 +262,8 @@ def read_manifest(model_dir: str | os.PathLike, *, verify_hashes: bool = True) -
                                f"spec version {io_version!r}, which has no 'colours' input; this "
                                f"runtime feeds version {IO_SPEC_VERSION}: re-export with iris-export")
 
-    def number(key, cfg_key=None, kind=float):
-        value = doc.get(key, config.get(cfg_key or key))
+    def number(key, kind=float):
+        value = doc.get(key)
         ok = (isinstance(value, (int, float)) and not isinstance(value, bool)
               and math.isfinite(value))
         if kind is int:
@@ -321,7 +273,7 @@ def read_manifest(model_dir: str | os.PathLike, *, verify_hashes: bool = True) -
             raise ManifestError(f"{path}: {key!r} must be {what}, got {value!r}")
         return kind(value)
 
-    size = doc.get("image_size", [config.get("image_height"), config.get("image_width")])
+    size = doc.get("image_size")
     if (not isinstance(size, (list, tuple)) or len(size) != 2
             or not all(isinstance(s, int) and not isinstance(s, bool) and s > 0 for s in size)):
         raise ManifestError(f"{path}: 'image_size' must be [height, width] positive integers, "
@@ -330,6 +282,7 @@ def read_manifest(model_dir: str | os.PathLike, *, verify_hashes: bool = True) -
     if not 0 < near < far:
         raise ManifestError(f"{path}: need 0 < near < far, got near={near}, far={far}")
     samples = number("samples", kind=int)
+    field_channels = number("field_channels", kind=int)
 
     graphs_doc = doc.get("graphs")
     if not isinstance(graphs_doc, dict):
@@ -357,7 +310,8 @@ def read_manifest(model_dir: str | os.PathLike, *, verify_hashes: bool = True) -
 
     manifest = Manifest(model_dir=root, version=version, config=MappingProxyType(dict(config)),
                         image_size=(int(size[0]), int(size[1])), near=near, far=far,
-                        samples=samples, graphs=MappingProxyType(graphs),
+                        samples=samples, field_channels=field_channels,
+                        graphs=MappingProxyType(graphs),
                         raw=MappingProxyType(doc), explicit_rgb=explicit_rgb)
     if verify_hashes:
         for entry in graphs.values():
@@ -365,7 +319,7 @@ def read_manifest(model_dir: str | os.PathLike, *, verify_hashes: bool = True) -
                 raise ModelFileError(f"{entry.path}: {entry.name} graph file is missing "
                                      f"(listed in {path})")
             data = entry.path.read_bytes()
-            _check_digest(entry, hashlib.sha256(data).hexdigest())
+            _check_digest(entry, sha256_bytes(data))
             check_self_contained(entry, data)
     return manifest
 
@@ -393,8 +347,6 @@ def _graph_entry(path: Path, root: Path, name: str, entry: dict, required: dict)
     io = {}
     for kind in ("inputs", "outputs"):
         spec = entry.get(kind)
-        if spec is None and isinstance(entry.get("io"), dict):
-            spec = entry["io"].get(kind)
         if not isinstance(spec, dict):
             raise ManifestError(f"{where}.{kind} must be an object name -> {{dtype, shape}}")
         for io_name, dtype in required[kind].items():

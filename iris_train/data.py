@@ -27,7 +27,8 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
-from iris_runtime.camera_io import CameraSet, atomic_write_bytes, read_colmap_text, read_transforms_json
+from iris_runtime.camera_io import CameraSet, read_colmap_text, read_transforms_json
+from iris_runtime.fileio import atomic_write_bytes
 from iris_runtime.errors import ImageError, InputError
 from iris_runtime.images import CropResize, fit_to_model, load_image
 

@@ -64,16 +64,16 @@ PSNR per image is capped at ``PSNR_CAP`` dB (an identical image would otherwise 
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import sys
-import tempfile
 import warnings
 from pathlib import Path
 from typing import Iterable, Sequence
 
 import numpy as np
+
+from iris_runtime.fileio import atomic_write_bytes, atomic_write_json
 
 from .metrics import RPA_THRESHOLDS, depth_spearman, psnr, rpa, ssim
 
@@ -235,7 +235,7 @@ class _TorchBackend:
     def render(self, scene, poses: np.ndarray):
         import torch
         H, W = self.image_size
-        rgb, depth = self.model.render(scene, torch.as_tensor(poses, dtype=scene.maps.dtype), H, W)
+        rgb, depth = self.model.render(scene, torch.as_tensor(poses, dtype=scene.field_maps.dtype), H, W)
         return rgb.double().numpy(), depth.double().numpy()
 
 
@@ -555,22 +555,9 @@ def format_table(results: dict) -> str:
     return "\n".join(lines)
 
 
-def _atomic_write(path: str | os.PathLike, data: bytes) -> None:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-
-
 def write_json(path: str | os.PathLike, results: dict) -> None:
     """Write ``results`` as JSON atomically (temp file + rename); refuses NaN/inf."""
-    _atomic_write(path, (json.dumps(results, indent=2, allow_nan=False) + "\n").encode())
+    atomic_write_json(path, results)
 
 
 def save_grid(path: str | os.PathLike, references: np.ndarray, targets: np.ndarray,
@@ -636,7 +623,7 @@ def save_grid(path: str | os.PathLike, references: np.ndarray, targets: np.ndarr
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=100)
     plt.close(fig)
-    _atomic_write(path, buf.getvalue())
+    atomic_write_bytes(path, buf.getvalue())
 
 
 # ----------------------------------------------------------------------------------------------

@@ -64,7 +64,13 @@ def compose(a_from_b: torch.Tensor, b_from_c: torch.Tensor) -> torch.Tensor:
 def rotation_from_6d(a: torch.Tensor) -> torch.Tensor:
     """6D rotation ``[..., 6]`` to ``[..., 3, 3]`` by Gram-Schmidt; finite for degenerate inputs.
 
-    Twin of ``iris_runtime.geometry.rotation_from_6d`` (see there for the fallbacks).
+    Gram-Schmidt: b1 = a1/|a1|, b2 = unit(a2 - (b1.a2) b1), b3 = b1 x b2; columns [b1, b2, b3].
+    Degenerate inputs stay finite and orthonormal with det +1: where |a1| is below ``tol`` times
+    the input's scale, b1 falls back to x; where a2's part orthogonal to b1 is below it (a2 zero or
+    parallel to a1), b2 falls back to the coordinate axis least aligned with b1. A second
+    Gram-Schmidt pass keeps b2 orthogonal to b1 to rounding even when a2 is nearly parallel.
+    Its numpy twin (a float64 reference for the tests; the runtime gets rotations from the
+    encoder graph) is tests/np_geometry.py.
     """
     dtype = a.dtype
     tiny = torch.finfo(dtype).tiny
@@ -156,26 +162,28 @@ def sample_bilinear(feature_maps: torch.Tensor, grid: torch.Tensor) -> torch.Ten
 def sample_bilinear_dense(feature_maps: torch.Tensor, grid: torch.Tensor) -> torch.Tensor:
     """Same result as ``sample_bilinear``, computed as a matmul with a dense interpolation matrix.
 
-    For the small feature grids of IRIS (8x8 in the tiny preset) a [N, h*w] weight matrix is cheap
-    and both the forward and the backward pass become BLAS matmuls; grid_sample's backward scatters
-    one point at a time and dominated the training step (250 ms of 960 ms, measured with
-    torch.profiler on the tiny preset, 512 rays x 64 samples x 4 views).
+    The continuous cell coordinate is clamped to [0, size - 1] (``padding_mode="border"``) and the
+    weight of cell y along an axis is the tent max(0, 1 - |y - g|), so the [N, h*w] weight matrix
+    is the product of two per-axis tents: no gather or scatter, plain Sub/Abs/Max/Mul/MatMul when
+    exported to ONNX (the renderer graph samples with this function too). Equal to grid_sample up
+    to float rounding.
+
+    Why dense: for the small feature grids of IRIS (8x8 in the tiny preset) the weight matrix is
+    cheap and both the forward and the backward pass become BLAS matmuls, where grid_sample's
+    backward scatters one point at a time (it dominated the training step), and ONNX
+    ``GridSample`` dominated the exported renderer (docs/PERFORMANCE.md, "Renderer graph").
     """
     V, C, h, w = feature_maps.shape
     lead = grid.shape[1:-1]
     g = grid.reshape(V, -1, 2)
     gx = (((g[..., 0] + 1.0) * w - 1.0) / 2.0).clamp(0.0, w - 1.0)
     gy = (((g[..., 1] + 1.0) * h - 1.0) / 2.0).clamp(0.0, h - 1.0)
-    x0 = gx.detach().floor().clamp(max=w - 1)
-    y0 = gy.detach().floor().clamp(max=h - 1)
-    wx, wy = gx - x0, gy - y0
-    x0, y0 = x0.long(), y0.long()
-    x1, y1 = (x0 + 1).clamp(max=w - 1), (y0 + 1).clamp(max=h - 1)
-    idx = torch.stack([y0 * w + x0, y0 * w + x1, y1 * w + x0, y1 * w + x1], dim=-1)     # [V, N, 4]
-    wts = torch.stack([(1 - wx) * (1 - wy), wx * (1 - wy), (1 - wx) * wy, wx * wy], dim=-1)
-    dense = torch.zeros(V, g.shape[1], h * w, dtype=feature_maps.dtype, device=feature_maps.device)
-    dense = dense.scatter_add(2, idx, wts)                                                 # [V, N, hw]
-    out = dense @ feature_maps.reshape(V, C, h * w).transpose(1, 2)                        # [V, N, C]
+    xs = torch.arange(w, dtype=feature_maps.dtype, device=feature_maps.device)
+    ys = torch.arange(h, dtype=feature_maps.dtype, device=feature_maps.device)
+    wx = (1.0 - (gx[..., None] - xs).abs()).clamp_min(0.0)                         # [V, N, w]
+    wy = (1.0 - (gy[..., None] - ys).abs()).clamp_min(0.0)                         # [V, N, h]
+    dense = (wy[..., :, None] * wx[..., None, :]).reshape(V, -1, h * w)            # [V, N, h*w]
+    out = dense @ feature_maps.reshape(V, C, h * w).transpose(1, 2)                # [V, N, C]
     return out.reshape((V,) + tuple(lead) + (C,))
 
 

@@ -21,7 +21,6 @@ from __future__ import annotations
 import dataclasses
 import os
 import pickle
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -29,6 +28,7 @@ import torch
 import torch.nn as nn
 
 from iris_runtime.errors import IrisError
+from iris_runtime.fileio import atomic_write
 
 from . import geometry as G
 from .camera_head import CameraHead
@@ -39,9 +39,18 @@ from .ray_renderer import RayRenderer
 
 CHECKPOINT_FORMAT = "iris-checkpoint"
 CHECKPOINT_VERSION = 1
-#: Feature grids up to this many cells are sampled with a dense interpolation matmul (faster
-#: forward and much faster backward than grid_sample on CPU; identical values).
-_DENSE_SAMPLING_MAX_CELLS = 1024
+#: Feature grids up to this many cells are sampled with a dense interpolation matmul
+#: (``geometry.sample_bilinear_dense``: faster forward and much faster backward than grid_sample
+#: on CPU, and no GridSample in the exported renderer; same values), larger ones with grid_sample.
+DENSE_SAMPLING_MAX_CELLS = 1024
+#: The field-map samplers by name (``sampler_for`` picks one; the renderer graph records it).
+SAMPLERS = {"dense": G.sample_bilinear_dense, "grid_sample": G.sample_bilinear}
+
+
+def sampler_for(height: int, width: int) -> str:
+    """The sampler of a ``height`` x ``width`` feature grid: "dense" up to
+    ``DENSE_SAMPLING_MAX_CELLS`` cells, else "grid_sample"."""
+    return "dense" if height * width <= DENSE_SAMPLING_MAX_CELLS else "grid_sample"
 
 
 class CheckpointError(IrisError, ValueError):
@@ -53,12 +62,13 @@ class CheckpointError(IrisError, ValueError):
 class Scene:
     """What the encoder leaves for rendering: the latent scene memory S = {(f_k, K, P_k)}.
 
-    ``maps [V, C', h, w]`` are the per-scene field maps (LatentField.prepare of the features),
+    ``field_maps [V, C', h, w]`` are the per-scene field maps (LatentField.prepare of the features;
+    the name of the encoder graph's output and of ``iris_runtime.Scene.field_maps``),
     ``world_from_cam [V, 4, 4]`` the predicted poses (view 0 = I), ``focal [2]`` (fx/W, fy/H) and
     ``image_size`` (H, W) the model's resolution; ``images [V, 3, H, W]`` in [0, 1] the reference
     photos (needed by models with ``explicit_rgb``, None otherwise).
     """
-    maps: torch.Tensor
+    field_maps: torch.Tensor
     world_from_cam: torch.Tensor
     focal: torch.Tensor
     image_size: tuple[int, int]
@@ -66,7 +76,7 @@ class Scene:
 
     @property
     def num_views(self) -> int:
-        return self.maps.shape[0]
+        return self.field_maps.shape[0]
 
     def intrinsics(self, height: int | None = None, width: int | None = None) -> torch.Tensor:
         H, W = self.image_size
@@ -75,8 +85,43 @@ class Scene:
     def subset(self, indices) -> "Scene":
         """Keep only these views as references, in the same camera frame."""
         idx = torch.as_tensor(list(indices), dtype=torch.long)
-        return dataclasses.replace(self, maps=self.maps[idx], world_from_cam=self.world_from_cam[idx],
+        return dataclasses.replace(self, field_maps=self.field_maps[idx],
+                                   world_from_cam=self.world_from_cam[idx],
                                    images=None if self.images is None else self.images[idx])
+
+    def project_samples(self, origins: torch.Tensor, directions: torch.Tensor,
+                        depths: torch.Tensor, colours: bool | None = None) -> "RaySamples":
+        """The samples ``origins + depths * directions`` (``origins, directions [R, 3]``,
+        ``depths [R, S]``) projected into every view of the scene (Algorithm 1's projection,
+        cue and mask) -> ``RaySamples``. ``colours``: also sample the reference photos' RGB at
+        the projections (default: when the scene carries its photos)."""
+        H, W = self.image_size
+        points = origins[:, None, :] + depths[..., None] * directions[:, None, :]      # [R, S, 3]
+        cam_from_world = G.invert_pose(self.world_from_cam)
+        uv, _, valid = G.project_points(points, self.intrinsics(), cam_from_world, H, W)  # [V, R, S, .]
+        grid = G.pixels_to_grid(uv, H, W)
+        cues = G.geometric_cue(points, origins[:, None, :], self.world_from_cam[:, :3, 3])  # [R, S, V, 4]
+        if colours is None:
+            colours = self.images is not None
+        if colours and self.images is None:
+            raise ValueError("scene.images: this model (explicit_rgb) needs the reference photos")
+        rgb = G.sample_bilinear(self.images, grid) if colours else None                 # [V, R, S, 3]
+        return RaySamples(self.field_maps, grid, cues.permute(2, 0, 1, 3), valid, points, directions, rgb)
+
+
+@dataclass(frozen=True)
+class RaySamples:
+    """Ray samples projected into a scene's V reference views, view-major: exactly the inputs of
+    the exported renderer graph, in its order (``iris_runtime.io_spec.RENDERER``; the runtime
+    builds the same in numpy). ``mask`` is True where the sample projects validly into the view;
+    ``colours`` (explicit-colour models only) is each view's RGB at the sample's projection."""
+    field_maps: torch.Tensor            # [V, C', h, w]
+    grid: torch.Tensor                  # [V, R, S, 2] grid_sample coordinates
+    cues: torch.Tensor                  # [V, R, S, 4] geometric cue
+    mask: torch.Tensor                  # [V, R, S] bool
+    positions: torch.Tensor             # [R, S, 3]
+    directions: torch.Tensor            # [R, 3]
+    colours: torch.Tensor | None = None  # [V, R, S, 3] or None
 
 
 class IrisModel(nn.Module):
@@ -133,8 +178,19 @@ class IrisModel(nn.Module):
                     depths: torch.Tensor, need_weights: bool = True):
         """Render rays ``origins, directions [R, 3]`` with sample depths ``[R, S]`` from the
         scene's reference views -> ``rgb [R, 3]``, ``weights [R, S]`` (None unless need_weights)."""
-        f, points, mask, colours = self.field_at(scene, origins, directions, depths)
-        return self.renderer(f, points, directions, mask.any(-1), need_weights, colours)
+        s = scene.project_samples(origins, directions, depths, colours=self.cfg.explicit_rgb)
+        return self.render_samples(s.field_maps, s.grid, s.cues, s.mask, s.positions, s.directions,
+                                   s.colours, need_weights=need_weights)
+
+    def render_samples(self, field_maps: torch.Tensor, grid: torch.Tensor, cues: torch.Tensor,
+                       mask: torch.Tensor, positions: torch.Tensor, directions: torch.Tensor,
+                       colours: torch.Tensor | None = None, *, need_weights: bool = True,
+                       sampler: str | None = None):
+        """``render_rays`` after the projection: the fields of ``RaySamples`` (the renderer
+        graph's inputs, view-major) -> ``rgb [R, 3]``, ``weights [R, S]``."""
+        f, mean_colour = self.field_from_samples(field_maps, grid, cues, mask, colours,
+                                                 sampler=sampler)
+        return self.renderer(f, positions, directions, mask.any(0), need_weights, mean_colour)
 
     def field_at(self, scene: Scene, origins: torch.Tensor, directions: torch.Tensor,
                  depths: torch.Tensor):
@@ -142,30 +198,33 @@ class IrisModel(nn.Module):
         ``depths [R, S]`` -> point features ``f [R, S, W]``, ``points [R, S, 3]``, validity
         ``mask [R, S, V]`` (sample seen by reference view k) and, with ``explicit_rgb``, each
         sample's mean reference colour over the views that see it ``[R, S, 3]`` (else None)."""
-        H, W = scene.image_size
-        R, S = depths.shape
-        V = scene.num_views
-        points = origins[:, None, :] + depths[..., None] * directions[:, None, :]      # [R, S, 3]
-        K = scene.intrinsics()
-        cam_from_world = G.invert_pose(scene.world_from_cam)
-        uv, _, valid = G.project_points(points, K, cam_from_world, H, W)                # [V, R, S, .]
-        grid = G.pixels_to_grid(uv, H, W)
-        sample = G.sample_bilinear_dense if scene.maps[0, 0].numel() <= _DENSE_SAMPLING_MAX_CELLS \
-            else G.sample_bilinear
-        sampled = sample(scene.maps, grid)                                              # [V, R, S, C']
-        cues = G.geometric_cue(points, origins[:, None, :], scene.world_from_cam[:, :3, 3])
-        mask = valid.permute(1, 2, 0)                                                   # [R, S, V]
-        colours = mean_colour = None
+        s = scene.project_samples(origins, directions, depths, colours=self.cfg.explicit_rgb)
+        f, mean_colour = self.field_from_samples(s.field_maps, s.grid, s.cues, s.mask, s.colours)
+        return f, s.positions, s.mask.permute(1, 2, 0), mean_colour
+
+    def field_from_samples(self, field_maps: torch.Tensor, grid: torch.Tensor, cues: torch.Tensor,
+                           mask: torch.Tensor, colours: torch.Tensor | None = None, *,
+                           sampler: str | None = None):
+        """The latent field from projected samples (view-major, as in ``RaySamples``): sample
+        ``field_maps`` at ``grid`` (``sampler``: a name of ``SAMPLERS``; default ``sampler_for``
+        the maps' grid), run the field -> ``f [R, S, W]`` and, with ``explicit_rgb``, each sample's
+        mean colour over the views that see it ``[R, S, 3]`` (else None)."""
+        V, R, S = mask.shape
+        sample = SAMPLERS[sampler or sampler_for(*field_maps.shape[-2:])]
+        sampled = sample(field_maps, grid)                                              # [V, R, S, C']
+        point_colours = mean_colour = None
         if self.cfg.explicit_rgb:
-            if scene.images is None:
-                raise ValueError("scene.images: this model (explicit_rgb) needs the reference photos")
-            colours = G.sample_bilinear(scene.images, grid)                             # [V, R, S, 3]
-            m = valid.to(colours.dtype)[..., None]
+            if colours is None:
+                raise ValueError("colours: this model (explicit_rgb) needs the reference RGB at "
+                                 "the samples, [V, R, S, 3]")
+            m = mask.to(colours.dtype)[..., None]
             mean_colour = (colours * m).sum(0) / m.sum(0).clamp_min(1.0)                # [R, S, 3]
-            colours = colours.permute(1, 2, 0, 3).reshape(R * S, V, 3)
+            point_colours = colours.permute(1, 2, 0, 3).reshape(R * S, V, 3)
+        # The field is point-major: [R*S, V, ...].
         f = self.field(sampled.permute(1, 2, 0, 3).reshape(R * S, V, -1),
-                       cues.reshape(R * S, V, 4), mask.reshape(R * S, V), colours)
-        return f.reshape(R, S, -1), points, mask, mean_colour
+                       cues.permute(1, 2, 0, 3).reshape(R * S, V, 4),
+                       mask.permute(1, 2, 0).reshape(R * S, V), point_colours)
+        return f.reshape(R, S, -1), mean_colour
 
     @torch.no_grad()
     def render(self, scene: Scene, world_from_cam: torch.Tensor, height: int | None = None,
@@ -180,7 +239,7 @@ class IrisModel(nn.Module):
             raise ValueError(f"world_from_cam: expected target poses [N, 4, 4], got {tuple(world_from_cam.shape)}")
         height = height or cfg.image_height
         width = width or cfg.image_width
-        dtype, device = scene.maps.dtype, scene.maps.device
+        dtype, device = scene.field_maps.dtype, scene.field_maps.device
         K = scene.intrinsics(height, width)
         uv = G.pixel_centres(height, width, dtype=dtype, device=device)
         rgbs, depths_out = [], []
@@ -211,17 +270,7 @@ def save_checkpoint(path: str | os.PathLike, model: IrisModel, **extra) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     payload = {"format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION,
                "config": model.cfg.to_dict(), "model": model.state_dict(), **extra}
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
-    os.close(fd)
-    try:
-        torch.save(payload, tmp)
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)      # mkstemp's 0600 would make shared checkpoints unreadable
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+    atomic_write(path, lambda f: torch.save(payload, f))
 
 
 def read_checkpoint(path: str | os.PathLike) -> dict:

@@ -68,7 +68,7 @@ def cache_path(cache_dir: Path, seed: int, n_views: int) -> Path:
 
 def load_or_estimate(scenes, index: int) -> PseudoPoses:
     """Pseudo-poses of ``scenes[index]`` (a ``SyntheticScenes``), from the cache or computed."""
-    from iris_runtime.camera_io import atomic_write_bytes
+    from iris_runtime.fileio import atomic_write_bytes
     import io
     seed = scenes.seeds[index]
     path = cache_path(scenes.cache_dir, seed, scenes.n_views)

@@ -139,7 +139,7 @@ class SceneProbe:
             is_reference = torch.zeros(VIEWS, dtype=torch.bool)
             is_reference[self.refs] = True
             _, pred_all, _ = model.encode_batch(x[None], is_reference)     # targets as queries
-        self.maps = scene.maps
+        self.maps = scene.field_maps
         self.pred_ref_poses = scene.world_from_cam.double().numpy()
         self.pred_target_poses = pred_all[0, self.targets].double().numpy()
         self.pred_focal = scene.focal.double().numpy()

@@ -44,16 +44,18 @@ onnx = pytest.importorskip("onnx")
 ort = pytest.importorskip("onnxruntime")
 
 from iris_runtime import geometry as RG                                    # noqa: E402
+from . import np_geometry as NPG                                           # noqa: E402
 from iris_train.config import preset                                        # noqa: E402
 from iris_train.model import CheckpointError, save_checkpoint              # noqa: E402
 
 from export import io_spec, pipeline                                        # noqa: E402
 from export.cli import main as cli_main                                     # noqa: E402
 from export.errors import ExportArgumentError, OutputExistsError, ValidationError  # noqa: E402
-from export.graphs import EncoderGraph, GraphFile, RendererGraph, sample_dense  # noqa: E402
+from export.graphs import EncoderGraph, GraphFile, RendererGraph            # noqa: E402
 from export.manifest import FORMAT, MANIFEST_NAME, VERSION, read_manifest, sha256_file  # noqa: E402
 from export.pipeline import export_model                                    # noqa: E402
 from export.validate import renderer_inputs, scene_images, scene_rays      # noqa: E402
+from iris_train.geometry import sample_bilinear_dense as sample_dense        # noqa: E402
 
 pytestmark = pytest.mark.torch
 
@@ -258,10 +260,10 @@ def test_round_trip_against_torch_render_rays(model_and_sessions, V, R, S):
     images = scene_images(V, H, W, torch.Generator().manual_seed(V)).numpy()
     # A fresh random target pose near view 0 and random pixels; some rays point backwards.
     angle = rng.uniform(-0.1, 0.1, 3)
-    rot = RG.rotation_from_6d(np.concatenate([[1, angle[2], -angle[1]], [-angle[2], 1, angle[0]]]))
+    rot = NPG.rotation_from_6d(np.concatenate([[1, angle[2], -angle[1]], [-angle[2], 1, angle[0]]]))
     pose = np.eye(4, dtype=np.float32)
     pose[:3, :3], pose[:3, 3] = rot, rng.uniform(-0.05, 0.05, 3)
-    uv = RG.pixel_centres(H, W, dtype=np.float32)[rng.choice(H * W, R, replace=False)]
+    uv = NPG.pixel_centres(H, W, dtype=np.float32)[rng.choice(H * W, R, replace=False)]
     depths = RG.sample_depths(CFG.near, CFG.far, S, R, stratified=True, rng=rng, dtype=np.float32)
     reverse = R // 8
     rgb, weights, origins, directions, valid = _runtime_render(sessions, images, pose, uv, depths, reverse)
@@ -349,21 +351,21 @@ def test_wrappers_compute_what_the_model_computes(model):
         images = scene_images(3, H, W, g)
         scene = model.encode(images)
         maps, world_from_cam, focal = EncoderGraph(model)(images, torch.ones(3, dtype=torch.bool))
-        assert torch.equal(maps, scene.maps) and torch.equal(world_from_cam, scene.world_from_cam)
+        assert torch.equal(maps, scene.field_maps) and torch.equal(world_from_cam, scene.world_from_cam)
         assert torch.equal(focal, scene.focal)
         # With queries after the references: the references' rows are encode's (float32 rounding
         # of longer attention rows aside), the queries' poses are locate's.
         queries = scene_images(2, H, W, g)
         maps_q, poses_q, focal_q = EncoderGraph(model)(torch.cat([images, queries]),
                                                        torch.arange(5) < 3)
-        scale = max(1.0, float(scene.maps.abs().max()))
-        torch.testing.assert_close(maps_q[:3], scene.maps, atol=1e-6 * scale, rtol=0)
+        scale = max(1.0, float(scene.field_maps.abs().max()))
+        torch.testing.assert_close(maps_q[:3], scene.field_maps, atol=1e-6 * scale, rtol=0)
         torch.testing.assert_close(poses_q[:3], scene.world_from_cam, atol=1e-6, rtol=0)
         assert torch.equal(poses_q[3:], model.locate(images, queries))
         origins, directions, depths = scene_rays(model, scene, 24, g)
         rgb, weights = RendererGraph(model)(**renderer_inputs(scene, origins, directions, depths))
         rgb_ref, w_ref = model.render_rays(scene, origins, directions, depths)
-    # render_rays samples this small grid with a dense matmul, the graph with grid_sample.
+    # The wrapper is render_samples itself: the same sampler as render_rays.
     torch.testing.assert_close(rgb, rgb_ref, rtol=0, atol=1e-6)
     torch.testing.assert_close(weights, w_ref, rtol=0, atol=1e-6)
 

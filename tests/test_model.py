@@ -103,7 +103,7 @@ def empty_ray_rgb(model) -> torch.Tensor:
 def test_encode_and_render_shapes(model, images, V):
     scene = model.encode(images[:V])
     h, w = CFG.feature_grid
-    assert scene.maps.shape == (V, CFG.field_channels, h, w)
+    assert scene.field_maps.shape == (V, CFG.field_channels, h, w)
     assert scene.world_from_cam.shape == (V, 4, 4)
     assert torch.equal(scene.world_from_cam[0], torch.eye(4))
     assert scene.focal.shape == (2,)
@@ -137,7 +137,7 @@ def test_render_chunking_and_subset(model, images):
     sub = scene.subset([0, 2])
     assert sub.num_views == 2 and torch.equal(sub.focal, scene.focal)
     assert torch.equal(sub.world_from_cam, scene.world_from_cam[[0, 2]])
-    assert torch.equal(sub.maps, scene.maps[[0, 2]])
+    assert torch.equal(sub.field_maps, scene.field_maps[[0, 2]])
 
 
 def test_encode_rejects_wrong_image_shape(model):
@@ -173,7 +173,7 @@ def test_model_keeps_to_its_device():
     model = build_model(CFG).to("meta").eval()
     images = torch.empty(2, 3, CFG.image_height, CFG.image_width, device="meta")
     scene = model.encode(images)
-    assert scene.maps.device.type == scene.world_from_cam.device.type == scene.focal.device.type == "meta"
+    assert scene.field_maps.device.type == scene.world_from_cam.device.type == scene.focal.device.type == "meta"
     rgb, depth = model.render(scene, torch.eye(4, device="meta")[None], height=4, width=4)
     assert rgb.device.type == depth.device.type == "meta" and rgb.shape == (1, 4, 4, 3)
     o = torch.empty(5, 3, device="meta")
@@ -212,7 +212,7 @@ def test_order_free_over_views(spread_model, images):
     assert (scene.world_from_cam[1:, :3, 3] - scene.world_from_cam[1, :3, 3]).abs().max() > 0.01
     torch.testing.assert_close(scene_p.world_from_cam, scene.world_from_cam[perm], atol=1e-5, rtol=0)
     torch.testing.assert_close(scene_p.focal, scene.focal, atol=1e-5, rtol=0)
-    torch.testing.assert_close(scene_p.maps, scene.maps[perm], atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(scene_p.field_maps, scene.field_maps[perm], atol=1e-5, rtol=1e-5)
 
     o, d, z = target_rays(scene, NEAR_POSE, 6, 6)
     valid = sample_validity(scene, o, d, z)
@@ -265,7 +265,7 @@ def test_references_never_depend_on_the_queries(spread_model, images, dtype):
         more, _ = _with_queries(model, refs, torch.cat([queries, other, 1.0 - queries]))
         pose = NEAR_POSE[None].to(dtype)
         renders = [model.render(s, pose, height=H8, width=W8) for s in (alone, present, changed, more)]
-    for name in ("maps", "world_from_cam", "focal"):
+    for name in ("field_maps", "world_from_cam", "focal"):
         want = getattr(alone, name)
         tol = 1e-6 * (max(1.0, float(want.abs().max())) if dtype == torch.float32 else 1.0)
         for scene in (present, changed, more):

@@ -14,7 +14,8 @@ def test_runtime_imports_and_renders_with_torch_blocked():
     code = (
         "import sys; sys.modules['torch'] = None\n"
         "import iris_runtime, iris_runtime.cli, iris_runtime.geometry, iris_runtime.images\n"
-        "import iris_runtime.camera_io, iris_runtime.manifest\n"
+        "import iris_runtime.camera_io, iris_runtime.manifest, iris_runtime.fileio\n"
+        "import iris_runtime.io_spec\n"
         "assert 'torch' not in [m for m, v in sys.modules.items() if v is not None]\n"
         "print('ok')\n"
     )

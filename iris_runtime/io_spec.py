@@ -1,0 +1,121 @@
+"""The contract between ``iris-export`` and the runtime, declared once: the manifest's name, format
+and version, and the declarative I/O spec of the two graphs (names, dtypes, axes, tolerances).
+
+Export (``export/``) builds the graphs with these names and dynamic axes, validation checks the
+tolerances, and the manifest (``iris.json``) carries the spec; the runtime's manifest reader
+(``iris_runtime.manifest``) checks a model against it. Torch-free, so both sides import it.
+
+Axis names: V views, R rays, S samples per ray; C' field channels, h x w feature grid, H x W the
+model's image size. Everything per view is view-major ([V', R, S, ...]) because that is how the
+runtime's numpy projection produces it.
+"""
+from __future__ import annotations
+
+#: The manifest that iris-export writes next to the graphs.
+MANIFEST_NAME = "iris.json"
+FORMAT_NAME = "iris-model"
+#: Manifest format versions that shipped: 1 (the encoder took ``images`` only and every view saw
+#: every other), 2 (the encoder takes ``is_reference``: isolated references, queries located in
+#: their frame; ``IrisRuntime.locate``). The runtime reads 2 and refuses 1 with a re-export hint.
+FORMAT_VERSION = 2
+
+#: Version of the graphs' I/O names and layouts. Shipped: 1 (format 1's encoder), 2 (format 2:
+#: ``is_reference``), 3 (the renderer of an explicit-colour model, ``config.explicit_rgb``, also
+#: takes ``colours``; for every other model the two graphs are those of 2).
+IO_SPEC_VERSION = 3
+#: Older I/O spec versions read as ``IO_SPEC_VERSION`` for models without explicit colour (their
+#: graphs are identical): 2 differs from 3 only by explicit colour, which it could not express.
+IO_SPEC_COMPATIBLE = (2,)
+
+ENCODER = {
+    "file": "encoder.onnx",
+    "inputs": {
+        # RGB in [0, 1] at the model's resolution (H, W fixed, recorded in the manifest).
+        "images": {"dtype": "float32", "shape": ["V", 3, "H", "W"]},
+        # True: a reference (its tokens attend to references only, so its outputs never depend on
+        # the queries); False: a query (attends to the references and to itself; its pose comes
+        # out in the references' frame). View 0 must be a reference. All True = encode a scene.
+        "is_reference": {"dtype": "bool", "shape": ["V"]},
+    },
+    "outputs": {
+        # Per-scene field maps (LatentField.prepare of the encoder features): what the renderer samples.
+        "field_maps": {"dtype": "float32", "shape": ["V", "C'", "h", "w"]},
+        "world_from_cam": {"dtype": "float32", "shape": ["V", 4, 4]},    # view 0 = I
+        "focal": {"dtype": "float32", "shape": [2]},                    # (fx/W, fy/H)
+    },
+    "dynamic_axes": {"images": {0: "V"}, "is_reference": {0: "V"}, "field_maps": {0: "V"},
+                     "world_from_cam": {0: "V"}},
+    # Max abs error of ONNX Runtime vs torch on the probe inputs.
+    "tolerance": {"field_maps": 1e-4, "world_from_cam": 1e-5, "focal": 1e-5},
+    # Max abs change of the references' outputs in ONNX Runtime when queries are added, changed or
+    # removed (export.validate.isolation_errors).
+    "isolation_tolerance": 1e-6,
+}
+
+RENDERER = {
+    "file": "renderer.onnx",
+    "inputs": {
+        "field_maps": {"dtype": "float32", "shape": ["V", "C'", "h", "w"]},
+        # Normalised sample positions in each view, grid_sample convention (align_corners=False).
+        "grid": {"dtype": "float32", "shape": ["V", "R", "S", 2]},
+        "cues": {"dtype": "float32", "shape": ["V", "R", "S", 4]},         # geometric cue Δ
+        "mask": {"dtype": "bool", "shape": ["V", "R", "S"]},               # valid projection
+        "positions": {"dtype": "float32", "shape": ["R", "S", 3]},
+        "directions": {"dtype": "float32", "shape": ["R", 3]},
+    },
+    "outputs": {
+        "rgb": {"dtype": "float32", "shape": ["R", 3]},
+        "weights": {"dtype": "float32", "shape": ["R", "S"]},
+    },
+    "dynamic_axes": {
+        "field_maps": {0: "V"}, "grid": {0: "V", 1: "R", 2: "S"}, "cues": {0: "V", 1: "R", 2: "S"},
+        "mask": {0: "V", 1: "R", 2: "S"}, "positions": {0: "R", 1: "S"}, "directions": {0: "R"},
+        "rgb": {0: "R"}, "weights": {0: "R", 1: "S"},
+    },
+    "tolerance": {"rgb": 1e-4, "weights": 1e-4},
+}
+
+#: The renderer's extra input for explicit-colour models (``ModelConfig.explicit_rgb``), listed
+#: in their spec only (``spec_for``): the reference photos' RGB in [0, 1] at each sample's
+#: projection into each view, bilinear on the full-resolution image with the same normalised
+#: ``grid`` as the field maps (align_corners=False, border-clamped), sampled by the caller in
+#: numpy (``iris_runtime.geometry.sample_bilinear_views``). Masked (view, sample) entries are
+#: ignored by the graph (any finite value). The graph adds ``rgb_to_maps(colours - 0.5)`` to the
+#: sampled field maps, takes each sample's mean colour over its valid views and blends it along
+#: the ray; ``weights`` are then the blend weights.
+#:
+#: Sampled in numpy, not in the graph: about as fast as ``GridSample`` on the photos, far cheaper
+#: than a dense weight matrix over the full-resolution image, keeps every graph input per sample
+#: and reuses the runtime's tested sampler (docs/PERFORMANCE.md, "Renderer and encoder graphs").
+EXPLICIT_RGB_INPUTS = {
+    "colours": {"dtype": "float32", "shape": ["V", "R", "S", 3]},
+}
+EXPLICIT_RGB_AXES = {"colours": {0: "V", 1: "R", 2: "S"}}
+
+GRAPHS = {"encoder": ENCODER, "renderer": RENDERER}
+
+
+def spec_for(graph: str, explicit_rgb: bool = False) -> dict:
+    """The I/O spec of ``graph`` for a model with or without explicit colour.
+
+    Without it: ``GRAPHS[graph]`` itself. With it, the renderer's spec gains ``colours`` as its
+    last input; the other entries (``tolerance`` included) are the same objects as ``RENDERER``'s,
+    so a change to ``RENDERER["tolerance"]`` applies to both."""
+    spec = GRAPHS[graph]
+    if graph != "renderer" or not explicit_rgb:
+        return spec
+    return {**spec, "inputs": {**spec["inputs"], **EXPLICIT_RGB_INPUTS},
+            "dynamic_axes": {**spec["dynamic_axes"], **EXPLICIT_RGB_AXES}}
+
+
+def required_dtypes(graph: str, explicit_rgb: bool = False) -> dict[str, dict[str, str]]:
+    """``{"inputs": {name: dtype}, "outputs": {name: dtype}}`` of ``spec_for(graph, explicit_rgb)``:
+    what the runtime feeds and reads, so what a model's manifest must list."""
+    spec = spec_for(graph, explicit_rgb)
+    return {kind: {name: entry["dtype"] for name, entry in spec[kind].items()}
+            for kind in ("inputs", "outputs")}
+
+
+__all__ = ["MANIFEST_NAME", "FORMAT_NAME", "FORMAT_VERSION", "IO_SPEC_VERSION", "IO_SPEC_COMPATIBLE",
+           "ENCODER", "RENDERER", "EXPLICIT_RGB_INPUTS", "EXPLICIT_RGB_AXES", "GRAPHS", "spec_for",
+           "required_dtypes"]
