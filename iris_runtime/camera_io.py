@@ -16,6 +16,10 @@ so only the axes and the direction of the pose change:
   ``x_cam = R(q) x_world + t``; the camera axes are already OpenCV's.
 
 Distortion coefficients are ignored (with a warning) because IRIS models pinhole cameras only.
+Poses and intrinsics are checked by ``iris_runtime.validation`` (one tolerance each): the writers
+take what ``check_world_from_cam`` / ``check_intrinsics`` accept and write it unchanged; the
+``transforms.json`` reader snaps a matrix that is rigid only to a few printed decimals to the
+nearest rigid transform (``snap_world_from_cam``); COLMAP quaternions are rotations by construction.
 All writers write atomically (temporary file in the same directory, then ``os.replace``).
 Malformed files raise ``InputError`` naming the file and what was expected.
 """
@@ -23,8 +27,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import tempfile
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -33,6 +35,8 @@ from typing import Callable, Sequence
 import numpy as np
 
 from .errors import InputError
+from .validation import check_intrinsics, check_world_from_cam, snap_world_from_cam
+from .fileio import atomic_write_bytes, atomic_write_text, read_json, read_text  # noqa: F401  (writers re-exported)
 
 __all__ = ["CameraSet", "GL_FROM_CV", "flip_opengl_opencv", "quaternion_from_rotation",
            "rotation_from_quaternion", "read_transforms_json", "write_transforms_json",
@@ -139,65 +143,23 @@ def check_cameras(world_from_cam, K, size, image_names, what: str = "cameras"
     """Validate writer arguments; returns (world_from_cam [V,4,4], K [V,3,3], (h, w), names).
 
     ``K`` may be shared ``[3, 3]`` or per view ``[V, 3, 3]``; ``size`` is (height, width).
+    Poses: ``validation.check_world_from_cam``; intrinsics: ``validation.check_intrinsics``.
     """
-    T = np.asarray(world_from_cam, dtype=np.float64)
-    if T.ndim != 3 or T.shape[1:] != (4, 4) or T.shape[0] == 0:
-        raise InputError(f"world_from_cam: expected an array of shape [V, 4, 4] with V >= 1, "
-                         f"got shape {T.shape}")
-    if not np.all(np.isfinite(T)):
-        raise InputError("world_from_cam: contains NaN or inf")
-    R = T[:, :3, :3]
-    err = np.abs(R @ np.swapaxes(R, 1, 2) - np.eye(3)).max()
-    if err > 1e-6 or np.any(np.linalg.det(R) < 0) or np.abs(T[:, 3] - [0, 0, 0, 1]).max() > 1e-12:
-        raise InputError("world_from_cam: expected rigid transforms (orthonormal rotation with "
-                         f"det +1, last row [0, 0, 0, 1]); rotation error {err:.2e}")
+    T = check_world_from_cam(world_from_cam, "world_from_cam", batch=True)
     V = T.shape[0]
-    Kin = np.asarray(K, dtype=np.float64)
-    if Kin.shape == (3, 3):
-        Kin = np.broadcast_to(Kin, (V, 3, 3)).copy()
-    if Kin.shape != (V, 3, 3):
-        raise InputError(f"K: expected shape [3, 3] or [{V}, 3, 3], got {np.shape(K)}")
-    if not np.all(np.isfinite(Kin)) or np.any(Kin[:, 0, 0] <= 0) or np.any(Kin[:, 1, 1] <= 0) \
-            or np.abs(Kin[:, 2] - [0, 0, 1]).max() > 0 or np.abs(Kin[:, 1, 0]).max() > 0:
-        raise InputError("K: expected finite pinhole intrinsics [[fx, s, cx], [0, fy, cy], [0, 0, 1]] "
-                         "with fx, fy > 0")
     try:
         h, w = (int(size[0]), int(size[1]))
     except (TypeError, ValueError, IndexError):
         raise InputError(f"size: expected (height, width), got {size!r}") from None
     if h <= 0 or w <= 0 or len(size) != 2:
         raise InputError(f"size: expected (height, width) positive ints, got {size!r}")
+    Kin = check_intrinsics(K, "K", h, w, views=V)
     names = [str(n) for n in image_names]
     if len(names) != V:
         raise InputError(f"image_names: expected {V} names (one per camera), got {len(names)}")
     if len(set(names)) != V or any(not n or "\n" in n for n in names):
         raise InputError("image_names: expected distinct, non-empty, single-line names")
     return T, Kin, (h, w), names
-
-
-def atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` through a temporary file in the same folder and ``os.replace``:
-    readers see the old file or the new one, never half of one."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
-
-
-def atomic_write_text(path: Path, text: str) -> None:
-    """``atomic_write_bytes`` of UTF-8 text with Unix newlines."""
-    atomic_write_bytes(path, text.encode("utf-8"))
 
 
 def _num(x: float) -> str:
@@ -217,8 +179,6 @@ def write_transforms_json(path, world_from_cam, K, size, image_names) -> Path:
     ``file_path``. Shared intrinsics go to the top level, per-view ones into each frame.
     """
     T, Ks, (h, w), names = check_cameras(world_from_cam, K, size, image_names)
-    if np.abs(Ks[:, 0, 1]).max() > 0:
-        raise InputError("K: transforms.json cannot store a skew K[0, 1] != 0")
     shared = bool(np.all(Ks == Ks[0]))
 
     def intr(k):
@@ -250,7 +210,7 @@ def read_transforms_json(path, image_size: Callable[[str], tuple[int, int]] | No
     means the image centre.
     """
     path = Path(path)
-    doc = read_json_object(path)
+    doc = read_json(path)
     frames = doc.get("frames")
     if not isinstance(frames, list) or not frames:
         raise InputError(f"{path}: expected a non-empty 'frames' list")
@@ -294,32 +254,13 @@ def read_transforms_json(path, image_size: Callable[[str], tuple[int, int]] | No
                      np.asarray(sizes, dtype=np.int64), str(path))
 
 
-def read_text(path: Path, error: type[Exception] = InputError, missing: str = "") -> str:
-    """UTF-8 text of ``path``; a missing or unreadable file is ``error`` naming it (``missing`` is
-    appended to the no-such-file message)."""
-    try:
-        return path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise error(f"{path}: no such file{missing}") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise error(f"{path}: cannot read: {e}") from None
-
-
-def read_json_object(path: Path, error: type[Exception] = InputError, missing: str = "") -> dict:
-    """A JSON object from ``path``; every failure is ``error`` naming the file."""
-    text = read_text(path, error, missing)
-    try:
-        doc = json.loads(text)
-    except json.JSONDecodeError as e:
-        raise error(f"{path}: not valid JSON ({e})") from None
-    if not isinstance(doc, dict):
-        raise error(f"{path}: expected a JSON object at the top level")
-    return doc
 
 
 
 
 def _matrix(m, where: str) -> np.ndarray:
+    """A camera-to-world 4x4 (or 3x4) from a text file, snapped to rigid within
+    ``validation.SNAP_ATOL`` (``snap_world_from_cam``)."""
     try:
         M = np.asarray(m, dtype=np.float64)
     except (TypeError, ValueError):
@@ -328,11 +269,7 @@ def _matrix(m, where: str) -> np.ndarray:
         M = np.vstack([M, [0.0, 0.0, 0.0, 1.0]])
     if M.shape != (4, 4) or not np.all(np.isfinite(M)):
         raise InputError(f"{where}: expected a finite 4x4 (or 3x4) matrix, got shape {M.shape}")
-    R = M[:3, :3]
-    if np.abs(R @ R.T - np.eye(3)).max() > 1e-3 or np.linalg.det(R) < 0:
-        raise InputError(f"{where}: expected a rigid camera-to-world transform (orthonormal "
-                         "rotation, det +1); scaled or mirrored poses are not supported")
-    return M
+    return snap_world_from_cam(M, where)
 
 
 def _float(x, where: str) -> float:
@@ -364,8 +301,6 @@ def write_colmap_text(directory, world_from_cam, K, size, image_names) -> Path:
     translation, with image ids 1..V in the given order.
     """
     T, Ks, (h, w), names = check_cameras(world_from_cam, K, size, image_names)
-    if np.abs(Ks[:, 0, 1]).max() > 0:
-        raise InputError("K: COLMAP's PINHOLE model cannot store a skew K[0, 1] != 0")
     if any(any(c.isspace() for c in n) for n in names):
         raise InputError("image_names: COLMAP text names cannot contain white space")
     shared = bool(np.all(Ks == Ks[0]))
@@ -383,10 +318,10 @@ def write_colmap_text(directory, world_from_cam, K, size, image_names) -> Path:
             "#   POINTS2D[] as (X, Y, POINT3D_ID)",
             f"# Number of images: {V}, mean observations per image: 0"]
     for v in range(V):
-        R_cw = T[v, :3, :3].T
-        t_cw = -R_cw @ T[v, :3, 3]
-        q = quaternion_from_rotation(R_cw)
-        imgs.append(f"{v + 1} " + " ".join(_num(x) for x in (*q, *t_cw)) + f" {cam_ids[v]} {names[v]}")
+        R_cam_from_world = T[v, :3, :3].T
+        t_cam_from_world = -R_cam_from_world @ T[v, :3, 3]
+        q = quaternion_from_rotation(R_cam_from_world)
+        imgs.append(f"{v + 1} " + " ".join(_num(x) for x in (*q, *t_cam_from_world)) + f" {cam_ids[v]} {names[v]}")
         imgs.append("")                       # no 2D points
     pts = ["# 3D point list with one line of data per point:",
            "#   POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] as (IMAGE_ID, POINT2D_IDX)",
@@ -447,10 +382,10 @@ def read_colmap_text(directory) -> CameraSet:
         cam_id = int(tok[8])
         if cam_id not in cameras:
             raise InputError(f"{where}: CAMERA_ID {cam_id} is not in {cam_path}")
-        R_cw = rotation_from_quaternion(q)
+        R_cam_from_world = rotation_from_quaternion(q)
         T = np.eye(4)
-        T[:3, :3] = R_cw.T
-        T[:3, 3] = -R_cw.T @ t
+        T[:3, :3] = R_cam_from_world.T
+        T[:3, 3] = -R_cam_from_world.T @ t
         names.append(" ".join(tok[9:]))
         poses.append(T)
         Ks.append(cameras[cam_id][0])

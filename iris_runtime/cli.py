@@ -4,7 +4,9 @@ A thin command line over ``IrisRuntime``. It encodes the input images once, then
 
 - ``--view i`` (repeatable): the predicted pose of input view i (a reconstruction of it);
 - ``--pose FILE``: JSON, one 4x4 ``world_from_cam`` or a list of them, in the canonical frame
-  (view 0's camera, OpenCV axes: x right, y down, z forward);
+  (view 0's camera, OpenCV axes: x right, y down, z forward); a pose rigid only to a few printed
+  decimals (within ``validation.SNAP_ATOL = 1e-3``) is snapped to the nearest rigid transform,
+  as the camera-file readers do (``validation.snap_world_from_cam``);
 - ``--orbit N``: N frames on a smooth closed path through and around the predicted input cameras,
   looking at the scene centre (``iris_runtime.orbit``), plus ``orbit.mp4``;
 - ``--locate PHOTO [PHOTO ...]`` (repeatable; put it after IMAGES): the pose of each photo in the
@@ -141,8 +143,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _read_poses(path: str) -> list[np.ndarray]:
+    """The poses of a ``--pose`` JSON file, each checked (and, if rigid only to a few printed
+    decimals, snapped) by ``validation.snap_world_from_cam``, the one reader-side rigidity rule."""
     from .errors import InputError
-    from .runtime import check_pose
+    from .validation import snap_world_from_cam
     try:
         doc = json.loads(Path(path).read_text(encoding="utf-8"))
     except FileNotFoundError:
@@ -161,7 +165,7 @@ def _read_poses(path: str) -> list[np.ndarray]:
     if arr.ndim != 3 or arr.shape[1:] != (4, 4) or len(arr) == 0:
         raise InputError(f"--pose {path}: expected a 4x4 matrix or a non-empty list of 4x4 "
                          f"matrices, got shape {arr.shape}")
-    return [check_pose(T, f"--pose {path}[{k}]") for k, T in enumerate(arr)]
+    return [snap_world_from_cam(T, f"--pose {path}[{k}]") for k, T in enumerate(arr)]
 
 
 class _Progress:
@@ -203,16 +207,6 @@ def _write_depth(path_png: Path, path_npy: Path, depth: np.ndarray, far: float) 
     if not cv2.imwrite(str(path_png), scaled):
         raise OSError(f"{path_png}: cv2.imwrite failed")
     np.save(path_npy, depth.astype(np.float32))
-
-
-def _nearest_rigid(T: np.ndarray) -> np.ndarray:
-    """Project the rotation blocks on SO(3) (the encoder's float32 poses are orthonormal to ~1e-7;
-    the camera writers insist on 1e-6)."""
-    T = np.array(T, dtype=np.float64)
-    U, _, Vt = np.linalg.svd(T[:, :3, :3])
-    T[:, :3, :3] = U @ Vt
-    T[:, 3] = [0.0, 0.0, 0.0, 1.0]
-    return T
 
 
 def run(args: argparse.Namespace) -> int:
@@ -290,7 +284,7 @@ def run(args: argparse.Namespace) -> int:
     names = [f"{i:03d}.png" for i in range(V)]
     for name, rgb in zip(names, inputs, strict=True):
         _write_png(out / "inputs" / name, rgb)
-    cams = _nearest_rigid(scene.world_from_cam)
+    cams = scene.world_from_cam                 # rigid (checked by Scene): written as rendered
     camera_io.write_transforms_json(out / "transforms.json", cams, scene.K, (H, W),
                                     [f"inputs/{n}" for n in names])
     camera_io.write_colmap_text(out / "colmap", cams, scene.K, (H, W), names)

@@ -7,7 +7,10 @@ numpy + Pillow + OpenCV only (the runtime never imports torch).
 - grayscale (``[H, W]`` or ``[H, W, 1]``) is repeated to three channels;
 - RGBA (``[H, W, 4]``) loses its alpha channel (no compositing: the colour channels are kept as is);
 - 16-bit (``uint16``) is scaled to 8 bits by ``round(x / 257)`` (65535 -> 255 exactly);
-- float arrays are taken as values in [0, 1]: ``round(clip(x, 0, 1) * 255)``; NaN/inf are refused;
+- float arrays must hold values in [0, 1] (``validation.check_images``: NaN/inf, or values
+  beyond [0, 1] by more than ``FLOAT_IMAGE_ATOL = 1e-6``, raise an ``ImageError`` that says how to
+  fix the data, e.g. divide 0..255 values by 255); they become ``round(clip(x, 0, 1) * 255)``,
+  the clip removing only that rounding excess;
 - files are decoded by Pillow (EXIF orientation applied); 16-bit colour PNG/TIFF files, which
   Pillow would truncate to 8 bits, are decoded by OpenCV at full depth and then scaled as above.
 
@@ -35,6 +38,7 @@ import numpy as np
 from PIL import Image, ImageOps, UnidentifiedImageError
 
 from .errors import ImageError
+from .validation import check_images
 
 ImageLike = Union[str, os.PathLike, Image.Image, np.ndarray]
 
@@ -63,30 +67,19 @@ def load_image(x: ImageLike, name: str = "image") -> np.ndarray:
 
 
 def to_rgb_uint8(a: np.ndarray, name: str = "image") -> np.ndarray:
-    """Convert an image array to ``uint8 [H, W, 3]`` RGB (see the module docstring for the rules)."""
-    if a.ndim == 3 and a.shape[2] in (1, 3, 4):
-        pass
-    elif a.ndim == 2:
+    """Convert an image array to ``uint8 [H, W, 3]`` RGB (see the module docstring for the rules;
+    shape, dtype and values are checked by ``validation.check_images``)."""
+    a = check_images(a, name)
+    if a.ndim == 2:
         a = a[:, :, None]
-    else:
-        raise ImageError(
-            f"{name}: expected an array of shape [H, W], [H, W, 1], [H, W, 3] or [H, W, 4], "
-            f"got shape {tuple(a.shape)}")
-    if a.shape[0] == 0 or a.shape[1] == 0:
-        raise ImageError(f"{name}: image is empty (shape {tuple(a.shape)})")
 
     if a.dtype == np.uint8:
         out = a
     elif a.dtype == np.uint16:
         # round(x / 257): maps 0..65535 onto 0..255 with 65535 -> 255 and 257*k -> k exactly.
         out = ((a.astype(np.uint32) * 2 + 257) // 514).astype(np.uint8)
-    elif np.issubdtype(a.dtype, np.floating):
-        if not np.all(np.isfinite(a)):
-            raise ImageError(f"{name}: float image contains NaN or inf")
+    else:                            # float in [0, 1] up to rounding (checked): clip the rounding
         out = np.rint(np.clip(a.astype(np.float64), 0.0, 1.0) * 255.0).astype(np.uint8)
-    else:
-        raise ImageError(
-            f"{name}: expected dtype uint8, uint16 or float (values in [0, 1]), got {a.dtype}")
 
     if out.shape[2] == 1:
         out = np.repeat(out, 3, axis=2)
@@ -146,7 +139,7 @@ def _from_pil(img: Image.Image, name: str, source: str) -> np.ndarray:
                 raise ImageError(f"{source}: 32-bit integer image with values outside 0..65535")
             a = a.astype(np.uint16)                           # how Pillow opens 16-bit PNGs
         elif mode == "F":
-            a = np.asarray(img).astype(np.float32)            # float image: values taken in [0, 1]
+            a = np.asarray(img).astype(np.float32)            # float image: must be in [0, 1]
         elif mode == "LA":
             a = np.asarray(img.convert("L"))
         else:                                                 # P, PA, 1, CMYK, YCbCr, LAB, HSV...

@@ -232,6 +232,33 @@ def test_encode_bad_files(rt, tmp_path, content, match):
     assert_typed(info, ValueError, "images[1]", "photo.png", match)
 
 
+@pytest.mark.parametrize("scale, fix", [(255.0, "divide by 255"), (65535.0, "divide by 65535")])
+def test_float_images_outside_0_1_raise_instead_of_rendering_white(rt, scene, scale, fix):
+    """A float image of 0..255 values (a common mistake) was clipped to [0, 1] without a word and
+    encoded as white; now encode and locate raise ImageError naming the argument and the fix."""
+    rng = np.random.default_rng(4)
+    good = rng.random((*rt.image_size, 3)).astype(np.float32)
+    with pytest.raises(ImageError) as info:
+        rt.encode([good, good * scale])
+    assert_typed(info, ValueError, "images[1]", "[0, 1]", fix)
+    with pytest.raises(ImageError) as info:
+        rt.locate(scene, good * scale)
+    assert_typed(info, ValueError, "image", fix)
+    rt.encode([good, good + np.float32(5e-7)])          # a rounding excess is clipped, as before
+
+
+def test_cli_float_image_file_outside_0_1_is_one_line_and_writes_nothing(model_dir, tmp_path,
+                                                                          capsys):
+    path = tmp_path / "float255.tiff"
+    Image.fromarray(np.full((20, 24), 200.0, np.float32)).save(path)       # Pillow mode "F"
+    out = tmp_path / "out"
+    code, err = _cli(capsys, model_dir, path, "-o", out, "--view", 0)
+    assert code == 2, err
+    assert err.startswith("iris-render: error:") and len(err.strip().splitlines()) == 1, err
+    assert "float255.tiff" in err and "divide by 255" in err
+    assert not out.exists()
+
+
 def test_grayscale_rgba_16bit_are_converted_not_rejected(rt, tmp_path):
     """Encoding grayscale / RGBA / 16-bit inputs (arrays and files) equals encoding the RGB
     images they are converted to (images.py rules: repeat, drop alpha, round(x / 257))."""

@@ -18,8 +18,8 @@ from iris_runtime.errors import InputError
 #   world_from_cam = [x | y | z | c] = [(0,1,0) | (0,0,-1) | (-1,0,0) | (2,0,1)]
 # OpenGL axes (y up, z backward) flip the y and z columns:
 #   transform_matrix = [(0,1,0) | (0,0,1) | (1,0,0) | (2,0,1)]
-# COLMAP stores world-to-camera: R_cw = R^T, t = -R^T c = (0, 1, 2), and
-#   q(R_cw) = (w, x, y, z) = (0.5, 0.5, 0.5, -0.5)  [trace 0 -> w = 1/2; x = (R21-R12)/4w, ...]
+# COLMAP stores world-to-camera: R_cam_from_world = R^T, t = -R^T c = (0, 1, 2), and
+#   q(R_cam_from_world) = (w, x, y, z) = (0.5, 0.5, 0.5, -0.5)  [trace 0 -> w = 1/2; x = (R21-R12)/4w, ...]
 WORLD_FROM_CAM = np.array([[0.0, 0.0, -1.0, 2.0],
                            [1.0, 0.0, 0.0, 0.0],
                            [0.0, -1.0, 0.0, 1.0],
@@ -198,7 +198,7 @@ def test_writers_validate(tmp_path):
     names = ["a.png", "b.png"]
     bad = T.copy()
     bad[0, :3, :3] *= 2
-    with pytest.raises(InputError, match="world_from_cam: expected rigid"):
+    with pytest.raises(InputError, match=r"world_from_cam\[0\]: expected a rigid"):
         write_transforms_json(tmp_path / "t.json", bad, K_EX, (480, 640), names)
     with pytest.raises(InputError, match="world_from_cam: expected an array of shape"):
         write_colmap_text(tmp_path, T[0], K_EX, (480, 640), names)
@@ -213,3 +213,56 @@ def test_writers_validate(tmp_path):
     with pytest.raises(InputError, match="NaN"):
         write_transforms_json(tmp_path / "t.json", nan, K_EX, (480, 640), names)
     assert not list(tmp_path.iterdir())                      # nothing half-written
+
+
+def test_writers_refuse_skew_and_non_pinhole_k(tmp_path):
+    T = _random_poses(2)
+    names = ["a.png", "b.png"]
+    for K in ([[500, 1, 320], [0, 500, 240], [0, 0, 1]], [[500, 0, 320], [0, 500, 240], [0, 0, 2]],
+              [[500, 0, 320], [0, -5, 240], [0, 0, 1]]):
+        for write in (lambda: write_transforms_json(tmp_path / "t.json", T, K, (480, 640), names),
+                      lambda: write_colmap_text(tmp_path / "c", T, K, (480, 640), names)):
+            with pytest.raises(InputError, match="K: expected pinhole"):
+                write()
+    assert not list(tmp_path.iterdir())
+
+
+def test_writers_take_what_the_one_rigidity_check_takes_and_write_it_unchanged(tmp_path):
+    """float32 poses (the encoder's, rigid to ~1e-7) and poses off by 5e-5 < RIGID_ATOL are
+    written as given (iris-render no longer snaps them first) and read back bit for bit."""
+    T = _random_poses(3, seed=4)
+    T32 = T.astype(np.float32).astype(np.float64)
+    near = T.copy()
+    near[1, :3, :3] *= 1 + 2.5e-5                       # |R^T R - I| = 5e-5
+    for poses in (T32, near):
+        write_transforms_json(tmp_path / "t.json", poses, K_EX, (480, 640), ["a", "b", "c"])
+        np.testing.assert_array_equal(read_transforms_json(tmp_path / "t.json").world_from_cam,
+                                      poses)
+    far = T.copy()
+    far[1, :3, :3] *= 1 + 1e-4                          # 2e-4 > RIGID_ATOL
+    with pytest.raises(InputError, match=r"world_from_cam\[1\]: .*not orthonormal"):
+        write_colmap_text(tmp_path / "c", far, K_EX, (480, 640), ["a", "b", "c"])
+
+
+def test_transforms_json_with_few_decimals_is_snapped_to_rigid(tmp_path):
+    """The one reader-side relaxation (validation.snap_world_from_cam): a rotation printed with 3
+    decimals (rigid to ~1e-3) becomes the nearest rigid transform; further off is refused."""
+    from iris_runtime.validation import RIGID_ATOL, SNAP_ATOL, check_world_from_cam, rigidity_error
+    c, s = np.cos(0.5), np.sin(0.5)
+    M = np.array([[c, 0, s, 1.0], [0, 1, 0, 2.0], [-s, 0, c, 3.0], [0, 0, 0, 1]])
+    M3 = np.round(M, 3)
+    assert RIGID_ATOL < rigidity_error(M3) <= SNAP_ATOL
+    doc = {"fl_x": 500.0, "w": 640, "h": 480,
+           "frames": [{"file_path": "a.png", "transform_matrix": M3.tolist()}]}
+    (tmp_path / "transforms.json").write_text(json.dumps(doc))
+    got = read_transforms_json(tmp_path / "transforms.json").world_from_cam[0]
+    assert rigidity_error(got) < 1e-12
+    check_world_from_cam(got)                                    # passes the strict check
+    np.testing.assert_allclose(got, M3 @ np.diag([1.0, -1, -1, 1]), atol=1e-3)
+    np.testing.assert_array_equal(got[:3, 3], M3[:3, 3])        # translation kept
+    bad = M.copy()
+    bad[:3, :3] *= 1.002                                         # a scale, not rounding
+    doc["frames"][0]["transform_matrix"] = bad.tolist()
+    (tmp_path / "transforms.json").write_text(json.dumps(doc))
+    with pytest.raises(InputError, match=r"frames\[0\]\.transform_matrix: expected a rigid"):
+        read_transforms_json(tmp_path / "transforms.json")

@@ -48,10 +48,46 @@ def test_uint16_is_scaled_by_257_with_rounding():
     np.testing.assert_array_equal(out, np.rint(a[0] / 257.0).astype(np.uint8))
 
 
-def test_float_is_clipped_scaled_and_rounded():
-    a = np.array([[-0.5, 0.0, 0.2, 0.5, 1.0, 3.0]], np.float32)
+def test_float_is_scaled_and_rounded_and_only_rounding_excess_clipped():
+    a = np.array([[-1e-7, 0.0, 0.2, 0.5, 1.0, 1.0 + 5e-7]], np.float64)
     out = load_image(a)[0, :, 1]
     np.testing.assert_array_equal(out, [0, 0, 51, 128, 255, 255])
+    one = np.nextafter(np.float32(1), np.float32(2))              # float32 rounding above 1
+    assert load_image(np.full((2, 2, 3), one, np.float32))[0, 0, 0] == 255
+
+
+@pytest.mark.parametrize("values, fix", [
+    ([0.0, 17.0, 255.0], "divide by 255"),                        # the common mistake
+    ([0.0, 3.0], "divide by 255"),
+    ([0.0, 1000.0, 65535.0], "divide by 65535"),
+    ([-1.0, 0.0, 1.0], r"(image + 1) / 2"),
+    ([0.0, 1.2], "np.clip(image, 0, 1)"),                         # an interpolation overshoot
+    ([-1e-3, 0.5], "np.clip(image, 0, 1)"),
+    ([0.0, 1.0 + 2e-6], "np.clip(image, 0, 1)"),                  # beyond FLOAT_IMAGE_ATOL
+])
+def test_float_outside_0_1_raises_image_error_saying_how_to_fix(values, fix):
+    """Float images outside [0, 1] beyond rounding used to be clipped silently (0..255 rendered
+    white); now ``ImageError`` naming the argument, the range found and the fix."""
+    a = np.resize(np.array(values, np.float32), (4, 5, 3))
+    for x in (a, a.astype(np.float64), a.reshape(4, 15)):          # RGB and grayscale
+        with pytest.raises(ImageError) as e:
+            load_image(x, name="images[2]")
+        msg = str(e.value)
+        assert msg.startswith("images[2]: ") and "[0, 1]" in msg and fix in msg, msg
+        assert isinstance(e.value, IrisError) and isinstance(e.value, ValueError)
+
+
+def test_float_pil_images_and_files_follow_the_float_rule(tmp_path):
+    """PIL mode "F" (e.g. a float32 TIFF): values in [0, 1] are scaled, 0..255 raise."""
+    ok = np.array([[0.0, 0.2, 1.0]], np.float32)
+    np.testing.assert_array_equal(load_image(Image.fromarray(ok))[0, :, 2], [0, 51, 255])
+    bad = ok * 255
+    with pytest.raises(ImageError, match="divide by 255"):
+        load_image(Image.fromarray(bad))
+    Image.fromarray(bad).save(tmp_path / "f.tiff")
+    with pytest.raises(ImageError, match="divide by 255") as e:
+        load_image(tmp_path / "f.tiff", name="images[0]")
+    assert "images[0]" in str(e.value) and "f.tiff" in str(e.value)
 
 
 @pytest.mark.parametrize("bad", [
@@ -90,6 +126,30 @@ def test_pil_16bit_grayscale():
     np.testing.assert_array_equal(load_image(img)[0, :, 0], [0, 1, 255])
 
 
+def test_pil_palette_cmyk_and_la_convert_like_pil():
+    """P, CMYK, 1 (and the rest): Pillow's own ``convert("RGB")``; LA: its L channel, alpha dropped."""
+    base = Image.fromarray(_rgb(8, 7, seed=5))
+    for mode in ("P", "CMYK", "1", "YCbCr"):
+        img = base.convert(mode)
+        np.testing.assert_array_equal(load_image(img), np.asarray(img.convert("RGB")))
+    la = base.convert("LA")
+    out = load_image(la)
+    for c in range(3):
+        np.testing.assert_array_equal(out[:, :, c], np.asarray(la)[:, :, 0])
+
+
+def test_pil_32bit_integer_images():
+    """Mode "I" (how Pillow may open 16-bit PNGs): 0..65535 follow the uint16 rule, else refused."""
+    a = np.array([[0, 257, 65535]], np.int32)
+    img = Image.fromarray(a)
+    assert img.mode == "I"
+    np.testing.assert_array_equal(load_image(img)[0, :, 0], [0, 1, 255])
+    with pytest.raises(ImageError, match="0..65535"):
+        load_image(Image.fromarray(np.array([[0, 70000]], np.int32)))
+    with pytest.raises(ImageError, match="0..65535"):
+        load_image(Image.fromarray(np.array([[-1, 5]], np.int32)))
+
+
 # ---------------------------------------------------------------------------------------------
 # files
 # ---------------------------------------------------------------------------------------------
@@ -124,6 +184,25 @@ def test_grayscale_rgba_and_16bit_png_files(tmp_path):
     cv2.imwrite(str(tmp_path / "c16.png"), c16[:, :, ::-1])        # OpenCV writes BGR
     np.testing.assert_array_equal(load_image(tmp_path / "c16.png"),
                                   np.rint(c16 / 257.0).astype(np.uint8))
+
+
+def test_16bit_rgba_png_file_drops_alpha_at_full_depth(tmp_path):
+    c16 = np.random.default_rng(2).integers(0, 65536, (3, 4, 4)).astype(np.uint16)
+    cv2.imwrite(str(tmp_path / "c16a.png"), c16[:, :, [2, 1, 0, 3]])    # OpenCV writes BGRA
+    np.testing.assert_array_equal(load_image(tmp_path / "c16a.png"),
+                                  np.rint(c16[:, :, :3] / 257.0).astype(np.uint8))
+
+
+def test_broken_exif_block_keeps_the_image(tmp_path, monkeypatch):
+    """A decodable image whose EXIF cannot be applied loads without the orientation step."""
+    import iris_runtime.images as images
+    a = _rgb(4, 6, seed=6)
+    Image.fromarray(a).save(tmp_path / "a.png")
+
+    def broken(img):
+        raise SyntaxError("corrupt EXIF")
+    monkeypatch.setattr(images.ImageOps, "exif_transpose", broken)
+    np.testing.assert_array_equal(load_image(tmp_path / "a.png"), a)
 
 
 def test_exif_orientation_is_applied(tmp_path):
