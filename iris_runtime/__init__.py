@@ -6,6 +6,11 @@
     scene = rt.encode(images)                    # encode once ...
     result = rt.render(scene, 1, depth=True)     # ... render many poses (here: input view 1's)
 
+Rendering, module by module: ``runtime`` (``IrisRuntime``: sessions, encoder, argument checks; a
+thin facade) -> ``raymarch`` (``MarchPlan`` and the ray loop up to ``session.run``) ->
+``geometry`` (numpy camera maths) and ``quality`` (the speed knobs, view selection). Value types:
+``scene`` (``Scene``, ``RenderResult``); request limits and the memory model: ``limits``.
+
 Dependencies: numpy, onnxruntime, Pillow, OpenCV. Never torch (a test imports this package with
 torch blocked).
 """

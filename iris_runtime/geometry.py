@@ -6,12 +6,15 @@ column is the camera centre. Pixel (row i, col j) has its centre at (u, v) = (j 
 Rays are ``x = o + z * d`` with ``d = R K^-1 [u, v, 1]`` so that ``z`` is the camera depth.
 
 ``iris_train.geometry`` is the torch twin of this file (same names, same maths); a test checks that
-the two agree in float64 to 1e-10. Functions work for float32 and float64 and keep the dtype of
-their main input.
+the two agree in float64 to 1e-10 (twins the runtime does not need, ``pixel_centres``, ``compose``
+and ``rotation_from_6d``, live in tests/np_geometry.py). Functions work for float32 and float64 and
+keep the dtype of their main input.
 """
 from __future__ import annotations
 
 import numpy as np
+
+from .validation import RIGID_ATOL, rigidity_error
 
 #: A point is valid in a view only when its camera depth exceeds this (model units). Keeps
 #: ``u = x / z`` finite and excludes points on or behind the camera plane.
@@ -26,13 +29,6 @@ NORM_EPS = 1e-12
 #: first three entries shrink linearly to 0 instead of jumping between unit vectors, so the cue is
 #: Lipschitz with constant 1/CUE_EPS (a pose moved by 1e-8 moved rgb by 4e-3 with a 1e-12 floor).
 CUE_EPS = 1e-4
-
-
-def pixel_centres(height: int, width: int, dtype=np.float64) -> np.ndarray:
-    """Pixel centres ``[H*W, 2]`` as (u, v) = (j + 0.5, i + 0.5), row-major."""
-    v, u = np.meshgrid(np.arange(height, dtype=dtype) + 0.5, np.arange(width, dtype=dtype) + 0.5,
-                       indexing="ij")
-    return np.stack([u.ravel(), v.ravel()], axis=-1)
 
 
 def intrinsics_from_focal(focal: np.ndarray, height: int, width: int) -> np.ndarray:
@@ -68,39 +64,6 @@ def invert_pose(T: np.ndarray) -> np.ndarray:
     out[..., :3, 3:] = -Rt @ t
     out[..., 3, 3] = 1.0
     return out
-
-
-def compose(a_from_b: np.ndarray, b_from_c: np.ndarray) -> np.ndarray:
-    """``a_from_c = a_from_b @ b_from_c`` (named so the frames chain visibly)."""
-    return a_from_b @ b_from_c
-
-
-def rotation_from_6d(a: np.ndarray) -> np.ndarray:
-    """6D rotation ``[..., 6]`` (two columns a1, a2) to a rotation matrix ``[..., 3, 3]``.
-
-    Gram-Schmidt: b1 = a1/|a1|, b2 = unit(a2 - (b1.a2) b1), b3 = b1 x b2; columns [b1, b2, b3].
-    Degenerate inputs stay finite and orthonormal with det +1: where |a1| is below ``tol`` times
-    the input's scale, b1 falls back to x; where a2's part orthogonal to b1 is below it (a2 zero or
-    parallel to a1), b2 falls back to the coordinate axis least aligned with b1. A second
-    Gram-Schmidt pass keeps b2 orthogonal to b1 to rounding even when a2 is nearly parallel.
-    """
-    dtype = a.dtype
-    tiny = np.finfo(dtype).tiny
-    tol = 64 * np.finfo(dtype).eps
-    a1, a2 = a[..., 0:3], a[..., 3:6]
-    scale = np.maximum(np.abs(a).max(axis=-1, keepdims=True), tiny)
-    a1, a2 = a1 / scale, a2 / scale          # scale-free: 1e-30 and 1e30 inputs behave alike
-    n1 = np.linalg.norm(a1, axis=-1, keepdims=True)
-    b1 = np.where(n1 > tol, a1 / np.maximum(n1, tiny), np.array([1.0, 0.0, 0.0], dtype=dtype))
-    eye = np.eye(3, dtype=dtype)
-    fallback = eye[np.argmin(np.abs(b1), axis=-1)]
-    a2p = a2 - (b1 * a2).sum(-1, keepdims=True) * b1
-    n2 = np.linalg.norm(a2p, axis=-1, keepdims=True)
-    a2p = np.where(n2 > tol, a2p, fallback - (b1 * fallback).sum(-1, keepdims=True) * b1)
-    b2 = a2p - (b1 * a2p).sum(-1, keepdims=True) * b1
-    b2 = b2 / np.maximum(np.linalg.norm(b2, axis=-1, keepdims=True), tiny)
-    b3 = np.cross(b1, b2)
-    return np.stack([b1, b2, b3], axis=-1)
 
 
 def rays_from_pixels(uv: np.ndarray, K: np.ndarray, world_from_cam: np.ndarray):
@@ -140,11 +103,12 @@ def project_points(points: np.ndarray, K: np.ndarray, cam_from_world: np.ndarray
     Returns ``uv [V, ..., 2]`` (pixels; finite, clipped for masked points), ``z [V, ...]`` camera
     depth, and ``valid [V, ...]`` (bool): z > DEPTH_EPS and 0 <= u < W and 0 <= v < H.
     """
-    R = cam_from_world[:, :3, :3]                                # [V, 3, 3]
-    t = cam_from_world[:, :3, 3]                                 # [V, 3]
+    R_cam_from_world = cam_from_world[:, :3, :3]                 # [V, 3, 3]
+    t_cam_from_world = cam_from_world[:, :3, 3]                  # [V, 3]
     flat = points.reshape(-1, 3)
-    # Batched matmul, not einsum: 5x faster here (einsum without BLAS; 16 views x 32k points).
-    cam = np.matmul(flat, np.swapaxes(R, -1, -2)) + t[:, None, :]  # [V, N, 3]
+    # Batched matmul, not einsum (which runs without BLAS here; docs/PERFORMANCE.md).
+    cam = (np.matmul(flat, np.swapaxes(R_cam_from_world, -1, -2))
+           + t_cam_from_world[:, None, :])                      # [V, N, 3] camera coordinates
     z = cam[..., 2]
     z_safe = np.where(z > DEPTH_EPS, z, DEPTH_EPS)
     u = K[0, 0] * cam[..., 0] / z_safe + K[0, 2]
@@ -201,9 +165,9 @@ def sample_bilinear_views(feature_maps: np.ndarray, grid: np.ndarray) -> np.ndar
     -> ``[V, ..., C]``; the numpy twin of ``iris_train.geometry.sample_bilinear``.
 
     The runtime samples the reference photos' RGB with it for explicit-colour models (C = 3 at the
-    model's full resolution, the grid of the field maps). A loop over views: measured 1.8 ms for
-    5 views x 6528 points on 64x64 images, 2.6x faster than one gather over all views with
-    per-view offsets (4.7 ms; the int64 index arithmetic dominates).
+    model's full resolution, the grid of the field maps). A loop over views: faster than one
+    gather over all views with per-view offsets, whose int64 index arithmetic dominates
+    (docs/PERFORMANCE.md).
     """
     if feature_maps.ndim != 4 or grid.shape[0] != feature_maps.shape[0] or grid.shape[-1] != 2:
         raise ValueError(f"expected feature_maps [V, C, h, w] and grid [V, ..., 2], got "
@@ -221,23 +185,47 @@ def geometric_cue(points: np.ndarray, target_centre: np.ndarray, source_centres:
     With t = unit(target_centre - x) and s = unit(source_centre_k - x):
     ``[(t - s) / max(|t - s|, cue_eps), t . s]`` -> ``[..., V, 4]``. Equal centres (t = s) give
     ``[0, 0, 0, 1]``; a point on a camera centre gives a zero unit vector, never NaN.
+    (``cue_from_vectors(*cue_vectors(...))``: the ray march keeps the vectors for view selection.)
     """
+    return cue_from_vectors(*cue_vectors(points, target_centre, source_centres, eps), cue_eps)
+
+
+def cue_vectors(points: np.ndarray, target_centre: np.ndarray, source_centres: np.ndarray,
+                eps: float = NORM_EPS):
+    """The directions the cue is made of, for points ``[..., 3]`` and views ``[V, 3]``:
+    ``t`` = unit(target_centre - x) ``[..., 3]``, ``s`` = source_centre_k - x ``[..., V, 3]``
+    (not normalised) and its norm floored at ``eps``, ``s_norm [..., V, 1]``."""
     target_centre = np.asarray(target_centre, dtype=points.dtype)
     t = target_centre - points
     t = t / np.maximum(np.linalg.norm(t, axis=-1, keepdims=True), eps)
     s = source_centres.astype(points.dtype) - points[..., None, :]          # [..., V, 3]
-    s = s / np.maximum(np.linalg.norm(s, axis=-1, keepdims=True), eps)
+    return t, s, np.maximum(np.linalg.norm(s, axis=-1, keepdims=True), eps)
+
+
+def cue_from_vectors(t: np.ndarray, s: np.ndarray, s_norm: np.ndarray,
+                     cue_eps: float = CUE_EPS) -> np.ndarray:
+    """``geometric_cue`` from ``cue_vectors``' output -> ``[..., V, 4]``."""
+    s = s / s_norm
     diff = t[..., None, :] - s
     diff = diff / np.maximum(np.linalg.norm(diff, axis=-1, keepdims=True), cue_eps)
     dot = (t[..., None, :] * s).sum(-1, keepdims=True)
     return np.concatenate([diff, dot], axis=-1)
 
 
-def is_rigid(T: np.ndarray, atol: float = 1e-4) -> bool:
-    """True when ``T [4, 4]`` is finite with an orthonormal, det +1 rotation and last row [0,0,0,1]."""
+def cue_alignment(t: np.ndarray, s: np.ndarray, s_norm: np.ndarray) -> np.ndarray:
+    """The cue's t . s from ``cue_vectors``' output -> ``[..., V]``, rounded as the runtime's
+    view selection (``top_k``) has always rounded it: ``(s . t) / |s|``, where the cue's last
+    entry is ``t . (s / |s|)``. The two differ in the last bit for about half of the points, which
+    flips the per-point choice between nearly tied views; the selection keeps its own rounding so
+    that ``top_k`` renders stay bit for bit what they were."""
+    return (s * t[..., None, :]).sum(-1) / s_norm[..., 0]
+
+
+def is_rigid(T: np.ndarray, atol: float = RIGID_ATOL) -> bool:
+    """True when ``T [4, 4]`` is finite with an orthonormal, det +1 rotation and last row [0,0,0,1],
+    to ``atol`` (default: the boundary's one tolerance, ``validation.RIGID_ATOL``; the predicate of
+    ``validation.check_world_from_cam``, which says what is wrong)."""
     T = np.asarray(T, dtype=np.float64)
     if T.shape != (4, 4) or not np.all(np.isfinite(T)):
         return False
-    R = T[:3, :3]
-    return (np.allclose(R.T @ R, np.eye(3), atol=atol) and abs(np.linalg.det(R) - 1.0) < atol
-            and np.allclose(T[3], [0, 0, 0, 1], atol=atol))
+    return bool(rigidity_error(T) <= atol)

@@ -20,8 +20,11 @@ Lossy knobs, opt-in (``RenderSettings`` fields, also accepted as ``render`` keyw
 - ``scale``: render at ``round(H * scale) x round(W * scale)`` pixels and resize to H x W with
   OpenCV (``upsample``: "linear" or "cubic"; depth always linear).
 - ``precision``: "int8" runs the dynamically quantised renderer (``iris-export --quantize int8``).
+  The one knob with a runtime-wide default: ``IrisRuntime(precision=...)``; ``RenderSettings``
+  (and ``render(precision=...)``, which overrides that field) chooses per call. Both are checked
+  against ``PRECISIONS``, and ``IrisRuntime`` maps a precision to its graph in one place.
 
-The presets' settings and their measured error and speed are in ``QUALITY_PRESETS`` and
+The presets' settings are ``QUALITY_PRESETS``; their measured error and speed are in
 docs/PERFORMANCE.md (numbers from benchmarks/error_vs_time.py, results in benchmarks/results/).
 """
 from __future__ import annotations
@@ -33,11 +36,16 @@ import numpy as np
 
 from .errors import InputError
 
-__all__ = ["RenderSettings", "QUALITY_PRESETS", "QUALITIES", "TOP_K_BY", "UPSAMPLERS",
-           "resolve_settings", "cue_dot", "top_k_mask", "ray_view_sets", "group_rays"]
+__all__ = ["RenderSettings", "QUALITY_PRESETS", "TOP_K_BY", "UPSAMPLERS", "PRECISIONS",
+           "resolve_settings", "top_k_mask", "ray_view_sets", "group_rays"]
 
 TOP_K_BY = ("point", "ray")
 UPSAMPLERS = ("linear", "cubic")
+#: Renderer graph (manifest ``graphs`` key) per precision: "int8" is the dynamically quantised
+#: variant iris-export writes with --quantize int8 (its error vs torch is in the manifest's
+#: validation report). Dynamic quantisation scales activations per call, so int8 results depend
+#: slightly on how rays are chunked.
+PRECISIONS = {"float32": "renderer", "int8": "renderer_int8"}
 
 
 @dataclass(frozen=True)
@@ -72,35 +80,26 @@ class RenderSettings:
         if isinstance(s, bool) or not isinstance(s, (int, float, np.integer, np.floating)) \
                 or not np.isfinite(s) or not 0.0 < s <= 1.0:
             raise InputError(f"scale: expected a number in (0, 1], got {s!r}")
-        if self.precision is not None and self.precision not in ("float32", "int8"):
-            raise InputError(f"precision: expected 'float32', 'int8' or None, got "
+        if self.precision is not None and (not isinstance(self.precision, str)
+                                           or self.precision not in PRECISIONS):
+            raise InputError(f"precision: expected one of {list(PRECISIONS)} or None, got "
                              f"{self.precision!r}")
 
-    @property
-    def is_exact(self) -> bool:
-        return (self.samples is None and self.top_k is None and self.scale == 1.0
-                and self.precision in (None, "float32"))
 
-
-#: Named presets, chosen from the measured error/time table (benchmarks/results/error_vs_time.md;
-#: models/iris-tiny.pt, 2 cores, 64x64 frames from the 5 reference views of the held-out split;
-#: docs/PERFORMANCE.md):
+#: Named presets, chosen from the measured error/time table (docs/PERFORMANCE.md, "Choosing speed
+#: against quality"; benchmarks/results/error_vs_time.md):
 #:
-#: - "exact":    the full render; 2.57 s per frame (2.18 s with ``IrisRuntime(workers=2)``).
-#: - "balanced": 64 -> 32 samples and at most 8 views per ray: 1.14 s per frame (2.25x), max abs
-#:               error 1.1e-4 (94 dB PSNR) against the full render, ground-truth PSNR unchanged
-#:               (17.92 dB). From 4 to 16 reference views its time per frame grows 1.39x (exact
-#:               path: 2.07x) at <= 0.01 dB below the full render's ground-truth PSNR; at 32 views,
-#:               0.16 dB below.
-#: - "fast":     16 samples, 2 views per ray, half resolution + bicubic upsampling: 0.108 s per
-#:               frame (23.8x), 30.6 dB PSNR against the full render (max abs 0.15), 0.02 dB below
-#:               it against ground truth.
+#: - "exact":    the full render.
+#: - "balanced": 64 -> 32 samples and at most 8 views per ray: about half the time of the full
+#:               render at an error far below the model's own (ground-truth PSNR unchanged), and a
+#:               time per frame that grows much slower than the full render's with the views.
+#: - "fast":     16 samples, 2 views per ray, half resolution + bicubic upsampling: over an order
+#:               of magnitude faster, at a visible but small error against the full render.
 QUALITY_PRESETS: dict[str, RenderSettings] = {
     "exact": RenderSettings(),
     "balanced": RenderSettings(samples=32, top_k=8, top_k_by="ray"),
     "fast": RenderSettings(samples=16, top_k=2, top_k_by="ray", scale=0.5, upsample="cubic"),
 }
-QUALITIES = tuple(QUALITY_PRESETS)
 
 
 def resolve_settings(quality: str | RenderSettings | None = None, **overrides) -> RenderSettings:
@@ -122,19 +121,10 @@ def resolve_settings(quality: str | RenderSettings | None = None, **overrides) -
 
 
 # ----------------------------------------------------------------------------------------------
-# View selection (numpy; view axis first, as the runtime's projection produces it)
+# View selection (numpy; view axis first, as the runtime's projection produces it). The score is
+# the geometric cue's last entry t.s (``geometry.geometric_cue``), which the ray march computes for
+# the renderer anyway (``iris_runtime.raymarch.trace_block``).
 # ----------------------------------------------------------------------------------------------
-
-def cue_dot(points: np.ndarray, target_centre: np.ndarray, source_centres: np.ndarray,
-            eps: float = 1e-12) -> np.ndarray:
-    """The cue's last entry t.s, view-major: ``points [R, S, 3]``, ``source_centres [V, 3]``
-    -> ``[V, R, S]`` (t = unit(target centre - x), s = unit(source centre - x), as in
-    ``geometry.geometric_cue``; only this entry is needed to choose views, at ~1/3 of the cost)."""
-    t = np.asarray(target_centre, dtype=points.dtype) - points
-    t /= np.maximum(np.sqrt((t * t).sum(-1, keepdims=True)), eps)
-    s = source_centres.astype(points.dtype)[:, None, None, :] - points[None]     # [V, R, S, 3]
-    norm = np.maximum(np.sqrt((s * s).sum(-1)), eps)
-    return (s * t[None]).sum(-1) / norm
 
 
 def top_k_mask(valid: np.ndarray, score: np.ndarray, k: int) -> np.ndarray:

@@ -2,8 +2,9 @@
 
 What is checked (DESIGN.md "Cameras"):
 
-* twins: every ``iris_runtime.geometry`` function equals its ``iris_train.geometry`` twin in
-  float64 to 1e-10 on random inputs (and ``sample_bilinear_dense`` equals ``sample_bilinear``);
+* twins: every ``iris_runtime.geometry`` function (and the numpy twins the runtime does not need,
+  tests/np_geometry.py) equals its ``iris_train.geometry`` twin in float64 to 1e-10 on random
+  inputs (and ``sample_bilinear_dense`` equals ``sample_bilinear``);
 * oracles: projection vs OpenCV ``cv2.projectPoints``; bilinear sampling vs torch ``grid_sample``
   and SciPy ``ndimage.map_coordinates``; projection vs a float64 direct formula (hypothesis);
 * round trips: pixel -> ray -> point -> pixel, pose inverse, intrinsics rescale, principal ray;
@@ -26,6 +27,8 @@ from hypothesis import strategies as st
 from scipy import ndimage
 
 from iris_runtime import geometry as NG
+
+from . import np_geometry as NPG          # numpy twins the runtime does not need
 
 try:
     import torch
@@ -122,7 +125,7 @@ DEGENERATE = degenerate_6d_cases()
 @needs_torch
 @pytest.mark.parametrize("hw", [(1, 1), (3, 5), (8, 6)])
 def test_twin_pixel_centres(hw):
-    a = NG.pixel_centres(*hw)
+    a = NPG.pixel_centres(*hw)
     b = n(TG.pixel_centres(*hw, dtype=torch.float64))
     assert a.shape == b.shape == (hw[0] * hw[1], 2)
     np.testing.assert_allclose(a, b, atol=TWIN_ATOL, rtol=0)
@@ -157,7 +160,7 @@ def test_twin_invert_and_compose(batch):
     T = np.stack([random_pose(rng) for _ in range(int(np.prod(batch, dtype=int)))]).reshape(batch + (4, 4))
     U = np.stack([random_pose(rng) for _ in range(int(np.prod(batch, dtype=int)))]).reshape(batch + (4, 4))
     np.testing.assert_allclose(NG.invert_pose(T), n(TG.invert_pose(t64(T))), atol=TWIN_ATOL, rtol=0)
-    np.testing.assert_allclose(NG.compose(T, U), n(TG.compose(t64(T), t64(U))), atol=TWIN_ATOL, rtol=0)
+    np.testing.assert_allclose(NPG.compose(T, U), n(TG.compose(t64(T), t64(U))), atol=TWIN_ATOL, rtol=0)
     np.testing.assert_allclose(NG.invert_pose(T), np.linalg.inv(T), atol=1e-12, rtol=0)
 
 
@@ -165,7 +168,7 @@ def test_twin_invert_and_compose(batch):
 @pytest.mark.parametrize("case", sorted(DEGENERATE))
 def test_twin_rotation_from_6d(case):
     a = DEGENERATE[case]
-    np.testing.assert_allclose(NG.rotation_from_6d(a), n(TG.rotation_from_6d(t64(a))),
+    np.testing.assert_allclose(NPG.rotation_from_6d(a), n(TG.rotation_from_6d(t64(a))),
                                atol=TWIN_ATOL, rtol=0)
 
 
@@ -173,7 +176,7 @@ def test_twin_rotation_from_6d(case):
 @pytest.mark.parametrize("shape", [(6,), (10, 6), (2, 3, 6)])
 def test_twin_rotation_from_6d_batched(shape):
     a = np.random.default_rng(7).normal(size=shape)
-    R = NG.rotation_from_6d(a)
+    R = NPG.rotation_from_6d(a)
     assert R.shape == shape[:-1] + (3, 3)
     np.testing.assert_allclose(R, n(TG.rotation_from_6d(t64(a))), atol=TWIN_ATOL, rtol=0)
 
@@ -291,7 +294,7 @@ def test_twin_geometric_cue(seed, target_shape):
 def test_twins_keep_float32():
     rng = np.random.default_rng(0)
     a = rng.normal(size=(4, 6)).astype(np.float32)
-    assert NG.rotation_from_6d(a).dtype == np.float32
+    assert NPG.rotation_from_6d(a).dtype == np.float32
     assert TG.rotation_from_6d(torch.from_numpy(a)).dtype == torch.float32
     pts = rng.normal(size=(5, 3)).astype(np.float32)
     K = NG.intrinsics_from_focal(np.array([1.0, 1.0], np.float32), 8, 8)
@@ -413,7 +416,7 @@ def test_pixel_ray_point_pixel_round_trip(seed):
     rng = np.random.default_rng(seed)
     H, W = 30, 50
     K, pose = random_K(rng, H, W), random_pose(rng, 3.0)
-    uv = np.concatenate([NG.pixel_centres(H, W)[::37], rng.uniform(0, [W, H], size=(50, 2))])
+    uv = np.concatenate([NPG.pixel_centres(H, W)[::37], rng.uniform(0, [W, H], size=(50, 2))])
     z = rng.uniform(0.1, 10.0, size=len(uv))
     o, d = NG.rays_from_pixels(uv, K, pose)
     pts = o + z[:, None] * d
@@ -433,7 +436,7 @@ def test_invert_pose_round_trip(seed):
     rng = np.random.default_rng(seed)
     T = np.stack([random_pose(rng, 5.0) for _ in range(6)])
     Ti = NG.invert_pose(T)
-    for P in (NG.compose(Ti, T), NG.compose(T, Ti)):
+    for P in (NPG.compose(Ti, T), NPG.compose(T, Ti)):
         np.testing.assert_allclose(P, np.broadcast_to(np.eye(4), P.shape), atol=1e-12, rtol=0)
     np.testing.assert_allclose(NG.invert_pose(Ti), T, atol=1e-12, rtol=0)
     if torch is not None:
@@ -477,7 +480,7 @@ def test_principal_ray_is_optical_axis_and_rays_have_unit_depth(seed):
 
 # -- rotation_from_6d ------------------------------------------------------------------------
 def rotation_impls():
-    impls = [("numpy", lambda a: NG.rotation_from_6d(a))]
+    impls = [("numpy", lambda a: NPG.rotation_from_6d(a))]
     if torch is not None:
         impls.append(("torch", lambda a: n(TG.rotation_from_6d(torch.from_numpy(np.ascontiguousarray(a))))))
     return impls

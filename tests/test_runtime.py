@@ -121,7 +121,7 @@ def test_encode_matches_torch(torch_pair):
     _, scene, _, tscene = torch_pair
     assert np.abs(scene.world_from_cam - tscene.world_from_cam.double().numpy()).max() <= 1e-5
     assert np.abs(scene.focal - tscene.focal.double().numpy()).max() <= 1e-5
-    assert np.abs(scene.field_maps - tscene.maps.numpy()).max() <= 1e-4
+    assert np.abs(scene.field_maps - tscene.field_maps.numpy()).max() <= 1e-4
     assert np.abs(scene.K - tscene.intrinsics().double().numpy()).max() <= 1e-4
 
 

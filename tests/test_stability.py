@@ -41,6 +41,8 @@ from iris_runtime import IrisRuntime, Scene
 from iris_runtime import geometry as G
 from iris_runtime import runtime as R
 
+from . import np_geometry as NPG
+
 try:
     from hypothesis import HealthCheck, settings
     from hypothesis import given as _given
@@ -355,7 +357,7 @@ def test_rays_float32_vs_float64(q, lscale, lfx, lfy, hw, centre):
     H, W = hw
     T = pose(quaternion_rotation(q), np.asarray(centre) * 10.0 ** lscale)
     K = np.array([[10 ** lfx * W, 0, W / 2], [0, 10 ** lfy * H, H / 2], [0, 0, 1.0]])
-    uv = G.pixel_centres(min(H, 8), min(W, 8)) * np.array([W / min(W, 8), H / min(H, 8)])
+    uv = NPG.pixel_centres(min(H, 8), min(W, 8)) * np.array([W / min(W, 8), H / min(H, 8)])
     o, d = G.rays_from_pixels(uv.astype(F32), K.astype(F32), T.astype(F32))
     Kr, Tr, uvr = f32(K.astype(F32)), f32(T.astype(F32)), f32(uv.astype(F32))
     dc = np.stack([(uvr[:, 0] - Kr[0, 2]) / Kr[0, 0], (uvr[:, 1] - Kr[1, 2]) / Kr[1, 1],
@@ -420,11 +422,11 @@ def test_rotation_6d_near_degenerate_float32(a1, k, lperp, lscale, perp):
     p /= np.linalg.norm(p)
     a2 = k * a1 + 10.0 ** lperp * p
     a = np.concatenate([a1, a2]) * 10.0 ** lscale
-    r32 = G.rotation_from_6d(a.astype(F32))
+    r32 = NPG.rotation_from_6d(a.astype(F32))
     assert np.all(np.isfinite(r32))
     r = r32.astype(np.float64)
     assert np.abs(r.T @ r - np.eye(3)).max() < 1e-6 and abs(np.linalg.det(r) - 1) < 1e-6
-    r64 = G.rotation_from_6d(f32(a.astype(F32)))
+    r64 = NPG.rotation_from_6d(f32(a.astype(F32)))
     a32 = f32(a.astype(F32))
     b1 = a32[:3] / np.linalg.norm(a32[:3])
     a2p = a32[3:] - (b1 @ a32[3:]) * b1
@@ -826,7 +828,7 @@ def test_camera_head_near_degenerate_6d(torch_models, case):
         assert np.abs(Rm.T @ Rm - np.eye(3)).max() < 1e-6 and abs(np.linalg.det(Rm) - 1) < 1e-6
     if case != "a2_nearly_parallel":
         a6 = (head.identity_6d + last.bias[:6]).detach().double().numpy()
-        np.testing.assert_allclose(T[1, :3, :3], G.rotation_from_6d(a6), atol=1e-6)
+        np.testing.assert_allclose(T[1, :3, :3], NPG.rotation_from_6d(a6), atol=1e-6)
     (world_from_cam.sum() + focal.sum()).backward()
     assert torch.all(torch.isfinite(tokens.grad))
     assert all(torch.all(torch.isfinite(p.grad)) for p in head.parameters() if p.grad is not None)

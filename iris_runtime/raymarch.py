@@ -1,0 +1,372 @@
+"""The ray march of one render: target camera -> renderer calls -> rgb and depth (numpy + ONNX
+Runtime; no torch).
+
+    plan = MarchPlan.build(scene, world_from_cam, K, height, width, samples=..., ...)
+    result = march(plan, session, workers=1, progress=None)      # rgb [H*W, 3], depth [H*W]
+
+``MarchPlan`` holds what every block of pixels needs, computed once per render. The pixels are
+marched in blocks of ``plan.block_rays`` (``trace_block``): rays through the pixel centres
+(``geometry.rays_from_pixels``: per-ray origins and directions), sample points ``x = o + z d`` at
+the bin-centre depths ``plan.z_bins``, their projection into every reference view
+(``cam_from_world = invert_pose(world_from_cam)``; pixel positions and the validity mask), the
+views that see the block and the geometric cue of every sample in those views (target centre =
+the ray origin). With ``top_k`` the views are chosen by the cue's t.s from the same direction
+vectors (``geometry.cue_vectors``; rules in ``iris_runtime.quality``). ``plan_calls`` splits a
+block into renderer calls by (rays, views); ``call_feed`` packs each call's inputs, which
+``session.run`` turns into rgb and per-sample weights; depth = sum(weights * z).
+
+The renderer graph samples the field maps itself at ``grid`` (bilinear, align_corners=False,
+border-clamped; how is the exporter's choice: a dense bilinear matmul for small feature grids,
+``GridSample`` above, see export/graphs.py). Explicit-colour models (``config.explicit_rgb``) also
+get ``colours`` [V', R, S, 3]: each call's views' reference photos (``plan.photos``, at the
+model's full resolution whatever the output size, scale or sample count) sampled in numpy at the
+same ``grid`` (``geometry.sample_bilinear_views``). Masked (view, sample) pairs carry colours too
+(ignored by the graph), so every culling, top_k, samples, scale, int8 and workers path feeds the
+graph exactly what it feeds without explicit colour, plus the colours of the same samples.
+
+Culling (``plan.cull``, exact): samples that project validly into no reference view, views into
+which no sample of the block projects, and rays without any valid sample carry no information —
+the renderer masks them out of every attention, pool and weight (see iris_train/ray_renderer.py),
+so dropping them changes nothing but the float rounding of sums. Each call is therefore packed to
+the valid samples of each ray (in depth order, padded to the call's longest ray with masked
+samples), the views that see its rays, and the rays that see anything; an empty ray gets the
+renderer's answer to an empty ray (``plan.empty_rgb``: rgb = head(0), zero weights, depth 0).
+"""
+from __future__ import annotations
+
+import dataclasses
+import time
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from . import geometry as G
+from . import quality as Q
+from .scene import Scene
+
+__all__ = ["MarchPlan", "Block", "Call", "MarchStats", "MarchResult", "march", "trace_block",
+           "plan_calls", "call_feed", "empty_ray_rgb"]
+
+f32 = np.float32
+
+
+@dataclass(frozen=True, eq=False)
+class MarchPlan:
+    """Everything the ray march of one render needs (arrays read-only; V = the scene's views,
+    S = samples per ray, H x W = the model's resolution).
+
+    Target camera, in pixels of the render (after ``scale``):
+      height, width:  int                  the render's pixel grid, row-major
+      world_from_cam: float32 [4, 4]       target pose
+      K:              float32 [3, 3]       target intrinsics
+    Samples:
+      z_bins:         float32 [S]          camera depths: bin centres of S equal bins in [near, far]
+    Reference views:
+      image_size:     (H, W)               the model's resolution (the views' pixels)
+      ref_K:          float32 [3, 3]       the views' intrinsics (shared focal)
+      cam_from_world: float32 [V, 4, 4]    inverted in float64, then rounded
+      centres:        float32 [V, 3]       camera centres in world
+      field_maps:     float32 [V, C', h, w]
+      photos:         float32 [V, 3, H, W] each view's reference photo (explicit colour), or None
+    View sets:
+      top_k:          int or None          views kept per sample point (None: every valid view)
+      by_ray:         bool                 top_k chosen per ray (calls then shrink to top_k views)
+                                           rather than per point
+      cull:           bool                 drop samples, views and rays that see nothing (exact)
+      empty_rgb:      float32 [3] or None  the renderer's colour of a ray without valid samples
+                                           (with ``cull``)
+    Chunks:
+      chunk_rays:     int                  most rays per renderer call (culled calls; see
+                                           ``block_rays``)
+      block_rays:     int                  pixels per block traced at once: ``chunk_rays``, times
+                                           V // top_k with per-ray view sets (a block then spans
+                                           several calls, same numpy memory as one all-view call)
+    """
+    height: int
+    width: int
+    world_from_cam: np.ndarray
+    K: np.ndarray
+    z_bins: np.ndarray
+    image_size: tuple[int, int]
+    ref_K: np.ndarray
+    cam_from_world: np.ndarray
+    centres: np.ndarray
+    field_maps: np.ndarray
+    photos: np.ndarray | None
+    top_k: int | None
+    by_ray: bool
+    cull: bool
+    empty_rgb: np.ndarray | None
+    chunk_rays: int
+    block_rays: int
+
+    @classmethod
+    def build(cls, scene: Scene, world_from_cam: np.ndarray, K: np.ndarray, height: int,
+              width: int, *, samples: int, near: float, far: float, top_k: int | None,
+              top_k_by: str, chunk_rays: int, cull: bool, empty_rgb: np.ndarray | None,
+              photos: np.ndarray | None) -> "MarchPlan":
+        """The plan of rendering ``scene`` from ``world_from_cam`` (checked, float64 4x4) with
+        intrinsics ``K`` (pixels of the ``height`` x ``width`` render)."""
+        V = scene.num_views
+        by_ray = top_k is not None and top_k_by == "ray" and top_k < V
+        return cls(height=int(height), width=int(width),
+                   world_from_cam=_frozen(world_from_cam.astype(f32)), K=_frozen(K.astype(f32)),
+                   z_bins=_frozen(G.sample_depths(near, far, samples, 1, dtype=f32)[0]),
+                   image_size=tuple(scene.image_size), ref_K=_frozen(scene.K.astype(f32)),
+                   cam_from_world=_frozen(G.invert_pose(scene.world_from_cam).astype(f32)),
+                   centres=_frozen(scene.world_from_cam[:, :3, 3].astype(f32)),
+                   field_maps=scene.field_maps, photos=photos,
+                   top_k=top_k if top_k is not None and top_k < V else None, by_ray=by_ray,
+                   cull=bool(cull), empty_rgb=empty_rgb if cull else None,
+                   chunk_rays=int(chunk_rays),
+                   block_rays=int(chunk_rays) * max(1, V // top_k) if by_ray else int(chunk_rays))
+
+    @property
+    def pixels(self) -> int:
+        return self.height * self.width
+
+    @property
+    def samples(self) -> int:
+        return self.z_bins.shape[0]
+
+    @property
+    def num_views(self) -> int:
+        return self.centres.shape[0]
+
+
+@dataclass(frozen=True, eq=False)
+class Block:
+    """One block of R pixels traced through the V'' reference views that see it (all V without
+    culling).
+
+    rows:       int64   [R]              output rows (row-major pixel indices)
+    directions: float32 [R, 3]           ray directions (camera-z component 1)
+    points:     float32 [R, S, 3]        sample points o + z d
+    views:      int64   [V'']            the scene's views that see the block
+    uv:         float32 [V'', R, S, 2]   pixel positions of the samples in those views
+    valid:      bool    [V'', R, S]      sample projects validly (and is kept by ``top_k``)
+    cue:        float32 [V'', R, S, 4]   geometric cue of each sample in each view (view-major)
+    ray_views:  bool    [V'', R] or None the views each ray keeps (``top_k`` by ray, else None)
+    """
+    rows: np.ndarray
+    directions: np.ndarray
+    points: np.ndarray
+    views: np.ndarray
+    uv: np.ndarray
+    valid: np.ndarray
+    cue: np.ndarray
+    ray_views: np.ndarray | None
+
+
+@dataclass(frozen=True, eq=False)
+class Call:
+    """One renderer call: index arrays into a ``Block``'s rays (``rays`` [r]) and its ``views``
+    (``views`` [v]; the scene's views are ``block.views[views]``)."""
+    rays: np.ndarray
+    views: np.ndarray
+
+
+@dataclass
+class MarchStats:
+    """Seconds and work of a march (summed over blocks; thread time when workers > 1).
+
+    rays_s, renderer_s: numpy geometry and packing / ONNX Runtime
+    calls, rays, points, point_views, ray_pairs: renderer calls, and over them the sums of R,
+    R*S, R*S*V' and R*S^2 (R/S/V' the rays, samples and views of a call)
+    """
+    rays_s: float = 0.0
+    renderer_s: float = 0.0
+    calls: int = 0
+    rays: int = 0
+    points: int = 0
+    point_views: int = 0
+    ray_pairs: int = 0
+
+    def add(self, other: "MarchStats") -> None:
+        for f in dataclasses.fields(self):
+            setattr(self, f.name, getattr(self, f.name) + getattr(other, f.name))
+
+    def count_call(self, views: int, rays: int, samples: int) -> None:
+        self.calls += 1
+        self.rays += rays
+        self.points += rays * samples
+        self.point_views += rays * samples * views
+        self.ray_pairs += rays * samples * samples
+
+    def work(self) -> dict[str, int]:
+        """``RenderResult.work``: the work counts by name."""
+        return {k: getattr(self, k) for k in ("calls", "rays", "points", "point_views",
+                                              "ray_pairs")}
+
+
+@dataclass(frozen=True, eq=False)
+class MarchResult:
+    """rgb float32 [H*W, 3], depth float32 [H*W] (rows of pixels, row-major) and the stats."""
+    rgb: np.ndarray
+    depth: np.ndarray
+    stats: MarchStats
+
+
+def _frozen(a: np.ndarray) -> np.ndarray:
+    a.setflags(write=False)
+    return a
+
+
+# ----------------------------------------------------------------------------------------------
+# The march
+# ----------------------------------------------------------------------------------------------
+
+def march(plan: MarchPlan, session, *, workers: int = 1,
+          progress: Callable[[int, int], None] | None = None) -> MarchResult:
+    """Render every pixel of ``plan`` with the renderer ``session`` (an ONNX Runtime session or
+    anything with its ``run``), block by block on ``workers`` threads (each block writes its own
+    rows); ``progress(pixels_done, pixels_total)`` after each block."""
+    n, block = plan.pixels, plan.block_rays
+    rgb, depth = np.empty((n, 3), f32), np.zeros(n, f32)
+    stats = MarchStats()
+    starts = range(0, n, block)
+
+    def one(start: int) -> MarchStats:
+        return _march_block(plan, session, start, rgb, depth)
+
+    def done(start: int, part: MarchStats) -> None:
+        stats.add(part)
+        if progress is not None:
+            progress(min(n, start + block), n)
+
+    if workers == 1 or len(starts) == 1:
+        for start in starts:
+            done(start, one(start))
+    else:
+        from concurrent.futures import ThreadPoolExecutor
+        with ThreadPoolExecutor(workers, thread_name_prefix="iris-render") as pool:
+            for start, part in zip(starts, pool.map(one, starts)):
+                done(start, part)
+    return MarchResult(rgb, depth, stats)
+
+
+def _march_block(plan: MarchPlan, session, start: int, rgb: np.ndarray,
+                 depth: np.ndarray) -> MarchStats:
+    """Trace the block of pixels from ``start``, run its renderer calls, write its rows of
+    ``rgb`` and ``depth``."""
+    stats = MarchStats()
+    t0 = time.perf_counter()
+    block = trace_block(plan, start)
+    if plan.cull:
+        rgb[block.rows] = plan.empty_rgb              # rays that no call renders
+    calls = plan_calls(plan, block)
+    stats.rays_s += time.perf_counter() - t0
+    maps_views, maps = None, None
+    for call in calls:
+        t0 = time.perf_counter()
+        views = block.views[call.views]
+        if maps is None or not np.array_equal(views, maps_views):   # neighbours share views
+            maps_views = views
+            maps = plan.field_maps if np.array_equal(views, np.arange(plan.num_views)) \
+                else np.ascontiguousarray(plan.field_maps[views])
+        feed, z = call_feed(plan, block, call, maps)
+        t1 = time.perf_counter()
+        out_rgb, weights = session.run(["rgb", "weights"], feed)
+        t2 = time.perf_counter()
+        rows = block.rows[call.rays]
+        rgb[rows] = out_rgb
+        depth[rows] = (weights * z).sum(axis=1)
+        t3 = time.perf_counter()
+        stats.rays_s += (t1 - t0) + (t3 - t2)
+        stats.renderer_s += t2 - t1
+        stats.count_call(*feed["mask"].shape)
+    return stats
+
+
+def trace_block(plan: MarchPlan, start: int) -> Block:
+    """Rays, samples, projection, cue and view selection of pixels ``start .. start +
+    plan.block_rays`` (row-major, clipped to the render)."""
+    H, W = plan.image_size
+    V = plan.num_views
+    rows = np.arange(start, min(plan.pixels, start + plan.block_rays))
+    # Pixel centres (u, v) = (j + 0.5, i + 0.5) of the block's pixels.
+    uv = np.stack([rows % plan.width, rows // plan.width], axis=-1).astype(f32) + f32(0.5)
+    origins, directions = G.rays_from_pixels(uv, plan.K, plan.world_from_cam)   # [R, 3] each
+    points = origins[:, None, :] + plan.z_bins[None, :, None] * directions[:, None, :]
+    uv_ref, _, valid = G.project_points(points, plan.ref_K, plan.cam_from_world, H, W)
+    views = np.arange(V)                                                        # [V, R, S] above
+    if plan.cull:
+        views = np.flatnonzero(valid.reshape(V, -1).any(axis=1))                # views seeing it
+        uv_ref, valid = uv_ref[views], valid[views]
+    t, s, s_norm = G.cue_vectors(points, origins[:, None, :], plan.centres[views])
+    cue = np.moveaxis(G.cue_from_vectors(t, s, s_norm), 2, 0)                   # [V'', R, S, 4]
+    ray_views = None
+    if plan.top_k is not None and len(views) > plan.top_k:
+        # t.s of the same vectors, rounded as the selection always was (geometry.cue_alignment).
+        score = np.ascontiguousarray(np.moveaxis(G.cue_alignment(t, s, s_norm), 2, 0))
+        if plan.by_ray:
+            ray_views = Q.ray_view_sets(valid, score, plan.top_k)              # [V'', R]
+            valid = valid & ray_views[:, :, None]
+        else:
+            valid = valid & Q.top_k_mask(valid, score, plan.top_k)
+    return Block(rows, directions, points, views, uv_ref, valid, cue, ray_views)
+
+
+def plan_calls(plan: MarchPlan, block: Block) -> list[Call]:
+    """The renderer calls of ``block``: without culling one call of every ray and view; with it
+    only the rays that see anything, with the views that see them (per-ray view sets: grouped by
+    ``quality.group_rays``, at most ``plan.chunk_rays`` rays and ``top_k`` views per call)."""
+    if not plan.cull:
+        return [Call(np.arange(len(block.rows)), np.arange(len(block.views)))]
+    live = np.flatnonzero(block.valid.any(axis=(0, 2)))
+    if live.size == 0:                                   # nothing of the scene on these rays
+        return []
+    if block.ray_views is not None:
+        return [Call(live[r], v) for r, v in Q.group_rays(block.ray_views[:, live], plan.top_k,
+                                                          plan.chunk_rays)]
+    seen = np.flatnonzero(block.valid[:, live].reshape(len(block.views), -1).any(axis=1))
+    return [Call(live, seen)]
+
+
+def call_feed(plan: MarchPlan, block: Block, call: Call,
+              field_maps: np.ndarray) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """The renderer inputs of ``call`` (``field_maps``: the maps of its views, [v, C', h, w]) and
+    the depths of its samples, float32 [r, s]. With culling the samples are packed: each ray's
+    valid samples first, in depth order, cut to the call's longest ray."""
+    H, W = plan.image_size
+    ix = np.ix_(call.views, call.rays)
+    mask = block.valid[ix]                                                   # [v, r, S]
+    uv = block.uv[ix]                                                        # [v, r, S, 2]
+    cue = block.cue[ix]                                                      # [v, r, S, 4]
+    points = block.points[call.rays]                                         # [r, S, 3]
+    z = np.broadcast_to(plan.z_bins, (len(call.rays), plan.samples))
+    if plan.cull:
+        sample_valid = mask.any(axis=0)                                      # [r, S]
+        s_max = int(sample_valid.sum(axis=1).max())
+        if s_max < plan.samples:
+            order = np.argsort(~sample_valid, axis=1, kind="stable")[:, :s_max]   # stable
+            points = np.take_along_axis(points, order[..., None], axis=1)
+            uv = np.take_along_axis(uv, order[None, ..., None], axis=2)
+            cue = np.take_along_axis(cue, order[None, ..., None], axis=2)
+            mask = np.take_along_axis(mask, order[None], axis=2)
+            z = plan.z_bins[order]
+    grid = G.pixels_to_grid(uv, H, W)
+    feed = {"field_maps": field_maps, "grid": grid, "cues": np.ascontiguousarray(cue),
+            "mask": np.ascontiguousarray(mask), "positions": points,
+            "directions": block.directions[call.rays]}
+    if plan.photos is not None:        # explicit colour: the photos at the same grid
+        feed["colours"] = G.sample_bilinear_views(plan.photos[block.views[call.views]], grid)
+    return feed, z
+
+
+def empty_ray_rgb(session, field_maps_shape: tuple[int, ...], explicit_rgb: bool) -> np.ndarray:
+    """The renderer's colour for a ray with no valid sample, float32 [3], read-only (a constant
+    of the model: every input is masked, so nothing of the scene reaches it)."""
+    _, C, h, w = field_maps_shape
+    feed = {"field_maps": np.zeros((1, C, h, w), f32),
+            "grid": np.zeros((1, 1, 1, 2), f32),
+            "cues": np.zeros((1, 1, 1, 4), f32),
+            "mask": np.zeros((1, 1, 1), bool),
+            "positions": np.zeros((1, 1, 3), f32),
+            "directions": np.array([[0, 0, 1]], f32)}
+    if explicit_rgb:                   # masked: the blend of nothing, whatever colour
+        feed["colours"] = np.zeros((1, 1, 1, 3), f32)
+    rgb = session.run(["rgb"], feed)[0][0]
+    rgb.setflags(write=False)
+    return rgb

@@ -1,0 +1,208 @@
+"""The runtime's value types: ``Scene`` (what the encoder leaves for rendering) and
+``RenderResult`` (one rendered view), with the pose check a Scene applies to its cameras.
+
+Cameras follow DESIGN.md: OpenCV axes, ``world_from_cam`` 4x4, canonical frame = view 0's camera,
+intrinsics in pixels with pixel centres at (j + 0.5, i + 0.5).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Sequence
+
+import numpy as np
+
+from . import geometry as G
+from .errors import InputError
+from .validation import check_world_from_cam
+
+if TYPE_CHECKING:
+    from .quality import RenderSettings
+
+__all__ = ["Scene", "RenderResult", "check_pose", "CAMERA_SOURCES"]
+
+#: Values of ``Scene.camera_source``.
+CAMERA_SOURCES = ("model", "epipolar", "mixed")
+
+
+def _readonly(a, dtype) -> np.ndarray:
+    out = np.array(a, dtype=dtype, copy=True, order="C")
+    out.setflags(write=False)
+    return out
+
+
+def check_pose(pose, name: str = "pose") -> np.ndarray:
+    """``pose`` as a float64 4x4 rigid ``world_from_cam``, or ``InputError`` naming ``name`` and
+    what is wrong (``validation.check_world_from_cam``, tolerance ``RIGID_ATOL``)."""
+    return check_world_from_cam(pose, name)
+
+
+@dataclass(frozen=True, eq=False)
+class Scene:
+    """What the encoder leaves for rendering (immutable; arrays are read-only copies).
+
+    field_maps:     float32 [V, C', h, w]  per-view field maps the renderer samples
+    world_from_cam: float64 [V, 4, 4]      predicted poses, OpenCV axes, view 0 = identity
+    focal:          float64 [2]            shared focal (fx / W, fy / H), normalised
+    K:              float64 [3, 3]         intrinsics in pixels of the model's resolution
+    image_size:     (H, W)                 the model's resolution
+    model_id:       sha256 of the encoder graph that made the scene ('' if unknown)
+    reference_images: float32 [N, 3, H, W] in [0, 1], the model-resolution images the scene was
+                    encoded from, what ``IrisRuntime.locate`` runs the encoder on (all N of them,
+                    also after ``subset``, which keeps the frame and so the images that define it);
+                    None for a Scene built by hand (``locate`` refuses it)
+    image_index:    int64 [V], the row of ``reference_images`` that each view was encoded from
+                    (``subset`` keeps it in step with the views): where explicit-colour models
+                    read each view's photo. Default: ``arange(V)`` when there are V reference
+                    images, else None (unknown; explicit-colour renders refuse such a Scene)
+    camera_source:  where ``world_from_cam`` comes from: "model" (the encoder's prediction),
+                    "epipolar" (``encode(..., cameras="epipolar")``: every view from the global
+                    epipolar solve, ``iris_runtime.epipolar.refine_cameras``) or "mixed" (the
+                    solve reached only some views through trusted pairs; the others keep the
+                    model's camera). ``subset`` keeps the value of the scene it was cut from
+    encoder_focal:  float64 [2], the focal the encoder predicted when ``focal`` is another one
+                    (``cameras="epipolar"`` puts the grid-searched focal in ``focal`` and ``K``);
+                    None when ``focal`` is the encoder's. ``locate`` checks the reference images
+                    against it
+    """
+    field_maps: np.ndarray
+    world_from_cam: np.ndarray
+    focal: np.ndarray
+    K: np.ndarray
+    image_size: tuple[int, int]
+    model_id: str = ""
+    reference_images: np.ndarray | None = field(default=None, repr=False)
+    image_index: np.ndarray | None = field(default=None, repr=False)
+    camera_source: str = "model"
+    encoder_focal: np.ndarray | None = field(default=None, repr=False)
+
+    def __post_init__(self):
+        arrays = {}
+        for name, dtype in (("field_maps", np.float32), ("world_from_cam", np.float64),
+                            ("focal", np.float64), ("K", np.float64)):
+            try:
+                arrays[name] = _readonly(getattr(self, name), dtype)
+            except (TypeError, ValueError):
+                raise InputError(f"{name}: expected an array of numbers, got "
+                                 f"{type(getattr(self, name)).__name__}") from None
+            if not np.all(np.isfinite(arrays[name])):
+                raise InputError(f"{name}: contains NaN or inf")
+        maps, poses, focal, K = (arrays[k] for k in ("field_maps", "world_from_cam", "focal", "K"))
+        if maps.ndim != 4 or maps.shape[0] == 0:
+            raise InputError(f"field_maps: expected [V, C', h, w] with V >= 1, got {maps.shape}")
+        V = maps.shape[0]
+        if poses.shape != (V, 4, 4):
+            raise InputError(f"world_from_cam: expected [{V}, 4, 4], got {poses.shape}")
+        if focal.shape != (2,) or K.shape != (3, 3):
+            raise InputError(f"focal, K: expected [2] and [3, 3], got {focal.shape} and {K.shape}")
+        if not np.all(focal > 0) or K[0, 0] <= 0 or K[1, 1] <= 0:
+            raise InputError(f"focal, K: expected positive focal lengths, got focal "
+                             f"{focal.tolist()} and K diagonal {np.diag(K).tolist()}")
+        check_world_from_cam(poses, "world_from_cam", batch=True)
+        size = tuple(int(s) for s in self.image_size)
+        if len(size) != 2 or min(size) <= 0:
+            raise InputError(f"image_size: expected (H, W) positive, got {self.image_size!r}")
+        refs = self.reference_images
+        if refs is not None:
+            try:
+                refs = _readonly(refs, np.float32)
+            except (TypeError, ValueError):
+                raise InputError(f"reference_images: expected an array of numbers or None, got "
+                                 f"{type(self.reference_images).__name__}") from None
+            if refs.ndim != 4 or refs.shape[0] == 0 or refs.shape[1:] != (3, *size):
+                raise InputError(f"reference_images: expected [N, 3, {size[0]}, {size[1]}] with "
+                                 f"N >= 1, got {refs.shape}")
+            if not (np.all(np.isfinite(refs)) and refs.min() >= 0.0 and refs.max() <= 1.0):
+                raise InputError("reference_images: expected values in [0, 1] (no NaN or inf)")
+        index = self.image_index
+        if index is not None:
+            if refs is None:
+                raise InputError("image_index: given without reference_images (it indexes them)")
+            try:
+                index = np.asarray(index)
+            except (TypeError, ValueError):
+                index = np.asarray(None, dtype=object)
+            if index.shape != (V,) or not np.issubdtype(index.dtype, np.integer) \
+                    or index.min() < 0 or index.max() >= refs.shape[0]:
+                raise InputError(f"image_index: expected {V} integers in 0..{refs.shape[0] - 1} "
+                                 f"(the reference image of each view), got {self.image_index!r}")
+            index = _readonly(index, np.int64)
+        elif refs is not None and refs.shape[0] == V:
+            index = _readonly(np.arange(V), np.int64)
+        if not isinstance(self.camera_source, str) or self.camera_source not in CAMERA_SOURCES:
+            raise InputError(f"camera_source: expected one of {list(CAMERA_SOURCES)}, got "
+                             f"{self.camera_source!r}")
+        enc_focal = self.encoder_focal
+        if enc_focal is not None:
+            try:
+                enc_focal = _readonly(enc_focal, np.float64)
+            except (TypeError, ValueError):
+                raise InputError(f"encoder_focal: expected [2] numbers or None, got "
+                                 f"{type(self.encoder_focal).__name__}") from None
+            if enc_focal.shape != (2,) or not (np.all(np.isfinite(enc_focal))
+                                               and np.all(enc_focal > 0)):
+                raise InputError(f"encoder_focal: expected [2] positive finite numbers or None, "
+                                 f"got {enc_focal.tolist()}")
+        for name, value in (("field_maps", maps), ("world_from_cam", poses), ("focal", focal),
+                            ("image_size", size), ("K", K), ("reference_images", refs),
+                            ("image_index", index), ("encoder_focal", enc_focal)):
+            object.__setattr__(self, name, value)
+
+    @property
+    def num_views(self) -> int:
+        return self.field_maps.shape[0]
+
+    def intrinsics(self, height: int | None = None, width: int | None = None) -> np.ndarray:
+        """``K [3, 3]`` (float64) of the shared focal for an image of (height, width) pixels
+        (default: the model's resolution)."""
+        H, W = self.image_size
+        return G.intrinsics_from_focal(self.focal, height or H, width or W).astype(np.float64)
+
+    def subset(self, indices: Sequence[int]) -> "Scene":
+        """A scene keeping only views ``indices`` (in that order) as references, in the same
+        camera frame (poses are not re-based: view 0 of the original stays the world frame)."""
+        try:
+            idx = np.asarray(list(indices) if not isinstance(indices, np.ndarray) else indices)
+        except (TypeError, ValueError):
+            raise InputError(f"indices: expected a non-empty sequence of view indices (ints), "
+                             f"got {indices!r}") from None
+        V = self.num_views
+        if idx.ndim != 1 or idx.size == 0 or not (np.issubdtype(idx.dtype, np.integer)):
+            raise InputError(f"indices: expected a non-empty sequence of view indices (ints), "
+                             f"got {indices!r}")
+        if idx.min() < 0 or idx.max() >= V:
+            raise InputError(f"indices: view index out of range 0..{V - 1}: {idx.tolist()}")
+        if len(set(idx.tolist())) != idx.size:
+            raise InputError(f"indices: repeated view index in {idx.tolist()} (a view counted "
+                             f"twice would weigh twice in the view attention)")
+        return Scene(self.field_maps[idx], self.world_from_cam[idx], self.focal, self.K,
+                     self.image_size, self.model_id, self.reference_images,
+                     None if self.image_index is None else self.image_index[idx],
+                     self.camera_source, self.encoder_focal)
+
+    def __repr__(self) -> str:
+        return (f"Scene(views={self.num_views}, field_maps={tuple(self.field_maps.shape)}, "
+                f"image_size={self.image_size}, focal={np.round(self.focal, 4).tolist()}, "
+                f"camera_source={self.camera_source!r})")
+
+
+@dataclass(frozen=True, eq=False)
+class RenderResult:
+    """One rendered view.
+
+    image:       uint8   [H, W, 3] RGB
+    image_float: float32 [H, W, 3] RGB in [0, 1] (what the renderer returned)
+    depth:       float32 [H, W]    soft camera depth sum_m w_m z_m in model units, within
+                                   [near, far]; 0 where no sample sees any reference view
+    timings:     seconds per stage (``load``/``encode`` when images were given, ``rays``: numpy
+                 geometry, ``renderer``: ONNX Runtime, ``upsample`` when scale < 1, ``total``)
+    work:        what the renderer graph was given: ``calls``, and over the calls the sums of
+                 R (``rays``), R*S (``points``), R*S*V' (``point_views``) and R*S^2
+                 (``ray_pairs``), R/S/V' the rays, samples and views of a call (FLOP counts)
+    settings:    the ``RenderSettings`` used
+    """
+    image: np.ndarray
+    image_float: np.ndarray
+    depth: np.ndarray
+    timings: dict = field(default_factory=dict)
+    work: dict = field(default_factory=dict)
+    settings: "RenderSettings | None" = None
