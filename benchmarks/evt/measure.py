@@ -1,0 +1,354 @@
+"""The measured parts of the error-against-time benchmark: knobs, scaling, peak, memory.
+
+Each ``part_*`` returns the JSON-ready section of the results (``results[part]``); the report
+(``report``) and the targets (``targets``) read only those sections. ``args`` is the benchmark's
+parsed command line (``benchmarks/error_vs_time.py``).
+"""
+from __future__ import annotations
+
+import json
+import os
+import statistics
+import subprocess
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from . import child, rows as R
+from .machine import TCMALLOC, ort_profile, renderer_flops
+
+# ----------------------------------------------------------------------------------------------
+# Timing, metrics, scenes
+# ----------------------------------------------------------------------------------------------
+
+
+def timed(fn, runs: int):
+    """-> (median seconds, all seconds, last result) of ``runs`` calls."""
+    times, out = [], None
+    for _ in range(runs):
+        t = time.perf_counter()
+        out = fn()
+        times.append(time.perf_counter() - t)
+    return statistics.median(times), times, out
+
+
+def psnr(a, b) -> float:
+    """PSNR in dB, capped at 100 (identical images)."""
+    from iris_train.metrics import psnr
+    return min(psnr(a, b), 100.0)
+
+
+def ssim(a, b) -> float:
+    from iris_train.metrics import ssim
+    return ssim(a, b)
+
+
+def heldout_scenes(n: int, n_views: int = 8):
+    from iris_train.data import HELDOUT_SEEDS, SyntheticScenes
+    ds = SyntheticScenes(list(HELDOUT_SEEDS)[:n], n_views=n_views)
+    return [ds[i] for i in range(n)]
+
+
+def gt_image(image: np.ndarray, size: int) -> np.ndarray:
+    """Ground truth as float [0, 1] at ``size`` x ``size`` (area-resized when smaller)."""
+    import cv2
+    if image.shape[:2] != (size, size):
+        image = cv2.resize(image, (size, size), interpolation=cv2.INTER_AREA)
+    return image.astype(np.float64) / 255.0
+
+
+# ----------------------------------------------------------------------------------------------
+# Torch anchors
+# ----------------------------------------------------------------------------------------------
+
+def torch_render_frames(model, images_list, refs, targets, threads: int, runs: int,
+                        size: int | None = None):
+    """Torch eager anchor: per scene, encode all frames once, then time ``IrisModel.render`` of
+    each target from the references -> (per-frame medians, per-frame runs, outputs)."""
+    import torch
+    torch.set_num_threads(threads)
+    meds, alls, outs = [], [], []
+    with torch.no_grad():
+        for images in images_list:
+            x = torch.from_numpy(np.ascontiguousarray(images)).permute(0, 3, 1, 2).float() / 255.0
+            scene = model.encode(x)
+            sub = scene.subset(refs)
+            H = W = size or images.shape[1]
+            if not outs:                                        # warm-up
+                model.render(sub, scene.world_from_cam[targets[:1]], H, W)
+            for t in targets:
+                pose = scene.world_from_cam[[t]]
+                med, times, out = timed(lambda: model.render(sub, pose, H, W), runs)
+                meds.append(med)
+                alls.append(times)
+                outs.append(out[0][0].double().numpy())
+    return meds, alls, outs
+
+
+def torch_tcmalloc_anchor(args) -> dict | None:
+    """The torch anchor in a subprocess started with tcmalloc preloaded (``child torch-anchor``);
+    None when this machine has no tcmalloc."""
+    if not Path(TCMALLOC).exists():
+        return None
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "torch_tcmalloc.npz"
+        cmd = child.command("torch-anchor", checkpoint=Path(args.checkpoint), scenes=args.scenes,
+                            runs=args.runs, threads=args.threads, size=args.size, out=out)
+        subprocess.run(cmd, env=child.environment(LD_PRELOAD=TCMALLOC), check=True)
+        d = np.load(out)
+        return {"meds": d["meds"].tolist(), "alls": d["alls"].tolist(), "outs": d["outs"],
+                "preload": str(d["preload"])}
+
+
+# ----------------------------------------------------------------------------------------------
+# Parts
+# ----------------------------------------------------------------------------------------------
+
+def part_knobs(args, rt, rt_nocull, rt_par, model, log) -> dict:
+    """Every knob on the held-out scenes' targets, against the full render and the ground truth.
+
+    ``rt``: the default runtime (culling on); ``rt_nocull``: ``cull=False``; ``rt_par``:
+    ``workers=2``; ``model``: the torch ``IrisModel`` (None without torch: no anchors)."""
+    from iris_train.data import HELDOUT_SEEDS
+    from iris_train.evaluate import split_frames
+    scenes = heldout_scenes(args.scenes)
+    refs, targets = split_frames(8)
+    refs, targets = list(refs), list(targets)
+    # Encode every scene once (the Scene cache); targets at their predicted poses.
+    encoded = [rt.encode(list(s.images)) for s in scenes]
+    frames = []                            # (scene index, target frame, pose, gt float image)
+    size = args.size
+    for i, (s, sc) in enumerate(zip(scenes, encoded)):
+        for t in targets:
+            frames.append((i, t, sc.world_from_cam[t], gt_image(s.images[t], size)))
+    ort_kw = {"height": size, "width": size}
+    subs = [sc.subset(refs) for sc in encoded]
+
+    def ort_config(runtime, kw):
+        kw = {**ort_kw, **kw}
+        runtime.render(subs[0], frames[0][2], depth=True, **kw)             # warm-up
+        meds, alls, outs, works, tims = [], [], [], [], []
+        for i, t, pose, _ in frames:
+            med, times, res = timed(lambda: runtime.render(subs[i], pose, depth=True, **kw),
+                                    args.runs)
+            meds.append(med)
+            alls.append(times)
+            outs.append(res.image_float.astype(np.float64))
+            works.append(res.work)
+            tims.append(res.timings)
+        return meds, alls, outs, works, tims
+
+    rows = []
+    log("knobs: full ORT render (exact, cull)")
+    full = ort_config(rt, {})
+    full_outs = full[2]
+
+    def add(name, group, meds, alls, outs, works=None, tims=None, note=""):
+        err = max(float(np.abs(o - f).max()) for o, f in zip(outs, full_outs))
+        row = {"name": name, "group": group, "s_per_frame": float(np.mean(meds)),
+               "s_per_frame_runs": alls, "max_abs_vs_full": err,
+               "psnr_vs_full": float(np.mean([psnr(o, f) for o, f in zip(outs, full_outs)])),
+               "psnr_gt": float(np.mean([psnr(np.clip(o, 0, 1), fr[3])
+                                         for o, fr in zip(outs, frames)])),
+               "ssim_gt": float(np.mean([ssim(np.clip(o, 0, 1), fr[3])
+                                         for o, fr in zip(outs, frames)])),
+               "note": note, "load_avg_1min": os.getloadavg()[0]}
+        if works:
+            tot = {k: sum(w[k] for w in works) for k in works[0]}
+            row["work_per_frame"] = {k: v / len(works) for k, v in tot.items()}
+            ort_s = float(np.mean([t["renderer"] for t in tims]))
+            row["renderer_s_per_frame"] = ort_s
+            row["numpy_s_per_frame"] = float(np.mean([t["rays"] for t in tims]))
+            row["renderer_gflop_per_frame"] = renderer_flops(rt.manifest.config,
+                                                             row["work_per_frame"]) / 1e9
+        rows.append(row)
+        log(f"  {name:24s} {row['s_per_frame']:7.3f} s/frame  max|d| {err:.2e}  "
+            f"PSNR(full) {row['psnr_vs_full']:6.2f}  PSNR(gt) {row['psnr_gt']:6.2f}")
+        return row
+
+    # Anchors.
+    if model is not None:
+        log("knobs: torch eager (as installed)")
+        meds, alls, outs = torch_render_frames(model, [s.images for s in scenes], refs, targets,
+                                               args.threads, args.runs, size)
+        add(R.TORCH_EAGER, R.ANCHOR, meds, alls, outs, note="IrisModel.render, default allocator")
+        if not args.no_tcmalloc:
+            log("knobs: torch eager + tcmalloc (subprocess)")
+            tc = torch_tcmalloc_anchor(args)
+            if tc is not None:
+                add(R.TORCH_TCMALLOC, R.ANCHOR, tc["meds"], tc["alls"], list(tc["outs"]),
+                    note=f"LD_PRELOAD={tc['preload']}")
+    add(R.EXACT, R.EXACT_GROUP, *full, note="default: IrisRuntime(cull=True)")
+    log("knobs: exact, data-parallel (workers=2)")
+    add(R.EXACT_2_WORKERS, R.EXACT_GROUP, *ort_config(rt_par, {}),
+        note=f"IrisRuntime(threads={args.threads}, workers=2): two renderer calls in flight, "
+             f"{max(1, args.threads // 2)} intra-op thread(s) each")
+    log("knobs: no culling")
+    add(R.EXACT_NO_CULLING, R.EXACT_GROUP, *ort_config(rt_nocull, {}),
+        note="IrisRuntime(cull=False): every sample, view and ray through the graph")
+    # Scene cache: encode the references on every render (one-shot API).
+    log("knobs: one-shot render(images, pose) (no Scene cache)")
+    meds, alls, outs = [], [], []
+    rt.render(list(scenes[0].images[refs]), frames[0][2], **ort_kw)
+    for i, t, pose, _ in frames:
+        imgs = list(scenes[i].images[refs])
+        med, times, res = timed(lambda: rt.render(imgs, pose, depth=True, **ort_kw), args.runs)
+        meds.append(med)
+        alls.append(times)
+        outs.append(res.image_float.astype(np.float64))
+    add(R.EXACT_NO_SCENE_CACHE, R.EXACT_GROUP, meds, alls, outs,
+        note="encoder re-run on the references per render; its scene differs from the "
+             "all-frames encoding, so the error is the encoder's view-set dependence, not rounding")
+    for knob in R.KNOB_GRID:
+        if knob.render_kw.get("precision") == "int8" and "renderer_int8" not in rt.manifest.graphs:
+            continue                                  # exported without --quantize int8
+        log(f"knobs: {knob.name}")
+        add(knob.name, knob.group, *ort_config(rt, knob.render_kw))
+    return {"refs": refs, "targets": targets,
+            "scenes": [int(s) for s in HELDOUT_SEEDS[:args.scenes]],
+            "frames": len(frames), "rows": rows}
+
+
+def part_scaling(args, rt, model, log) -> dict:
+    """(V refs, T targets): encode V + T frames, render T targets from V refs; seconds total."""
+    from iris_train.data import HELDOUT_SEEDS, SyntheticScenes
+    n_frames = max(v + t for v, t in R.SCALING)
+    scene_data = SyntheticScenes([HELDOUT_SEEDS[0]], n_views=n_frames)[0]
+    rows = []
+    for V, T in args.scaling:
+        # References evenly spread over the orbit; targets between them.
+        idx = np.round(np.linspace(0, n_frames - 1, V + T, endpoint=False)).astype(int)
+        order = np.argsort(np.arange(V + T) % ((V + T) // T) == 1, kind="stable")
+        refs_pos, tgt_pos = order[:V], order[V:]
+        images = scene_data.images[idx]
+        size = args.scaling_size
+        gts = [gt_image(images[j], size) for j in tgt_pos]
+        okw = {"height": size, "width": size}
+        row = {"views": V, "targets": T, "paper_gpu_s": R.PAPER_TABLE11.get((V, T))}
+
+        def ort_run(kw):
+            sc = rt.encode(list(images))
+            t_enc = time.perf_counter()
+            sub = sc.subset(list(refs_pos))
+            outs = [rt.render(sub, sc.world_from_cam[j], depth=True, **okw, **kw)
+                    for j in tgt_pos]
+            return sc, outs, t_enc
+
+        results = {}
+        for label, kw in R.SCALING_METHODS:
+            if not rows:                                           # warm-up, once per method
+                ort_run(kw)
+            times, enc_times, frame_times = [], [], []
+            for _ in range(args.runs):
+                t0 = time.perf_counter()
+                sc, outs, t_enc = ort_run(kw)
+                t1 = time.perf_counter()
+                times.append(t1 - t0)
+                enc_times.append(t_enc - t0)
+                frame_times.append((t1 - t_enc) / T)
+            results[label] = [o.image_float.astype(np.float64) for o in outs]
+            row[f"{label}_s"] = statistics.median(times)
+            row[f"{label}_s_runs"] = times
+            row[f"{label}_encode_s"] = statistics.median(enc_times)
+            row[f"{label}_s_per_frame"] = statistics.median(frame_times)
+            row[f"{label}_psnr_gt"] = float(np.mean([psnr(np.clip(o, 0, 1), g)
+                                                     for o, g in zip(results[label], gts)]))
+        exact, balanced = results[R.SCALING_EXACT], results[R.SCALING_BALANCED]
+        row["balanced_psnr_vs_exact"] = float(np.mean([psnr(b, e)
+                                                       for b, e in zip(balanced, exact)]))
+        row["balanced_max_abs_vs_exact"] = float(max(np.abs(b - e).max()
+                                                     for b, e in zip(balanced, exact)))
+        if model is not None:
+            import torch
+            torch.set_num_threads(args.threads)
+            x = torch.from_numpy(np.ascontiguousarray(images)).permute(0, 3, 1, 2).float() / 255.0
+            H = W = size
+
+            def torch_run():
+                with torch.no_grad():
+                    sc = model.encode(x)
+                    t_enc = time.perf_counter()
+                    rgb, _ = model.render(sc.subset(list(refs_pos)),
+                                          sc.world_from_cam[list(tgt_pos)], H, W)
+                return rgb, t_enc
+
+            if not rows:
+                torch_run()                                        # warm-up, once
+            times, frame_times = [], []
+            for _ in range(args.runs):
+                t0 = time.perf_counter()
+                rgb, t_enc = torch_run()
+                t1 = time.perf_counter()
+                times.append(t1 - t0)
+                frame_times.append((t1 - t_enc) / T)
+            row["torch_s"] = statistics.median(times)
+            row["torch_s_runs"] = times
+            row["torch_s_per_frame"] = statistics.median(frame_times)
+            row["torch_max_abs_vs_exact"] = float(max(
+                np.abs(rgb[k].double().numpy() - exact[k]).max() for k in range(T)))
+        row["load_avg_1min"] = os.getloadavg()[0]
+        rows.append(row)
+        log(f"  ({V:2d},{T}) exact {row['exact_s']:7.2f} s  balanced {row['balanced_s']:7.2f} s  "
+            f"torch {row.get('torch_s', float('nan')):7.2f} s  per frame exact "
+            f"{row['exact_s_per_frame']:.3f} balanced {row['balanced_s_per_frame']:.3f}  "
+            f"PSNR(bal vs exact) {row['balanced_psnr_vs_exact']:.1f}")
+    return {"seed": int(HELDOUT_SEEDS[0]), "frames": n_frames, "rows": rows}
+
+
+def peak_rows(knob_rows: list[dict], peak_gflops: float) -> list[dict]:
+    """The renderer graph's FLOP rate against the matmul peak for the ``rows.PEAK_ROWS`` of the
+    knobs table."""
+    rows = []
+    for r in knob_rows:
+        if "renderer_gflop_per_frame" in r and r["name"] in R.PEAK_ROWS:
+            # Graph-only seconds are summed over threads with workers > 1: use the frame's
+            # wall time there (it includes the numpy geometry, so it is a lower bound).
+            par = r["name"] == R.EXACT_2_WORKERS
+            secs = r["s_per_frame"] if par else r["renderer_s_per_frame"]
+            gflops = r["renderer_gflop_per_frame"] / secs
+            rows.append({"name": r["name"], "gflop": r["renderer_gflop_per_frame"],
+                         "seconds": secs, "gflops": gflops, "fraction": gflops / peak_gflops,
+                         "wall_gflops": r["renderer_gflop_per_frame"] / r["s_per_frame"],
+                         "basis": "frame wall time" if par else "renderer graph time"})
+    return rows
+
+
+def part_peak(matmul: dict, knob_rows: list[dict], rt, threads: int) -> dict:
+    """``matmul`` (``matmul_peak()``, measured first, on the quiet machine) with the
+    ``peak_rows`` of the knobs table and ORT's per-op profile of the exact path (when the knobs
+    ran)."""
+    out = {"matmul": matmul, "rows": peak_rows(knob_rows, matmul["gflops"])}
+    if knob_rows:
+        from iris_train.evaluate import split_frames
+        refs, targets = split_frames(8)
+        sc = heldout_scenes(1)[0]
+        enc = rt.encode(list(sc.images))
+        out["profile"] = ort_profile(rt, enc.subset(list(refs)), enc.world_from_cam[targets[0]],
+                                     threads)
+    return out
+
+
+def part_memory(args, model_dir, workers: int, log) -> list[dict]:
+    """Peak RSS of one render from 16 reference views in a fresh process (``child memory``: no
+    torch imported)."""
+    from iris_train.data import HELDOUT_SEEDS, SyntheticScenes
+    images = SyntheticScenes([HELDOUT_SEEDS[0]], n_views=40)[0].images[::40 // 16][:16]
+    out = []
+    with tempfile.TemporaryDirectory() as tmp:
+        npy = Path(tmp) / "refs.npy"
+        np.save(npy, images)
+        for spec in args.memory_quality:
+            quality, _, size = spec.partition("@")
+            size = int(size) if size else args.memory_size
+            log(f"memory: {size}^2 from 16 views, quality={quality} (subprocess)")
+            cmd = child.command("memory", model_dir=Path(model_dir), quality=quality,
+                                threads=args.threads, size=size, images=npy, workers=workers)
+            proc = subprocess.run(cmd, env=child.environment(), capture_output=True, text=True)
+            if proc.returncode != 0:
+                raise RuntimeError(f"memory child failed ({' '.join(cmd)}):\n{proc.stderr}")
+            row = json.loads(proc.stdout.strip().splitlines()[-1])
+            log(f"  peak RSS {row['peak_rss_mb']:.0f} MB, {row['seconds']:.1f} s")
+            out.append(row)
+    return out
