@@ -31,6 +31,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--quantize", choices=["int8"], default=None,
                         help="also write renderer.int8.onnx (dynamic int8 quantisation); its error "
                              "vs torch is recorded in iris.json, not enforced")
+    parser.add_argument("--renderer", choices=["reference", "fast", "fast-contrib"],
+                        default="reference",
+                        help="renderer graph: 'reference' (default), 'fast' (same I/O and values, "
+                             "laid out for ONNX Runtime's CPU kernels) or 'fast-contrib' (the same "
+                             "with com.microsoft fused ops); see export/fast_renderer.py")
     parser.add_argument("--force", action="store_true", help="replace an existing OUT_DIR")
     parser.add_argument("--quick", action="store_true",
                         help="smaller validation probes and timing runs (tests, smoke checks)")
@@ -51,7 +56,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         out = export_model(args.checkpoint, args.out_dir, opset=args.opset, quantize=args.quantize,
                            force=args.force, progress=not args.quiet, quick=args.quick,
-                           threads=args.threads)
+                           threads=args.threads, renderer=args.renderer)
     except ValidationError as exc:
         print(f"iris-export: validation failed: {exc}", file=sys.stderr)
         return EXIT_VALIDATION

@@ -229,11 +229,19 @@ def _check_self_contained(proto: onnx.ModelProto, name: str) -> None:
             raise ExportError(f"{name}: initializer {tensor.name!r} refers to external data")
 
 
-def export_graph(model: IrisModel, graph: str, path: str | Path, opset: int = DEFAULT_OPSET) -> GraphFile:
-    """Export ``graph`` ("encoder" or "renderer") of ``model`` to one self-contained file ``path``."""
+def export_graph(model: IrisModel, graph: str, path: str | Path, opset: int = DEFAULT_OPSET,
+                 wrapper: nn.Module | None = None) -> GraphFile:
+    """Export ``graph`` ("encoder" or "renderer") of ``model`` to one self-contained file ``path``.
+
+    ``wrapper``: the module to export instead of ``WRAPPERS[graph](model)``, with the same I/O
+    (e.g. ``export.fast_renderer.FastRendererGraph``); its ``custom_translation_table``
+    attribute, if any, goes to ``torch.onnx.export``."""
     spec = io_spec.spec_for(graph, model.cfg.explicit_rgb)
     check_opset(opset)
-    wrapper = WRAPPERS[graph](model).eval()
+    wrapper = (WRAPPERS[graph](model) if wrapper is None else wrapper).eval()
+    extra = {}
+    if getattr(wrapper, "custom_translation_table", None):
+        extra["custom_translation_table"] = wrapper.custom_translation_table
     args = example_inputs(model.cfg, graph)
     names = list(spec["inputs"])
     axes = {}
@@ -247,7 +255,7 @@ def export_graph(model: IrisModel, graph: str, path: str | Path, opset: int = DE
         program = torch.onnx.export(
             wrapper, args, dynamo=True, opset_version=opset, verbose=False,
             input_names=names, output_names=list(spec["outputs"]),
-            dynamic_shapes=dynamic_shapes, optimize=True)
+            dynamic_shapes=dynamic_shapes, optimize=True, **extra)
     proto = program.model_proto
     _name_axes(proto, spec, fixed_dims(model.cfg))
     set_min_ir_version(proto)

@@ -23,6 +23,7 @@ from iris_train.model import CheckpointError, IrisModel, load_model
 
 from . import io_spec
 from .errors import ExportArgumentError, ExportError, OutputExistsError
+from .fast_renderer import RENDERER_KINDS, renderer_wrapper
 from .graphs import DEFAULT_OPSET, EXPORTER, RendererGraph, check_opset, export_graph, quantize_int8
 from .manifest import MANIFEST_NAME, build_manifest, graph_entry, write_manifest
 from .validate import validate
@@ -64,7 +65,8 @@ def _publish(tmp: Path, out_dir: Path, force: bool) -> None:
 
 def export_model(model_or_ckpt: IrisModel | str | os.PathLike, out_dir: str | os.PathLike, *,
                  opset: int = DEFAULT_OPSET, quantize: str | None = None, force: bool = False,
-                 progress: bool = True, quick: bool = False, threads: int | None = None) -> Path:
+                 progress: bool = True, quick: bool = False, threads: int | None = None,
+                 renderer: str = "reference") -> Path:
     """Export ``model_or_ckpt`` to ``out_dir/{encoder.onnx, renderer.onnx, iris.json}``.
 
     ``model_or_ckpt``: an ``IrisModel`` or a checkpoint path. ``opset``: ONNX opset (>= 18).
@@ -72,6 +74,10 @@ def export_model(model_or_ckpt: IrisModel | str | os.PathLike, out_dir: str | os
     enforced). ``force`` replaces an existing ``out_dir``. ``progress`` prints one line per stage
     to stderr. ``quick`` shrinks the validation probes (tests); ``threads`` sets the intra-op
     threads of ONNX Runtime and torch during validation (see ``export.validate.validate``).
+    ``renderer``: which renderer graph to write (``export.fast_renderer.RENDERER_KINDS``):
+    "reference" (``RendererGraph``, the default), "fast" or "fast-contrib"
+    (``FastRendererGraph``: same I/O and values, laid out for ONNX Runtime's CPU kernels;
+    validated against the same torch reference; recorded as ``export.renderer_graph``).
     Returns ``out_dir``.
 
     Raises ``OutputExistsError`` (``out_dir`` exists, no ``force``), ``CheckpointError``
@@ -84,6 +90,9 @@ def export_model(model_or_ckpt: IrisModel | str | os.PathLike, out_dir: str | os
     if quantize not in (None, *QUANTIZE_CHOICES):
         raise ExportArgumentError(f"quantize: expected one of {list(QUANTIZE_CHOICES)} or None, "
                                   f"got {quantize!r}")
+    if renderer not in RENDERER_KINDS:
+        raise ExportArgumentError(f"renderer: expected one of {list(RENDERER_KINDS)}, got "
+                                  f"{renderer!r}")
     if threads is not None and (not isinstance(threads, int) or isinstance(threads, bool) or threads < 1):
         raise ExportArgumentError(f"threads: expected a positive integer or None, got {threads!r}")
     if (out_dir.exists() or out_dir.is_symlink()) and not force:
@@ -114,7 +123,9 @@ def export_model(model_or_ckpt: IrisModel | str | os.PathLike, out_dir: str | os
         for graph in ("encoder", "renderer"):
             spec = io_spec.GRAPHS[graph]
             say(f"exporting {graph} ({EXPORTER}, opset {opset})")
-            result = export_graph(model, graph, tmp / spec["file"], opset)
+            alt = {"wrapper": renderer_wrapper(model, renderer)} \
+                if graph == "renderer" and renderer != "reference" else {}
+            result = export_graph(model, graph, tmp / spec["file"], opset, **alt)
             say(f"exported {graph}: {result.nodes} nodes, {result.path.stat().st_size / 1e6:.1f} MB "
                 f"in {result.seconds:.1f} s")
             files[graph], entries[graph] = result.path, result
@@ -141,7 +152,8 @@ def export_model(model_or_ckpt: IrisModel | str | os.PathLike, out_dir: str | os
         ir_version = onnx.load_model(str(files["encoder"]), load_external_data=False).ir_version
         manifest = build_manifest(model.cfg, graphs, report, opset=opset, ir_version=ir_version,
                                   exporter=EXPORTER, source=source,
-                                  renderer_sampler=RendererGraph(model).sampler)
+                                  renderer_sampler=RendererGraph(model).sampler,
+                                  renderer_graph=renderer)
         write_manifest(tmp / MANIFEST_NAME, manifest)
         _publish(tmp, out_dir, force)
     except BaseException:

@@ -1,0 +1,414 @@
+"""An alternative renderer export graph laid out for ONNX Runtime's CPU kernels.
+
+``FastRendererGraph(model)`` computes the same function as ``RendererGraph(model)``
+(``IrisModel.render_samples`` with ``need_weights=True``), with the same inputs and outputs
+(``iris_runtime.io_spec.RENDERER``, plus ``colours`` for explicit-colour models), so the runtime
+runs either graph unchanged. It is built from the model's own modules (norms, MLPs, projections,
+heads, ``layers.sinusoidal_encoding``) and parameters; the weights it needs in another form are
+derived from them at construction (see the class). Same values as torch up to float rounding
+(tests/test_fast_renderer.py: <= 1e-5 on rgb and weights for both renderer kinds, measured
+<= 3e-7 in torch and in ONNX Runtime).
+
+What differs from the reference graph, and why (the reference graph's profile,
+benchmarks/results/error_vs_time.md: ``Where`` 14% and ``Transpose`` 14% of node time):
+
+* Masks are additive biases. ``mask`` becomes ``bias = (1 - m) * MASK_FILL`` once per call
+  (``[V', R*S]``; ``MASK_FILL = -1e30``, finite); the masked max-pool over views is
+  ``ReduceMax(u + bias) * any_view`` and the masked softmaxes are ``Softmax(logits + bias)``. For
+  every row with at least one valid entry this is exactly the masked fill (``x + (-1e30)`` rounds to
+  ``-1e30`` and ``exp(-1e30 - max)`` is exactly 0). Rows with no valid entry are where the
+  semantics could differ, and they are kept: a point seen by no view gets ``q0 = 0`` and zero
+  view-attention weights (the attention's normaliser is multiplied by ``any_view``), exactly as in
+  ``layers.masked_max`` / ``masked_softmax``; a ray with no valid sample gets uniform (finite)
+  ray-attention rows, which the reference's masked softmax would make 0 -- but those rows belong
+  to rays whose samples are all pooled away (``m = 0`` in the mean pool and in the depth weights,
+  which are therefore exactly 0), so rgb = head(0) and weights = 0 as before (the reference's own
+  non-final ray blocks already work this way).
+* View-major throughout the latent field: no Transpose. The field is computed on ``[V', R*S, .]``
+  tensors; every reduction over views (max-pool, softmax, weighted sum) is a reduction over the
+  leading axis (ONNX Runtime's contiguous "reduce leading dims" kernel), whose result is already
+  point-major ``[R*S, W]`` (rays, then samples), the layout the ray transformer needs. The softmax
+  over views is written out (ReduceMax, Sub, Exp, ReduceSum) because ONNX ``Softmax`` on a
+  non-last axis transposes internally.
+* One sampling matmul per field-map slot, with the per-view affine work folded into it. The dense
+  bilinear weights ``[V', N, h*w]`` are concatenated with the cues (and, explicit colour, the
+  sampled RGB): ``A = [tent | cues | colours] [V', N, h*w + 4 (+ 3)]``; each slot (u, and every
+  view block's keys and values) is ``A @ B_slot`` with ``B_slot = [maps_slot ; cue_to_kv_slot ;
+  rgb_to_maps_slot]``, built per call from the field maps (``[V', K, W]``, small). So the cue's
+  4 -> 2W map, the colour's 3 -> C' map and their Adds over ``[V', N, C']`` disappear into the
+  matmul's K dimension, and separate u/k/v products replace one product + Slices (copies). The
+  constant of ``rgb_to_maps(colours - 0.5)`` is added to the maps (bilinear weights sum to one).
+* Separate q/k/v weights in the ray attention, per head: ``y [R, 1, S, W] @ Wq [H, W, Dh]`` gives
+  ``[R, H, S, Dh]`` directly (a broadcast batched MatMul instead of a Gemm + Reshape + Transpose
+  + Split). The key bias is dropped (it adds ``q . b_k`` to every logit of a row: softmax-invariant)
+  and the value bias is folded into the output projection's bias (softmax rows sum to one). The
+  attention scale is folded into the query weights (exact for the power-of-two scales of the
+  presets). One Transpose per ray block remains: merging heads before the output projection (the
+  transpose-free alternatives cost H x the memory or H x the attention FLOPs).
+* Per-ray work out of the per-sample path: each block's injection ``psi(enc)`` is split into its
+  position part (per sample, ``[R*S, P] @ [P, W]``) and its direction part (per ray, ``[R, W]``,
+  broadcast over samples), instead of expanding the direction encoding to every sample and
+  concatenating.
+* Reductions as matmuls: the mean pool over valid samples is ``c [R, 1, S] @ normed [R, S, W]``
+  and the paper renderer's depth weights (mean over heads and valid queries of the last attention)
+  are ``c / H [R, 1, 1, S] @ attn [R, H, S, S]`` summed over heads.
+* The residual streams are 2-D ``[R*S, W]``, so every linear layer exports as a Gemm with its bias
+  fused (on 3-D ``[R, S, W]`` the exporter writes MatMul + Add, which ONNX Runtime 1.32 left
+  unfused here).
+
+Fused ``com.microsoft`` contrib operators (``contrib=True``, ``export.ort_contrib``): every residual
+Add + LayerNormalization becomes ``SkipLayerNormalization`` (the pending bias of the preceding
+linear layer as its bias), every MLP's first layer MatMul + ``BiasGelu``, and every ray attention
+whose weights are not needed ``MultiHeadAttention`` (q/k/v as three [W, W] matmuls, the packed
+bias as the op's bias, ``key_padding_mask`` with ``mask_filter_value = MASK_FILL``: the same
+uniform rows for rays with no valid sample). The paper renderer's last ray block keeps the
+explicit attention (its weights are the depth weights; MultiHeadAttention does not return them).
+Checked: loads in onnxruntime 1.32 CPU, <= 3e-7 from torch. Without ``contrib``, ONNX Runtime's own
+optimiser fuses none of these in this layout (after ``ORT_ENABLE_ALL``: no SkipLayerNormalization,
+no BiasGelu; the reference graph gets 1 and 2). Which of the two is faster is a measurement for a
+quiet machine (benchmarks/renderer_profile.py).
+
+Graph sizes (random tiny / tiny-rgb models, opset 20, nodes as exported -> after ONNX Runtime's
+``ORT_ENABLE_ALL`` optimisations; counts, not times): reference 217 -> 206 / 249 -> 239 with 5
+``Where`` and 14 / 16 ``Transpose`` left; fast 186 -> 179 / 210 -> 204 with no ``Where`` and 2
+``Transpose`` (the head merges of the two ray blocks); fast-contrib 177 -> 171 / 196 -> 192 with 1 /
+0 ``Transpose``.
+
+``export_fast_renderer`` writes the graph with ``export_graph`` (same exporter, axis names, IR
+version and checks); ``export_model(..., renderer="fast" | "fast-contrib")`` /
+``iris-export --renderer ...`` ship it, validated against the torch reference ``RendererGraph``
+like the reference graph and recorded as ``export.renderer_graph`` in the manifest. The default
+stays "reference" until the graphs are timed on a quiet machine.
+"""
+from __future__ import annotations
+
+import collections
+from pathlib import Path
+
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+from iris_train.layers import MASK_FILL, sinusoidal_encoding
+from iris_train.model import SAMPLERS as MODEL_SAMPLERS
+from iris_train.model import IrisModel, sampler_for
+from iris_train.ray_renderer import BLEND_EPS
+
+from .errors import ExportArgumentError
+
+#: Renderer graph kinds of ``export_model(..., renderer=...)``: "reference" is ``RendererGraph``
+#: (the default until the fast graphs are measured on a quiet machine), "fast" this module's graph
+#: in standard ONNX ops, "fast-contrib" the same with ONNX Runtime's com.microsoft fused ops.
+RENDERER_KINDS = ("reference", "fast", "fast-contrib")
+SAMPLERS = ("auto", *MODEL_SAMPLERS)
+
+
+def _tent_weights(grid: torch.Tensor, h: int, w: int) -> torch.Tensor:
+    """Dense bilinear weights ``[V, N, h*w]`` of ``grid [V, N, 2]`` (align_corners=False,
+    border-clamped): the weight matrix of ``iris_train.geometry.sample_bilinear_dense``, without
+    the product with the maps (so that more columns can be appended to it)."""
+    gx = (((grid[..., 0] + 1.0) * w - 1.0) / 2.0).clamp(0.0, w - 1.0)
+    gy = (((grid[..., 1] + 1.0) * h - 1.0) / 2.0).clamp(0.0, h - 1.0)
+    xs = torch.arange(w, dtype=grid.dtype, device=grid.device)
+    ys = torch.arange(h, dtype=grid.dtype, device=grid.device)
+    wx = (1.0 - (gx[..., None] - xs).abs()).clamp_min(0.0)                         # [V, N, w]
+    wy = (1.0 - (gy[..., None] - ys).abs()).clamp_min(0.0)                         # [V, N, h]
+    return (wy[..., :, None] * wx[..., None, :]).reshape(grid.shape[0], grid.shape[1], h * w)
+
+
+class FastRendererGraph(nn.Module):
+    """The renderer graph of ``RendererGraph(model, sampler)``, rewritten for ONNX Runtime's CPU
+    kernels (module docstring). Same inputs, outputs and values; export only (and its torch twin
+    in tests).
+
+    The model's modules (norms, MLPs, projections, heads) are used as they are; the weights this
+    layout needs in another form (u/k/v slot rows, per-head q/k/v, folded scales and biases, the
+    split injection) are derived from the model's parameters here, at construction, as
+    non-persistent buffers, so that they are initializers of the exported graph rather than ops
+    on weights (the exporter folds no constant above a small size). Build the wrapper from the
+    model as it is to be exported (``export_fast_renderer`` does).
+    """
+
+    def __init__(self, model: IrisModel, sampler: str = "auto", contrib: bool = False):
+        super().__init__()
+        if sampler not in SAMPLERS:
+            raise ExportArgumentError(f"sampler: expected one of {SAMPLERS}, got {sampler!r}")
+        self.model = model
+        self.sampler = sampler_for(*model.cfg.feature_grid) if sampler == "auto" else sampler
+        self.contrib = bool(contrib)
+        if self.contrib:
+            from . import ort_contrib
+            self._ops = ort_contrib
+            #: Read by ``export.graphs.export_graph`` (the contrib ops' ONNX translations).
+            self.custom_translation_table = ort_contrib.translation_table()
+        with torch.no_grad():
+            self._derive()
+
+    # -- derived weights ---------------------------------------------------------------------
+    def _keep(self, name: str, tensor: torch.Tensor) -> None:
+        self.register_buffer(name, tensor.detach().clone().contiguous(), persistent=False)
+
+    def _derive(self) -> None:
+        cfg, field = self.model.cfg, self.model.field
+        W = cfg.field_width
+        # Slots of the field maps: u, then each view block's keys and values. Each slot's matmul
+        # B_slot = [maps_slot ; rows^T]: rows [W, 4 (+ 3)] multiply the cues (and colours); with
+        # explicit colour the constant of rgb_to_maps(colours - 0.5) is added to the maps.
+        self.slots = [slice(0, W)]
+        ref = field.proj.weight
+        cue_rows = [torch.zeros(W, 4, dtype=ref.dtype, device=ref.device)]
+        for i, block in enumerate(field.view_transformer.blocks):
+            base = W * (1 + 2 * i)
+            for j in range(2):                                                       # k, v
+                self.slots.append(slice(base + j * W, base + (j + 1) * W))
+                cue_rows.append(block.cue_to_kv.weight[j * W:(j + 1) * W])
+        for i, (ch, cue) in enumerate(zip(self.slots, cue_rows)):
+            rows, const = cue, None
+            if field.rgb_to_maps is not None:
+                wc = field.rgb_to_maps.weight[ch]                                     # [W, 3]
+                rows = torch.cat([cue, wc], dim=-1)
+                const = field.rgb_to_maps.bias[ch] - 0.5 * wc.sum(-1)                 # [W]
+                self._keep(f"slot{i}_const", const)
+            self._keep(f"slot{i}_rows", rows)
+        # View blocks: the attention scale folded into the query projection.
+        for i, block in enumerate(field.view_transformer.blocks):
+            scale = (W // block.heads) ** -0.5
+            self._keep(f"view{i}_wq", block.to_q.weight * scale)
+            self._keep(f"view{i}_bq", block.to_q.bias * scale)
+        # Ray blocks: per-head q/k/v [H, W, Dh] (scale in q; the key bias dropped: it adds q . b_k
+        # to every logit of a row; the value bias folded into the output projection's bias: the
+        # rows of the attention sum to one).
+        rt = self.model.renderer.ray_transformer
+        P = 3 * (1 + 2 * rt.pos_freqs)
+        for i, (inject, block) in enumerate(zip(rt.inject, rt.blocks)):
+            H = block.heads
+            Dh = W // H
+            scale = Dh ** -0.5
+            wq, wk, wv = block.qkv.weight.split(W)
+            bq, _, bv = block.qkv.bias.split(W)
+
+            def per_head(weight, H=H, Dh=Dh):          # [W_out, W_in] -> [H, W_in, Dh]
+                return weight.reshape(H, Dh, W).transpose(1, 2)
+
+            self._keep(f"ray{i}_wq", per_head(wq * scale))
+            self._keep(f"ray{i}_bq", (bq * scale).reshape(H, 1, Dh))
+            self._keep(f"ray{i}_wk", per_head(wk))
+            self._keep(f"ray{i}_wv", per_head(wv))
+            self._keep(f"ray{i}_bproj", block.proj.bias + block.proj.weight @ bv)
+            if self.contrib:                           # MultiHeadAttention takes [W, W] q/k/v
+                for name, weight in zip("qkv", (wq, wk, wv)):
+                    self._keep(f"ray{i}_w{name}_full", weight)
+            # psi^(l) split into its per-sample (position) and per-ray (direction) parts.
+            self._keep(f"inject{i}_wpos", inject.weight[:, :P])
+            self._keep(f"inject{i}_wdir", inject.weight[:, P:])
+
+    # -- the latent field, view-major --------------------------------------------------------
+    def _sample_slots(self, field_maps, grid, cues, colours):
+        """Every slot's ``[V, N, W]``: sampled maps + cue term (+ colour term)."""
+        V, C, h, w = field_maps.shape
+        N = grid.shape[1] * grid.shape[2]
+        extras = [cues.reshape(V, N, 4)]
+        if colours is not None:
+            extras.append(colours.reshape(V, N, 3))
+        consts = [getattr(self, f"slot{i}_const", None) for i in range(len(self.slots))]
+        rows = [getattr(self, f"slot{i}_rows") for i in range(len(self.slots))]
+        out = []
+        if self.sampler == "dense":
+            A = torch.cat([_tent_weights(grid.reshape(V, N, 2), h, w), *extras], dim=-1)
+            maps = field_maps.reshape(V, C, h * w)
+            for ch, r, const in zip(self.slots, rows, consts):
+                m = maps[:, ch]                                                       # [V, W, hw]
+                if const is not None:
+                    m = m + const[:, None]
+                Bt = torch.cat([m, r.expand(V, -1, -1)], dim=-1)                      # [V, W, K]
+                out.append(A @ Bt.transpose(1, 2))                                   # [V, N, W]
+            return out
+        # Large feature grids: ONNX GridSample (the model's sampler), then the extras' matmul.
+        sampled = MODEL_SAMPLERS[self.sampler](field_maps, grid).reshape(V, N, C)
+        X = torch.cat(extras, dim=-1)
+        for ch, r, const in zip(self.slots, rows, consts):
+            s = sampled[..., ch] + X @ r.t()
+            out.append(s if const is None else s + const)
+        return out
+
+    # -- residual stream helpers (plain ops, or the contrib ops with ``contrib``) ----------------
+    def _linear(self, x, linear: nn.Linear, weight=None, bias=None):
+        """``linear(x)`` as ``(x W^T, b)`` with ``contrib`` (the bias goes into the next
+        SkipLayerNormalization), else ``(linear(x), None)``."""
+        weight = linear.weight if weight is None else weight
+        bias = linear.bias if bias is None else bias
+        if self.contrib:
+            return F.linear(x, weight), bias
+        return F.linear(x, weight, bias), None
+
+    def _mlp(self, mlp: nn.Sequential, x):
+        """``mlp(x)`` (Linear, GELU, Linear) as ``(delta, bias)`` like ``_linear``."""
+        first, _, second = mlp
+        if self.contrib:
+            return self._linear(self._ops.bias_gelu(F.linear(x, first.weight), first.bias), second)
+        return mlp(x), None
+
+    def _add_norm(self, x, delta, bias, norm: nn.LayerNorm):
+        """Residual update and the next LayerNorm: ``s = x + delta (+ bias)`` ->
+        ``(norm(s), s)``."""
+        if self.contrib:
+            return self._ops.skip_layer_norm(x, delta, norm.weight, norm.bias, bias, norm.eps)
+        s = x + delta if bias is None else x + delta + bias
+        return norm(s), s
+
+    # -- the view transformer ----------------------------------------------------------------
+    def _field(self, slots, bias, any_view, next_norm: nn.LayerNorm, next_delta):
+        """View transformer on view-major slots -> ``(next_norm(f + next_delta), f + next_delta)``
+        with the point features ``f [N, W]`` (point-major)."""
+        cfg = self.model.cfg
+        W, H = cfg.field_width, cfg.field_heads
+        Dh = W // H
+        V, N, _ = slots[0].shape
+        blocks = self.model.field.view_transformer.blocks
+        # Masked max-pool over views; 0 for a point seen by no view (layers.masked_max).
+        q = (slots[0] + bias[..., None]).amax(0) * any_view[:, None]                   # [N, W]
+        normed = blocks[0].norm_q(q)
+        for i, block in enumerate(blocks):
+            k, v = slots[1 + 2 * i], slots[2 + 2 * i]
+            qh = F.linear(normed, getattr(self, f"view{i}_wq"), getattr(self, f"view{i}_bq"))
+            logits = (k * qh).reshape(V, N, H, Dh).sum(-1) + bias[..., None]           # [V, N, H]
+            e = torch.exp(logits - logits.amax(0, keepdim=True))
+            # Normaliser times any_view: all-zero weights for a point seen by no view.
+            weights = e * (any_view[:, None] / e.sum(0))                               # [V, N, H]
+            out = (weights[..., None] * v.reshape(V, N, H, Dh)).sum(0).reshape(N, W)
+            normed, q = self._add_norm(q, *self._linear(out, block.proj), block.norm_mlp)
+            delta, b = self._mlp(block.mlp, normed)
+            if i + 1 < len(blocks):
+                normed, q = self._add_norm(q, delta, b, blocks[i + 1].norm_q)
+        return self._add_norm(q, delta + next_delta, b, next_norm)
+
+    # -- the ray transformer ------------------------------------------------------------------
+    def _ray_attention(self, i: int, normed, R: int, S: int, key_bias, key_valid, keep_attn: bool):
+        """Masked self-attention of ray block ``i`` on ``normed [R*S, W]`` -> its output
+        ``[R*S, W]`` before the output projection, the attention ``[R, H, S, S]`` if
+        ``keep_attn`` (else None) and the output projection's bias to use with it."""
+        block = self.model.renderer.ray_transformer.blocks[i]
+        W = normed.shape[-1]
+        if self.contrib and not keep_attn:
+            q, k, v = (F.linear(normed, getattr(self, f"ray{i}_w{name}_full")).reshape(R, S, W)
+                       for name in "qkv")
+            out = self._ops.multi_head_attention(q, k, v, block.qkv.bias, key_valid, block.heads,
+                                                 MASK_FILL)
+            return out.reshape(R * S, W), None, block.proj.bias
+        y = normed.reshape(R, 1, S, W)                                              # [R, 1, S, W]
+        q = y @ getattr(self, f"ray{i}_wq") + getattr(self, f"ray{i}_bq")          # [R, H, S, Dh]
+        k = y @ getattr(self, f"ray{i}_wk")
+        v = y @ getattr(self, f"ray{i}_wv")
+        attn = torch.softmax(q @ k.transpose(-1, -2) + key_bias, dim=-1)            # [R, H, S, S]
+        out = (attn @ v).transpose(1, 2).reshape(R * S, W)           # heads merged: one Transpose
+        # The value bias is in the output projection's bias (the rows of attn sum to one).
+        return out, (attn if keep_attn else None), getattr(self, f"ray{i}_bproj")
+
+    def forward(self, field_maps: torch.Tensor, grid: torch.Tensor, cues: torch.Tensor,
+                mask: torch.Tensor, positions: torch.Tensor, directions: torch.Tensor,
+                colours: torch.Tensor | None = None):
+        cfg = self.model.cfg
+        if cfg.explicit_rgb and colours is None:
+            raise ExportArgumentError("colours: this model (explicit_rgb) renders from the "
+                                      "reference RGB sampled at the samples, [V', R, S, 3]")
+        if not cfg.explicit_rgb:
+            colours = None
+        V, R, S = mask.shape
+        N = R * S
+        W = cfg.field_width
+        m = mask.to(field_maps.dtype).reshape(V, N)                                    # [V, N]
+        bias = (1.0 - m) * MASK_FILL                                                   # 0 / -1e30
+        any_view = m.amax(0)                                                           # [N] 0 / 1
+
+        renderer = self.model.renderer
+        rt = renderer.ray_transformer
+        sample_mask = any_view.reshape(R, S)
+        key_bias = ((1.0 - sample_mask) * MASK_FILL)[:, None, None, :]               # [R, 1, 1, S]
+        key_valid = sample_mask.to(torch.int32) if self.contrib else None
+        unit_dir = directions / directions.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        e_pos = sinusoidal_encoding(positions.reshape(N, 3), rt.pos_freqs)             # [N, P]
+        e_dir = sinusoidal_encoding(unit_dir, rt.dir_freqs)                            # [R, D]
+
+        def injection(i):          # psi^(i)(enc) [N, W]: per-sample position + per-ray direction
+            pos = F.linear(e_pos, getattr(self, f"inject{i}_wpos")).reshape(R, S, W)
+            per_ray = F.linear(e_dir, getattr(self, f"inject{i}_wdir"), rt.inject[i].bias)
+            return (pos + per_ray[:, None]).reshape(N, W)
+
+        # The field's last residual update, the first injection and the first ray norm in one.
+        normed, x = self._field(self._sample_slots(field_maps, grid, cues, colours), bias,
+                                any_view, rt.blocks[0].norm1, injection(0))
+        attn = None
+        last = len(rt.blocks) - 1
+        for i, block in enumerate(rt.blocks):
+            out, attn, bproj = self._ray_attention(i, normed, R, S, key_bias, key_valid,
+                                                   keep_attn=i == last and not cfg.explicit_rgb)
+            normed, x = self._add_norm(x, *self._linear(out, block.proj, bias=bproj), block.norm2)
+            delta, b = self._mlp(block.mlp, normed)
+            if i < last:
+                normed, x = self._add_norm(x, delta + injection(i + 1), b, rt.blocks[i + 1].norm1)
+        normed, _ = self._add_norm(x, delta, b, renderer.norm)                         # [N, W]
+
+        n_valid = sample_mask.sum(-1, keepdim=True)                                    # [R, 1]
+        pool = sample_mask / n_valid.clamp_min(1.0)                                    # [R, S]
+        h = (pool[:, None, :] @ normed.reshape(R, S, W))[:, 0]                         # [R, W]
+        if cfg.explicit_rgb:
+            logits = renderer.sample_logit(normed).reshape(R, S) + key_bias[:, 0, 0]   # [R, S]
+            w = torch.softmax(logits, dim=-1) * sample_mask
+            mv = m.reshape(V, R, S, 1)
+            mean_colour = (colours * mv).sum(0) / mv.sum(0).clamp_min(1.0)             # [R, S, 3]
+            blend = (w[:, None, :] @ mean_colour)[:, 0].clamp(BLEND_EPS, 1 - BLEND_EPS)
+            rgb = torch.sigmoid(torch.log(blend) - torch.log1p(-blend) + renderer.rgb_head(h))
+            return rgb, w
+        rgb = torch.sigmoid(renderer.rgb_head(h))
+        H = rt.blocks[last].heads
+        weights = ((pool / H)[:, None, None, :] @ attn).sum(1)[:, 0]                   # [R, S]
+        return rgb, weights
+
+
+def renderer_wrapper(model: IrisModel, renderer: str = "reference") -> nn.Module:
+    """The renderer export wrapper of kind ``renderer`` (``RENDERER_KINDS``)."""
+    if renderer not in RENDERER_KINDS:
+        raise ExportArgumentError(f"renderer: expected one of {list(RENDERER_KINDS)}, got "
+                                  f"{renderer!r}")
+    if renderer in ("fast", "fast-contrib"):
+        return FastRendererGraph(model, contrib=renderer == "fast-contrib")
+    from .graphs import RendererGraph
+    return RendererGraph(model)
+
+
+def export_fast_renderer(model: IrisModel, path: str | Path, opset: int | None = None, *,
+                         contrib: bool = False):
+    """Export ``FastRendererGraph(model, contrib=contrib)`` to ``path`` with
+    ``export.graphs.export_graph`` (same exporter, axis names, IR version and checks as the
+    reference renderer) -> ``GraphFile``."""
+    from .graphs import DEFAULT_OPSET, export_graph
+    return export_graph(model, "renderer", path, DEFAULT_OPSET if opset is None else opset,
+                        wrapper=FastRendererGraph(model, contrib=contrib))
+
+
+def op_histogram(path: str | Path, optimized: bool = False) -> collections.Counter:
+    """Op-type counts of the ONNX graph at ``path``; ``optimized``: of the graph ONNX Runtime runs
+    after its ``ORT_ENABLE_ALL`` optimisations (what ``IrisRuntime`` loads), written to a temporary
+    file and read back (contrib ops counted as ``com.microsoft.<op>``)."""
+    import tempfile
+
+    import onnx
+
+    if optimized:
+        import onnxruntime as ort
+        with tempfile.TemporaryDirectory() as tmp:
+            opts = ort.SessionOptions()
+            opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+            opts.optimized_model_filepath = str(Path(tmp) / "optimized.onnx")
+            opts.intra_op_num_threads = 1
+            opts.log_severity_level = 3
+            ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+            proto = onnx.load_model(opts.optimized_model_filepath)
+    else:
+        proto = onnx.load_model(str(path))
+    return collections.Counter((f"{n.domain}.{n.op_type}" if n.domain not in ("", "ai.onnx")
+                                else n.op_type) for n in proto.graph.node)
+
+
+__all__ = ["FastRendererGraph", "RENDERER_KINDS", "renderer_wrapper", "export_fast_renderer",
+           "op_histogram"]

@@ -1,0 +1,306 @@
+"""The alternative renderer graph (``export.fast_renderer.FastRendererGraph``): same function as the
+torch renderer, laid out for ONNX Runtime's CPU kernels.
+
+* torch parity with ``IrisModel.render_samples`` (``RendererGraph``) within 1e-5 on rgb and weights,
+  for both renderer kinds (``tiny``: the paper's renderer, weights from the last ray attention;
+  ``tiny-rgb``: explicit colour, weights = blend weights), with and without the ``com.microsoft``
+  contrib ops, on: random probes whose mask has points seen by no view and rays with no valid
+  sample, a call where everything is masked, a single view, per-point top-k masks, a fed subset of
+  the views, real scene geometry (``Scene.project_samples``, against ``render_rays``), the
+  ``grid_sample`` sampler, and configs with other depths / widths / heads (non-power-of-two
+  attention scale);
+* the latent field itself (before the ray transformer) equals ``IrisModel.field_from_samples``,
+  points seen by no view included (the masked max-pool of nothing is 0, their attention is 0);
+* ONNX: each kind exported once (module-scoped; ~15 s each on an idle machine), ONNX Runtime vs
+  torch within 1e-5 on several (V', R, S) through the dynamic axes, I/O exactly the spec's, no
+  ``Where`` node and, after ONNX Runtime's optimisations, no Transpose but the ray attentions'
+  head merges;
+* the export option: ``export_model(..., renderer="fast")`` records it in the manifest and
+  ``IrisRuntime`` renders that model like torch (``slow``: a full export with the encoder),
+  unknown kinds are refused, ``iris-export --renderer`` parses.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+onnx = pytest.importorskip("onnx")
+ort = pytest.importorskip("onnxruntime")
+
+from iris_runtime import quality as Q                                       # noqa: E402
+from iris_train.config import ModelConfig                                   # noqa: E402
+from iris_train.model import build_model                                    # noqa: E402
+
+from export import io_spec                                                  # noqa: E402
+from export.errors import ExportArgumentError                               # noqa: E402
+from export.fast_renderer import (FastRendererGraph, export_fast_renderer,  # noqa: E402
+                                  op_histogram, renderer_wrapper)
+from export.graphs import RendererGraph                                     # noqa: E402
+from export.validate import (random_renderer_inputs, renderer_inputs,      # noqa: E402
+                             scene_images, scene_rays)
+
+from .conftest import random_model                                          # noqa: E402
+
+pytestmark = pytest.mark.torch
+
+TOL = 1e-5
+PRESETS = ("tiny", "tiny-rgb")
+SHAPES = [(1, 1, 1), (1, 9, 17), (3, 9, 64), (8, 5, 23)]        # (V', R, S)
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _one_thread():
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)                                # the machine is shared
+    yield
+    torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="module", params=PRESETS)
+def model(request):
+    return random_model(request.param)
+
+
+def _errors(a, b) -> list[float]:
+    return [float((torch.as_tensor(x) - torch.as_tensor(y)).abs().max()) for x, y in zip(a, b)]
+
+
+@torch.no_grad()
+def _check(model, inputs: dict, contrib: bool, reference=None):
+    """FastRendererGraph vs the reference (default ``RendererGraph``) within TOL; both finite."""
+    args = tuple(inputs.values())
+    want = (reference or RendererGraph(model))(*args)
+    got = FastRendererGraph(model, contrib=contrib)(*args)
+    assert all(torch.isfinite(g).all() for g in got)
+    assert [tuple(g.shape) for g in got] == [tuple(w.shape) for w in want]
+    errors = _errors(got, want)
+    assert max(errors) <= TOL, errors
+    return got
+
+
+# -- torch parity ---------------------------------------------------------------------------------
+@pytest.mark.parametrize("contrib", [False, True])
+@pytest.mark.parametrize("V,R,S", SHAPES)
+def test_random_probes_match_torch(model, contrib, V, R, S):
+    # random_renderer_inputs masks sample 0 of every ray in every view (a point seen by no view)
+    # and, for R > 1, every sample of the last ray (a ray with no valid sample).
+    inputs = random_renderer_inputs(model, V, R, S, torch.Generator().manual_seed(V * 100 + R + S))
+    _, weights = _check(model, inputs, contrib)
+    assert torch.equal(weights[:, 0], torch.zeros(R))        # the point seen by no view
+    seen = inputs["mask"].any(0).any(-1)                     # rays with a valid sample
+    assert torch.equal(weights[~seen], torch.zeros_like(weights[~seen]))    # exactly zero
+    assert torch.allclose(weights[seen].sum(-1), torch.ones(int(seen.sum())), atol=1e-5)
+
+
+@pytest.mark.parametrize("contrib", [False, True])
+def test_everything_masked(model, contrib):
+    """No valid (view, sample) at all: rgb = head(0) (+ the blend of nothing), weights 0."""
+    inputs = random_renderer_inputs(model, 2, 4, 6, torch.Generator().manual_seed(3))
+    inputs["mask"][:] = False
+    rgb, weights = _check(model, inputs, contrib)
+    assert torch.equal(weights, torch.zeros_like(weights))
+    assert torch.allclose(rgb, rgb[:1].expand_as(rgb))      # every ray the same colour
+
+
+@pytest.mark.parametrize("contrib", [False, True])
+@pytest.mark.parametrize("k", [1, 2])
+def test_top_k_masks_and_view_subsets(model, contrib, k):
+    """Per-point top-k (the runtime's ``quality.top_k_mask`` on the cue's t.s) and a call fed a
+    subset of the views (``top_k_by="ray"``) give the reference's values."""
+    inputs = random_renderer_inputs(model, 5, 7, 31, torch.Generator().manual_seed(k))
+    score = inputs["cues"][..., 3].numpy()
+    inputs["mask"] = torch.from_numpy(Q.top_k_mask(inputs["mask"].numpy(), score, k))
+    _check(model, inputs, contrib)
+    views = [4, 1, 2][:k + 1]                                   # a subset, in another order
+    sub = {name: (t[views] if t.ndim >= 3 and name != "positions" else t)
+           for name, t in inputs.items()}
+    _check(model, sub, contrib)
+
+
+@pytest.mark.parametrize("contrib", [False, True])
+def test_scene_geometry_matches_render_rays(model, contrib):
+    """Samples projected by ``Scene.project_samples`` (rays backwards included: samples behind
+    every camera) against ``IrisModel.render_rays`` itself."""
+    g = torch.Generator().manual_seed(5)
+    cfg = model.cfg
+    with torch.no_grad():
+        scene = model.encode(scene_images(3, cfg.image_height, cfg.image_width, g))
+        origins, directions, depths = scene_rays(model, scene, 24, g)
+        want = model.render_rays(scene, origins, directions, depths)
+        inputs = renderer_inputs(scene, origins, directions, depths)
+        got = FastRendererGraph(model, contrib=contrib)(*inputs.values())
+    errors = _errors(got, want)
+    assert max(errors) <= TOL, errors
+
+
+def test_grid_sample_sampler(model):
+    inputs = random_renderer_inputs(model, 3, 5, 9, torch.Generator().manual_seed(6))
+    with torch.no_grad():
+        want = RendererGraph(model, sampler="grid_sample")(*inputs.values())
+        got = FastRendererGraph(model, sampler="grid_sample")(*inputs.values())
+    assert max(_errors(got, want)) <= TOL
+
+
+@pytest.mark.parametrize("explicit_rgb", [False, True])
+@pytest.mark.parametrize("shape", [
+    {"field_width": 48, "field_heads": 4, "view_blocks": 2, "ray_blocks": 3},
+    {"field_width": 32, "field_heads": 2, "view_blocks": 1, "ray_blocks": 1}])
+def test_other_configs(shape, explicit_rgb):
+    """More view/ray blocks, one ray block, Dh = 12 (attention scale not a power of two)."""
+    torch.manual_seed(1)
+    model = build_model(ModelConfig(encoder_width=32, encoder_heads=2, encoder_pairs=1,
+                                    explicit_rgb=explicit_rgb, **shape)).eval()
+    if explicit_rgb:
+        with torch.no_grad():
+            for p in model.renderer.rgb_head[-1].parameters():
+                p.normal_(0.0, 0.2)
+    inputs = random_renderer_inputs(model, 3, 6, 19, torch.Generator().manual_seed(7))
+    for contrib in (False, True):
+        _check(model, inputs, contrib)
+
+
+@torch.no_grad()
+def test_field_semantics_for_points_seen_by_no_view(model):
+    """The field's point features equal ``IrisModel.field_from_samples`` for every point, those
+    seen by no view included (max-pool of nothing = 0, zero view attention)."""
+    inputs = random_renderer_inputs(model, 4, 6, 11, torch.Generator().manual_seed(8))
+    V, R, S = inputs["mask"].shape
+    want, _ = model.field_from_samples(inputs["field_maps"], inputs["grid"], inputs["cues"],
+                                       inputs["mask"], inputs.get("colours"))
+    fast = FastRendererGraph(model)
+    m = inputs["mask"].float().reshape(V, R * S)
+    slots = fast._sample_slots(inputs["field_maps"], inputs["grid"], inputs["cues"],
+                               inputs.get("colours"))
+    _, got = fast._field(slots, (1.0 - m) * -1e30, m.amax(0),
+                         model.renderer.ray_transformer.blocks[0].norm1, torch.zeros(1))
+    unseen = ~inputs["mask"].any(0).reshape(-1)
+    assert unseen.sum() >= R                                   # sample 0 of every ray at least
+    assert (got - want.reshape(R * S, -1)).abs().max() <= TOL
+
+
+def test_wrapper_arguments(model):
+    with pytest.raises(ExportArgumentError, match="sampler"):
+        FastRendererGraph(model, sampler="nearest")
+    with pytest.raises(ExportArgumentError, match="renderer"):
+        renderer_wrapper(model, "fastest")
+    assert isinstance(renderer_wrapper(model, "fast"), FastRendererGraph)
+    assert renderer_wrapper(model, "fast-contrib").contrib
+    assert isinstance(renderer_wrapper(model, "reference"), RendererGraph)
+    if model.cfg.explicit_rgb:
+        inputs = random_renderer_inputs(model, 2, 3, 4, torch.Generator().manual_seed(0))
+        inputs.pop("colours")
+        with pytest.raises(ExportArgumentError, match="colours"):
+            FastRendererGraph(model)(*inputs.values())
+
+
+# -- ONNX export + ONNX Runtime -------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def exported(tmp_path_factory, model):
+    """{kind: path} of the fast graphs of ``model`` ("fast", "fast-contrib")."""
+    out = tmp_path_factory.mktemp("fast_renderer")
+    name = "rgb" if model.cfg.explicit_rgb else "paper"
+    return {kind: export_fast_renderer(model, out / f"{name}-{kind}.onnx", contrib=contrib).path
+            for kind, contrib in (("fast", False), ("fast-contrib", True))}
+
+
+def _session(path):
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = 1
+    opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL   # as IrisRuntime
+    return ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+
+
+@pytest.mark.parametrize("kind", ["fast", "fast-contrib"])
+def test_onnx_runtime_matches_torch(model, exported, kind):
+    sess = _session(exported[kind])
+    spec = io_spec.spec_for("renderer", model.cfg.explicit_rgb)
+    assert [i.name for i in sess.get_inputs()] == list(spec["inputs"])
+    assert [o.name for o in sess.get_outputs()] == list(spec["outputs"])
+    for i in sess.get_inputs():
+        assert i.type == ("tensor(bool)" if spec["inputs"][i.name]["dtype"] == "bool"
+                          else "tensor(float)")
+        assert len(i.shape) == len(spec["inputs"][i.name]["shape"])
+    ref = RendererGraph(model)
+    g = torch.Generator().manual_seed(11)
+    for V, R, S in SHAPES + [(2, 33, 64)]:
+        inputs = random_renderer_inputs(model, V, R, S, g)
+        with torch.no_grad():
+            want = ref(*inputs.values())
+        got = sess.run(None, {k: v.numpy() for k, v in inputs.items()})
+        assert all(np.isfinite(x).all() for x in got)
+        errors = _errors(got, want)
+        assert max(errors) <= TOL, (V, R, S, errors)
+    # The runtime's empty-ray probe (every size 1, everything masked).
+    feed = {k: v.numpy() for k, v in random_renderer_inputs(model, 1, 1, 1, g).items()}
+    feed["mask"][:] = False
+    with torch.no_grad():
+        want = ref(*(torch.from_numpy(v) for v in feed.values()))
+    assert max(_errors(sess.run(None, feed), want)) <= TOL
+
+
+def test_onnx_graph_has_no_where_and_no_per_sample_transpose(model, exported):
+    """No ``Where``; after ONNX Runtime's optimisations (Transpose + MatMul -> FusedMatMul) the
+    only Transposes left are the head merges of the ray attentions not done by
+    MultiHeadAttention (the reference graph: 14 / 16)."""
+    blocks = model.cfg.ray_blocks
+    manual = {"fast": blocks, "fast-contrib": 0 if model.cfg.explicit_rgb else 1}
+    for kind in ("fast", "fast-contrib"):
+        raw, opt = op_histogram(exported[kind]), op_histogram(exported[kind], optimized=True)
+        assert raw["Where"] == 0 and opt["Where"] == 0
+        assert opt["Transpose"] == manual[kind], opt
+        onnx.checker.check_model(onnx.load_model(str(exported[kind])), full_check=True)
+    mha = op_histogram(exported["fast-contrib"])["com.microsoft.MultiHeadAttention"]
+    assert mha == blocks - manual["fast-contrib"]
+
+
+# -- export option ---------------------------------------------------------------------------------
+def test_export_model_refuses_unknown_renderer(tmp_path):
+    from export.pipeline import export_model
+    with pytest.raises(ExportArgumentError, match="renderer"):
+        export_model(random_model("tiny"), tmp_path / "out", renderer="fastest", progress=False)
+    assert not (tmp_path / "out").exists()
+
+
+def test_cli_renderer_option():
+    from export.cli import build_parser
+    from export.fast_renderer import RENDERER_KINDS
+    parser = build_parser()
+    choices = next(a.choices for a in parser._actions if a.dest == "renderer")
+    assert tuple(choices) == RENDERER_KINDS
+    assert parser.parse_args(["c.pt", "out"]).renderer == "reference"
+    assert parser.parse_args(["c.pt", "out", "--renderer", "fast"]).renderer == "fast"
+    with pytest.raises(SystemExit):
+        parser.parse_args(["c.pt", "out", "--renderer", "fastest"])
+
+
+@pytest.mark.slow
+def test_export_model_with_fast_renderer_runs_in_the_runtime(tmp_path):
+    """``export_model(..., renderer="fast")``: validated, recorded in the manifest, and
+    ``IrisRuntime`` renders it (culling, packed calls, empty rays) like torch."""
+    from export.manifest import read_manifest
+    from export.pipeline import export_model
+    from iris_runtime import IrisRuntime
+
+    model = random_model("tiny-rgb")
+    out = export_model(model, tmp_path / "fast", renderer="fast", quick=True, progress=False,
+                       threads=1)
+    m = read_manifest(out)
+    assert m["export"]["renderer_graph"] == "fast"
+    assert op_histogram(out / "renderer.onnx")["Where"] == 0
+    rt = IrisRuntime(out, threads=1)
+    H, W = rt.image_size
+    images = [np.asarray(x.permute(1, 2, 0).numpy() * 255, dtype=np.uint8)
+              for x in scene_images(3, H, W, torch.Generator().manual_seed(2))]
+    scene = rt.encode(images)
+    pose = np.eye(4)
+    c, s = np.cos(0.6), np.sin(0.6)                        # sideways: part of the view is empty
+    pose[:3, :3] = [[c, 0, s], [0, 1, 0], [-s, 0, c]]
+    pose[:3, 3] = [0.25, 0.0, -0.05]
+    res = rt.render(scene, pose, height=12, width=16, depth=True)
+    x = np.stack(images).astype(np.float32).transpose(0, 3, 1, 2) / np.float32(255.0)
+    with torch.no_grad():
+        tscene = model.encode(torch.from_numpy(x))
+        rgb, depth = model.render(tscene, torch.tensor(pose, dtype=torch.float32)[None], 12, 16)
+    assert np.abs(res.image_float - rgb[0].numpy()).max() <= 1e-4
+    assert np.abs(res.depth - depth[0].numpy()).max() <= 1e-4
