@@ -66,7 +66,7 @@ def _publish(tmp: Path, out_dir: Path, force: bool) -> None:
 def export_model(model_or_ckpt: IrisModel | str | os.PathLike, out_dir: str | os.PathLike, *,
                  opset: int = DEFAULT_OPSET, quantize: str | None = None, force: bool = False,
                  progress: bool = True, quick: bool = False, threads: int | None = None,
-                 renderer: str = "reference") -> Path:
+                 renderer: str = "fast") -> Path:
     """Export ``model_or_ckpt`` to ``out_dir/{encoder.onnx, renderer.onnx, iris.json}``.
 
     ``model_or_ckpt``: an ``IrisModel`` or a checkpoint path. ``opset``: ONNX opset (>= 18).
@@ -75,9 +75,10 @@ def export_model(model_or_ckpt: IrisModel | str | os.PathLike, out_dir: str | os
     to stderr. ``quick`` shrinks the validation probes (tests); ``threads`` sets the intra-op
     threads of ONNX Runtime and torch during validation (see ``export.validate.validate``).
     ``renderer``: which renderer graph to write (``export.fast_renderer.RENDERER_KINDS``):
-    "reference" (``RendererGraph``, the default), "fast" or "fast-contrib"
-    (``FastRendererGraph``: same I/O and values, laid out for ONNX Runtime's CPU kernels;
-    validated against the same torch reference; recorded as ``export.renderer_graph``).
+    "fast" (the default) or "fast-contrib" (``FastRendererGraph``: same I/O and values, laid
+    out for ONNX Runtime's CPU kernels) or "reference" (``RendererGraph``, the model's
+    ``render_samples`` traced as is); each validated against the same torch reference and
+    recorded as ``export.renderer_graph``. Frame times: docs/PERFORMANCE.md.
     Returns ``out_dir``.
 
     Raises ``OutputExistsError`` (``out_dir`` exists, no ``force``), ``CheckpointError``

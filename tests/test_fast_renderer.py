@@ -268,8 +268,8 @@ def test_cli_renderer_option():
     parser = build_parser()
     choices = next(a.choices for a in parser._actions if a.dest == "renderer")
     assert tuple(choices) == RENDERER_KINDS
-    assert parser.parse_args(["c.pt", "out"]).renderer == "reference"
-    assert parser.parse_args(["c.pt", "out", "--renderer", "fast"]).renderer == "fast"
+    assert parser.parse_args(["c.pt", "out"]).renderer == "fast"
+    assert parser.parse_args(["c.pt", "out", "--renderer", "reference"]).renderer == "reference"
     with pytest.raises(SystemExit):
         parser.parse_args(["c.pt", "out", "--renderer", "fastest"])
 
