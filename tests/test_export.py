@@ -90,7 +90,7 @@ def checkpoint(model, tmp_path_factory):
 
 def _copy_graphs_from(src_dir: Path):
     """An ``export_graph`` stand-in that copies already exported graphs (same weights)."""
-    def fake_export_graph(model, graph, path, opset=io_spec.DEFAULT_OPSET):
+    def fake_export_graph(model, graph, path, opset=io_spec.DEFAULT_OPSET, wrapper=None):
         src = Path(src_dir) / io_spec.GRAPHS[graph]["file"]
         shutil.copyfile(src, path)
         return GraphFile(graph, Path(path), len(onnx.load(str(src)).graph.node), 0.0)
