@@ -77,8 +77,9 @@ Graph sizes (random tiny / tiny-rgb models, opset 20, nodes as exported -> after
 ``export_fast_renderer`` writes the graph with ``export_graph`` (same exporter, axis names, IR
 version and checks); ``export_model(..., renderer="fast" | "fast-contrib")`` /
 ``iris-export --renderer ...`` ship it, validated against the torch reference ``RendererGraph``
-like the reference graph and recorded as ``export.renderer_graph`` in the manifest. The default
-stays "reference" until the graphs are timed on a quiet machine.
+like the reference graph and recorded as ``export.renderer_graph`` in the manifest. "fast" is the
+default: measured faster per frame than "reference" and than "fast-contrib"
+(docs/PERFORMANCE.md).
 """
 from __future__ import annotations
 
@@ -89,6 +90,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from iris_train.geometry import tent_weights
 from iris_train.layers import MASK_FILL, sinusoidal_encoding
 from iris_train.model import SAMPLERS as MODEL_SAMPLERS
 from iris_train.model import IrisModel, sampler_for
@@ -97,23 +99,10 @@ from iris_train.ray_renderer import BLEND_EPS
 from .errors import ExportArgumentError
 
 #: Renderer graph kinds of ``export_model(..., renderer=...)``: "reference" is ``RendererGraph``
-#: (the default until the fast graphs are measured on a quiet machine), "fast" this module's graph
+#: (the model's render_samples traced as is), "fast" (the default) this module's graph
 #: in standard ONNX ops, "fast-contrib" the same with ONNX Runtime's com.microsoft fused ops.
 RENDERER_KINDS = ("reference", "fast", "fast-contrib")
 SAMPLERS = ("auto", *MODEL_SAMPLERS)
-
-
-def _tent_weights(grid: torch.Tensor, h: int, w: int) -> torch.Tensor:
-    """Dense bilinear weights ``[V, N, h*w]`` of ``grid [V, N, 2]`` (align_corners=False,
-    border-clamped): the weight matrix of ``iris_train.geometry.sample_bilinear_dense``, without
-    the product with the maps (so that more columns can be appended to it)."""
-    gx = (((grid[..., 0] + 1.0) * w - 1.0) / 2.0).clamp(0.0, w - 1.0)
-    gy = (((grid[..., 1] + 1.0) * h - 1.0) / 2.0).clamp(0.0, h - 1.0)
-    xs = torch.arange(w, dtype=grid.dtype, device=grid.device)
-    ys = torch.arange(h, dtype=grid.dtype, device=grid.device)
-    wx = (1.0 - (gx[..., None] - xs).abs()).clamp_min(0.0)                         # [V, N, w]
-    wy = (1.0 - (gy[..., None] - ys).abs()).clamp_min(0.0)                         # [V, N, h]
-    return (wy[..., :, None] * wx[..., None, :]).reshape(grid.shape[0], grid.shape[1], h * w)
 
 
 class FastRendererGraph(nn.Module):
@@ -214,7 +203,7 @@ class FastRendererGraph(nn.Module):
         rows = [getattr(self, f"slot{i}_rows") for i in range(len(self.slots))]
         out = []
         if self.sampler == "dense":
-            A = torch.cat([_tent_weights(grid.reshape(V, N, 2), h, w), *extras], dim=-1)
+            A = torch.cat([tent_weights(grid.reshape(V, N, 2), h, w), *extras], dim=-1)
             maps = field_maps.reshape(V, C, h * w)
             for ch, r, const in zip(self.slots, rows, consts):
                 m = maps[:, ch]                                                       # [V, W, hw]

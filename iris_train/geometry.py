@@ -175,16 +175,23 @@ def sample_bilinear_dense(feature_maps: torch.Tensor, grid: torch.Tensor) -> tor
     """
     V, C, h, w = feature_maps.shape
     lead = grid.shape[1:-1]
-    g = grid.reshape(V, -1, 2)
-    gx = (((g[..., 0] + 1.0) * w - 1.0) / 2.0).clamp(0.0, w - 1.0)
-    gy = (((g[..., 1] + 1.0) * h - 1.0) / 2.0).clamp(0.0, h - 1.0)
-    xs = torch.arange(w, dtype=feature_maps.dtype, device=feature_maps.device)
-    ys = torch.arange(h, dtype=feature_maps.dtype, device=feature_maps.device)
-    wx = (1.0 - (gx[..., None] - xs).abs()).clamp_min(0.0)                         # [V, N, w]
-    wy = (1.0 - (gy[..., None] - ys).abs()).clamp_min(0.0)                         # [V, N, h]
-    dense = (wy[..., :, None] * wx[..., None, :]).reshape(V, -1, h * w)            # [V, N, h*w]
+    dense = tent_weights(grid.reshape(V, -1, 2).to(feature_maps.dtype), h, w)       # [V, N, h*w]
     out = dense @ feature_maps.reshape(V, C, h * w).transpose(1, 2)                # [V, N, C]
     return out.reshape((V,) + tuple(lead) + (C,))
+
+
+def tent_weights(grid: torch.Tensor, h: int, w: int) -> torch.Tensor:
+    """The dense bilinear weight matrix ``[V, N, h*w]`` of ``grid [V, N, 2]`` on an h x w map
+    (align_corners=False, border-clamped): per axis the tent max(0, 1 - |cell - g|), their
+    product per cell. ``sample_bilinear_dense`` multiplies it with the maps; the fast renderer
+    graph appends more columns to it first."""
+    gx = (((grid[..., 0] + 1.0) * w - 1.0) / 2.0).clamp(0.0, w - 1.0)
+    gy = (((grid[..., 1] + 1.0) * h - 1.0) / 2.0).clamp(0.0, h - 1.0)
+    xs = torch.arange(w, dtype=grid.dtype, device=grid.device)
+    ys = torch.arange(h, dtype=grid.dtype, device=grid.device)
+    wx = (1.0 - (gx[..., None] - xs).abs()).clamp_min(0.0)                         # [V, N, w]
+    wy = (1.0 - (gy[..., None] - ys).abs()).clamp_min(0.0)                         # [V, N, h]
+    return (wy[..., :, None] * wx[..., None, :]).reshape(grid.shape[0], grid.shape[1], h * w)
 
 
 def geometric_cue(points: torch.Tensor, target_centre: torch.Tensor, source_centres: torch.Tensor,

@@ -21,7 +21,6 @@ import numpy as np
 
 def cases(model_dir: str, threads: int = 1) -> dict[str, np.ndarray]:
     from iris_runtime import IrisRuntime
-    from iris_runtime.orbit import orbit_poses  # noqa: F401  (import check: part of the API)
     rt = IrisRuntime(model_dir, threads=threads)
     h, w = rt.image_size
     rng = np.random.default_rng(0)
