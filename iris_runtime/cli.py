@@ -49,6 +49,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .quality import QUALITY_PRESETS
+
 EXIT_ERROR = 2
 
 
@@ -134,10 +136,11 @@ def build_parser() -> argparse.ArgumentParser:
                      help="rays per renderer call (default: chosen from the number of views)")
     out.add_argument("--precision", choices=["float32", "int8"], default="float32",
                      help="renderer graph: float32, or int8 if exported with --quantize int8")
-    out.add_argument("--quality", choices=["exact", "balanced", "fast"], default="exact",
+    out.add_argument("--quality", choices=list(QUALITY_PRESETS), default="exact",
                      help="speed/error preset (measured in docs/PERFORMANCE.md): exact = the full "
                           "render; balanced = 32 samples, <= 8 views per ray; fast = 16 samples, "
-                          "2 views per ray, half resolution")
+                          "2 views per ray, half resolution; adaptive = quarter resolution, the "
+                          "12%% least trusted pixels rendered again exactly")
     out.add_argument("-q", "--quiet", action="store_true", help="print nothing but errors")
     return p
 

@@ -2,18 +2,23 @@
 Runtime; no torch).
 
     plan = MarchPlan.build(scene, world_from_cam, K, height, width, samples=..., ...)
-    result = march(plan, session, workers=1, progress=None)      # rgb [H*W, 3], depth [H*W]
+    result = march(plan, session, workers=1, progress=None)      # rgb [N, 3], depth [N]
 
-``MarchPlan`` holds what every block of pixels needs, computed once per render. The pixels are
-marched in blocks of ``plan.block_rays`` (``trace_block``): rays through the pixel centres
+``MarchPlan`` holds what every block of pixels needs, computed once per render. The pixels (all
+of the render, or the subset ``plan.pixel_index``: a coarse-to-fine render marches only the pixels
+it refines, see ``iris_runtime.adaptive``) are marched in blocks of ``plan.block_rays``
+(``trace_block``): rays through the pixel centres
 (``geometry.rays_from_pixels``: per-ray origins and directions), sample points ``x = o + z d`` at
-the bin-centre depths ``plan.z_bins``, their projection into every reference view
+the bin-centre depths ``plan.z_bins`` (or, with ``plan.sample_window``, each ray's run of them),
+their projection into every reference view
 (``cam_from_world = invert_pose(world_from_cam)``; pixel positions and the validity mask), the
 views that see the block and the geometric cue of every sample in those views (target centre =
 the ray origin). With ``top_k`` the views are chosen by the cue's t.s from the same direction
 vectors (``geometry.cue_vectors``; rules in ``iris_runtime.quality``). ``plan_calls`` splits a
 block into renderer calls by (rays, views); ``call_feed`` packs each call's inputs, which
-``session.run`` turns into rgb and per-sample weights; depth = sum(weights * z).
+``session.run`` turns into rgb and per-sample weights; depth = sum(weights * z). With
+``plan.mode_radius`` the march also keeps, per ray, the depth of the largest weight (the soft
+depth's mode) and the weight within ``mode_radius`` of it (how concentrated the ray is).
 
 The renderer graph samples the field maps itself at ``grid`` (bilinear, align_corners=False,
 border-clamped; how is the exporter's choice: a dense bilinear matmul for small feature grids,
@@ -31,6 +36,9 @@ so dropping them changes nothing but the float rounding of sums. Each call is th
 the valid samples of each ray (in depth order, padded to the call's longest ray with masked
 samples), the views that see its rays, and the rays that see anything; an empty ray gets the
 renderer's answer to an empty ray (``plan.empty_rgb``: rgb = head(0), zero weights, depth 0).
+A sample window is the same masking: the samples outside a ray's window are dropped as if they
+projected nowhere, so a windowed ray renders what the renderer makes of its window's samples
+alone, and a ray whose window is every sample renders as without windows.
 """
 from __future__ import annotations
 
@@ -82,6 +90,13 @@ class MarchPlan:
       block_rays:     int                  pixels per block traced at once: ``chunk_rays``, times
                                            V // top_k with per-ray view sets (a block then spans
                                            several calls, same numpy memory as one all-view call)
+    Subsets (coarse-to-fine renders, ``iris_runtime.adaptive``; None: off), N = the rays marched:
+      pixel_index:    int64 [N] or None    the render's pixels to march (row-major indices into
+                                           height x width, any order; None: every pixel, N = H*W)
+      sample_window:  int64 [N, 2] or None per marched ray, the samples kept: ``z_bins[lo:hi]``
+                                           (0 <= lo < hi <= S; the others are masked out)
+      mode_radius:    float or None        also return each ray's weight mode and the weight
+                                           within this depth distance of it (``MarchResult``)
     """
     height: int
     width: int
@@ -100,14 +115,21 @@ class MarchPlan:
     empty_rgb: np.ndarray | None
     chunk_rays: int
     block_rays: int
+    pixel_index: np.ndarray | None = None
+    sample_window: np.ndarray | None = None
+    mode_radius: float | None = None
 
     @classmethod
     def build(cls, scene: Scene, world_from_cam: np.ndarray, K: np.ndarray, height: int,
               width: int, *, samples: int, near: float, far: float, top_k: int | None,
               top_k_by: str, chunk_rays: int, cull: bool, empty_rgb: np.ndarray | None,
-              photos: np.ndarray | None) -> "MarchPlan":
+              photos: np.ndarray | None, pixel_index: np.ndarray | None = None,
+              sample_window: np.ndarray | None = None,
+              mode_radius: float | None = None) -> "MarchPlan":
         """The plan of rendering ``scene`` from ``world_from_cam`` (checked, float64 4x4) with
-        intrinsics ``K`` (pixels of the ``height`` x ``width`` render)."""
+        intrinsics ``K`` (pixels of the ``height`` x ``width`` render); ``pixel_index``,
+        ``sample_window``, ``mode_radius``: see the class (built by ``iris_runtime.adaptive``,
+        which owns their contract)."""
         V = scene.num_views
         by_ray = top_k is not None and top_k_by == "ray" and top_k < V
         return cls(height=int(height), width=int(width),
@@ -120,11 +142,21 @@ class MarchPlan:
                    top_k=top_k if top_k is not None and top_k < V else None, by_ray=by_ray,
                    cull=bool(cull), empty_rgb=empty_rgb if cull else None,
                    chunk_rays=int(chunk_rays),
-                   block_rays=int(chunk_rays) * max(1, V // top_k) if by_ray else int(chunk_rays))
+                   block_rays=int(chunk_rays) * max(1, V // top_k) if by_ray else int(chunk_rays),
+                   pixel_index=None if pixel_index is None else _frozen(
+                       np.asarray(pixel_index, np.int64)),
+                   sample_window=None if sample_window is None else _frozen(
+                       np.asarray(sample_window, np.int64)),
+                   mode_radius=None if mode_radius is None else float(mode_radius))
 
     @property
     def pixels(self) -> int:
         return self.height * self.width
+
+    @property
+    def rays(self) -> int:
+        """N: the rays marched (the pixels of ``pixel_index``, else every pixel)."""
+        return self.pixels if self.pixel_index is None else len(self.pixel_index)
 
     @property
     def samples(self) -> int:
@@ -138,19 +170,23 @@ class MarchPlan:
 @dataclass(frozen=True, eq=False)
 class Block:
     """One block of R pixels traced through the V'' reference views that see it (all V without
-    culling).
+    culling), S' samples per ray (S, or the block's widest ``sample_window``).
 
-    rows:       int64   [R]              output rows (row-major pixel indices)
+    rows:       int64   [R]              output rows (indices into the march's N rays; the
+                                         row-major pixel indices when every pixel is marched)
     directions: float32 [R, 3]           ray directions (camera-z component 1)
-    points:     float32 [R, S, 3]        sample points o + z d
+    z:          float32 [R, S']          camera depths of the samples (rows of ``plan.z_bins``)
+    points:     float32 [R, S', 3]       sample points o + z d
     views:      int64   [V'']            the scene's views that see the block
-    uv:         float32 [V'', R, S, 2]   pixel positions of the samples in those views
-    valid:      bool    [V'', R, S]      sample projects validly (and is kept by ``top_k``)
-    cue:        float32 [V'', R, S, 4]   geometric cue of each sample in each view (view-major)
+    uv:         float32 [V'', R, S', 2]  pixel positions of the samples in those views
+    valid:      bool    [V'', R, S']     sample projects validly (and is kept by its ray's window
+                                         and by ``top_k``)
+    cue:        float32 [V'', R, S', 4]  geometric cue of each sample in each view (view-major)
     ray_views:  bool    [V'', R] or None the views each ray keeps (``top_k`` by ray, else None)
     """
     rows: np.ndarray
     directions: np.ndarray
+    z: np.ndarray
     points: np.ndarray
     views: np.ndarray
     uv: np.ndarray
@@ -202,10 +238,15 @@ class MarchStats:
 
 @dataclass(frozen=True, eq=False)
 class MarchResult:
-    """rgb float32 [H*W, 3], depth float32 [H*W] (rows of pixels, row-major) and the stats."""
+    """rgb float32 [N, 3], depth float32 [N] of the N rays marched (row-major pixels, or in the
+    order of ``plan.pixel_index``) and the stats. With ``plan.mode_radius``: ``mode`` float32 [N],
+    the depth of each ray's largest weight, and ``mass`` float32 [N], its weight within
+    ``mode_radius`` of that depth (both 0 for a ray without valid samples); else None."""
     rgb: np.ndarray
     depth: np.ndarray
     stats: MarchStats
+    mode: np.ndarray | None = None
+    mass: np.ndarray | None = None
 
 
 def _frozen(a: np.ndarray) -> np.ndarray:
@@ -219,16 +260,18 @@ def _frozen(a: np.ndarray) -> np.ndarray:
 
 def march(plan: MarchPlan, session, *, workers: int = 1,
           progress: Callable[[int, int], None] | None = None) -> MarchResult:
-    """Render every pixel of ``plan`` with the renderer ``session`` (an ONNX Runtime session or
-    anything with its ``run``), block by block on ``workers`` threads (each block writes its own
-    rows); ``progress(pixels_done, pixels_total)`` after each block."""
-    n, block = plan.pixels, plan.block_rays
+    """Render the rays of ``plan`` (every pixel, or ``plan.pixel_index``) with the renderer
+    ``session`` (an ONNX Runtime session or anything with its ``run``), block by block on
+    ``workers`` threads (each block writes its own rows); ``progress(rays_done, rays_total)``
+    after each block."""
+    n, block = plan.rays, plan.block_rays
     rgb, depth = np.empty((n, 3), f32), np.zeros(n, f32)
+    modes = None if plan.mode_radius is None else (np.zeros(n, f32), np.zeros(n, f32))
     stats = MarchStats()
     starts = range(0, n, block)
 
     def one(start: int) -> MarchStats:
-        return _march_block(plan, session, start, rgb, depth)
+        return _march_block(plan, session, start, rgb, depth, modes)
 
     def done(start: int, part: MarchStats) -> None:
         stats.add(part)
@@ -243,13 +286,15 @@ def march(plan: MarchPlan, session, *, workers: int = 1,
         with ThreadPoolExecutor(workers, thread_name_prefix="iris-render") as pool:
             for start, part in zip(starts, pool.map(one, starts)):
                 done(start, part)
-    return MarchResult(rgb, depth, stats)
+    if modes is None:
+        return MarchResult(rgb, depth, stats)
+    return MarchResult(rgb, depth, stats, *modes)
 
 
-def _march_block(plan: MarchPlan, session, start: int, rgb: np.ndarray,
-                 depth: np.ndarray) -> MarchStats:
-    """Trace the block of pixels from ``start``, run its renderer calls, write its rows of
-    ``rgb`` and ``depth``."""
+def _march_block(plan: MarchPlan, session, start: int, rgb: np.ndarray, depth: np.ndarray,
+                 modes: tuple[np.ndarray, np.ndarray] | None) -> MarchStats:
+    """Trace the block of rays from ``start``, run its renderer calls, write its rows of
+    ``rgb`` and ``depth`` (and of ``modes`` = (mode, mass) with ``plan.mode_radius``)."""
     stats = MarchStats()
     t0 = time.perf_counter()
     block = trace_block(plan, start)
@@ -272,6 +317,11 @@ def _march_block(plan: MarchPlan, session, start: int, rgb: np.ndarray,
         rows = block.rows[call.rays]
         rgb[rows] = out_rgb
         depth[rows] = (weights * z).sum(axis=1)
+        if modes is not None:
+            z_mode = np.take_along_axis(z, weights.argmax(axis=1)[:, None], axis=1)
+            modes[0][rows] = z_mode[:, 0]
+            modes[1][rows] = np.where(np.abs(z - z_mode) <= plan.mode_radius, weights,
+                                      f32(0)).sum(axis=1)
         t3 = time.perf_counter()
         stats.rays_s += (t1 - t0) + (t3 - t2)
         stats.renderer_s += t2 - t1
@@ -280,17 +330,30 @@ def _march_block(plan: MarchPlan, session, start: int, rgb: np.ndarray,
 
 
 def trace_block(plan: MarchPlan, start: int) -> Block:
-    """Rays, samples, projection, cue and view selection of pixels ``start .. start +
-    plan.block_rays`` (row-major, clipped to the render)."""
+    """Rays, samples, projection, cue and view selection of rays ``start .. start +
+    plan.block_rays`` (of the N marched, clipped to N)."""
     H, W = plan.image_size
     V = plan.num_views
-    rows = np.arange(start, min(plan.pixels, start + plan.block_rays))
+    rows = np.arange(start, min(plan.rays, start + plan.block_rays))
+    pixels = rows if plan.pixel_index is None else plan.pixel_index[rows]
     # Pixel centres (u, v) = (j + 0.5, i + 0.5) of the block's pixels.
-    uv = np.stack([rows % plan.width, rows // plan.width], axis=-1).astype(f32) + f32(0.5)
+    uv = np.stack([pixels % plan.width, pixels // plan.width], axis=-1).astype(f32) + f32(0.5)
     origins, directions = G.rays_from_pixels(uv, plan.K, plan.world_from_cam)   # [R, 3] each
-    points = origins[:, None, :] + plan.z_bins[None, :, None] * directions[:, None, :]
+    if plan.sample_window is None:
+        z = np.broadcast_to(plan.z_bins, (len(rows), plan.samples))
+        inside = None
+    else:
+        # Each ray's run z_bins[lo:hi], padded to the block's widest run (masked below): only
+        # the kept samples are traced, so the numpy work shrinks with the windows too.
+        lo, hi = plan.sample_window[rows].T
+        index = lo[:, None] + np.arange(max(1, int((hi - lo).max())))
+        inside = index < hi[:, None]                                            # [R, S']
+        z = plan.z_bins[np.minimum(index, plan.samples - 1)]
+    points = origins[:, None, :] + z[:, :, None] * directions[:, None, :]
     uv_ref, _, valid = G.project_points(points, plan.ref_K, plan.cam_from_world, H, W)
-    views = np.arange(V)                                                        # [V, R, S] above
+    if inside is not None:
+        valid = valid & inside[None]
+    views = np.arange(V)                                                        # [V, R, S'] above
     if plan.cull:
         views = np.flatnonzero(valid.reshape(V, -1).any(axis=1))                # views seeing it
         uv_ref, valid = uv_ref[views], valid[views]
@@ -305,7 +368,7 @@ def trace_block(plan: MarchPlan, start: int) -> Block:
             valid = valid & ray_views[:, :, None]
         else:
             valid = valid & Q.top_k_mask(valid, score, plan.top_k)
-    return Block(rows, directions, points, views, uv_ref, valid, cue, ray_views)
+    return Block(rows, directions, z, points, views, uv_ref, valid, cue, ray_views)
 
 
 def plan_calls(plan: MarchPlan, block: Block) -> list[Call]:
@@ -331,21 +394,21 @@ def call_feed(plan: MarchPlan, block: Block, call: Call,
     valid samples first, in depth order, cut to the call's longest ray."""
     H, W = plan.image_size
     ix = np.ix_(call.views, call.rays)
-    mask = block.valid[ix]                                                   # [v, r, S]
-    uv = block.uv[ix]                                                        # [v, r, S, 2]
-    cue = block.cue[ix]                                                      # [v, r, S, 4]
-    points = block.points[call.rays]                                         # [r, S, 3]
-    z = np.broadcast_to(plan.z_bins, (len(call.rays), plan.samples))
+    mask = block.valid[ix]                                                   # [v, r, S']
+    uv = block.uv[ix]                                                        # [v, r, S', 2]
+    cue = block.cue[ix]                                                      # [v, r, S', 4]
+    points = block.points[call.rays]                                         # [r, S', 3]
+    z = block.z[call.rays]                                                   # [r, S']
     if plan.cull:
-        sample_valid = mask.any(axis=0)                                      # [r, S]
+        sample_valid = mask.any(axis=0)                                      # [r, S']
         s_max = int(sample_valid.sum(axis=1).max())
-        if s_max < plan.samples:
+        if s_max < points.shape[1]:
             order = np.argsort(~sample_valid, axis=1, kind="stable")[:, :s_max]   # stable
             points = np.take_along_axis(points, order[..., None], axis=1)
             uv = np.take_along_axis(uv, order[None, ..., None], axis=2)
             cue = np.take_along_axis(cue, order[None, ..., None], axis=2)
             mask = np.take_along_axis(mask, order[None], axis=2)
-            z = plan.z_bins[order]
+            z = np.take_along_axis(z, order, axis=1)
     grid = G.pixels_to_grid(uv, H, W)
     feed = {"field_maps": field_maps, "grid": grid, "cues": np.ascontiguousarray(cue),
             "mask": np.ascontiguousarray(mask), "positions": points,

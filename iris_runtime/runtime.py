@@ -35,6 +35,7 @@ from typing import Callable
 import numpy as np
 import onnxruntime as ort
 
+from . import adaptive
 from . import geometry as G
 from . import limits as L
 from . import quality as Q
@@ -360,7 +361,9 @@ class IrisRuntime:
                quality: "str | RenderSettings | None" = None, samples: int | None = None,
                top_k: int | None = None, top_k_by: str | None = None,
                scale: float | None = None, upsample: str | None = None,
-               precision: str | None = None):
+               precision: str | None = None, coarse: float | None = None,
+               refine: float | None = None, refine_budget: float | None = None,
+               depth_window: int | None = None, depth_mass: float | None = None):
         """Render one view.
 
         images_or_scene: a ``Scene`` from ``encode`` or the reference images (encoded first).
@@ -378,22 +381,31 @@ class IrisRuntime:
         progress:   called as ``progress(rays_done, rays_total)`` after each chunk.
 
         Speed/quality (``iris_runtime.quality``; measured error and time in docs/PERFORMANCE.md):
-        quality:    a preset, "exact" (default: the full render), "balanced" or "fast"
-                    (``QUALITY_PRESETS``), or a ``RenderSettings``; the keywords below override
-                    single fields of it.
+        quality:    a preset, "exact" (default: the full render), "balanced", "fast" or
+                    "adaptive" (``QUALITY_PRESETS``), or a ``RenderSettings``; the keywords below
+                    override single fields of it.
         samples:    samples per ray (default the model's, 64): bin centres in [near, far].
         top_k:      keep at most this many reference views per point (largest cue t.s among the
                     valid views); ``top_k_by`` "ray" (one set of views per ray, so renderer calls
                     shrink to top_k views) or "point".
         scale:      render at (H, W) * scale and resize to (H, W) (``upsample`` "linear"/"cubic").
         precision:  "float32" or "int8" renderer for this call (default: the runtime's).
+        refine:     adaptive refinement: render at ``coarse`` x the resolution, upsample, and
+                    render again exactly the pixels whose coarse neighbourhood varies by at least
+                    ``refine`` (colour; depth in units of far - near), at most ``refine_budget``
+                    of them (``iris_runtime.adaptive``).
+        depth_window: depth-guided samples: after the coarse pass, keep the samples within this
+                    many bins of the coarse soft-depth modes, every sample where the coarse rays
+                    held less than ``depth_mass`` of their weight there.
 
         Returns uint8 [H, W, 3] RGB, or a ``RenderResult`` with ``depth=True``.
         """
         t_start = time.perf_counter()
         timings: dict[str, float] = {}
         settings = Q.resolve_settings(quality, samples=samples, top_k=top_k, top_k_by=top_k_by,
-                                      scale=scale, upsample=upsample, precision=precision)
+                                      scale=scale, upsample=upsample, precision=precision,
+                                      coarse=coarse, refine=refine, refine_budget=refine_budget,
+                                      depth_window=depth_window, depth_mass=depth_mass)
         graph = self._renderer_graph(settings.precision or self.precision)
         height, width = self.check_output_size(height, width)  # before encoding or allocating
         if progress is not None and not callable(progress):
@@ -420,12 +432,25 @@ class IrisRuntime:
             w = max(1, int(round(width * settings.scale)))
             K = G.scale_intrinsics(K, (height, width), (h, w))
         session = self._session(graph)
-        plan = raymarch.MarchPlan.build(
-            scene, world_from_cam, K, h, w, samples=S, near=self.near, far=self.far,
-            top_k=settings.top_k, top_k_by=settings.top_k_by, chunk_rays=chunk_rays,
-            cull=self.cull, photos=photos,
-            empty_rgb=self._empty_ray_rgb(scene, graph) if self.cull else None)
-        marched = raymarch.march(plan, session, workers=self.workers, progress=progress)
+        empty_rgb = self._empty_ray_rgb(scene, graph) if self.cull else None
+
+        def march_at(mh: int, mw: int, progress=None, **subset) -> raymarch.MarchResult:
+            """The ray march at mh x mw pixels (h x w: the render's), on ``subset``
+            (``MarchPlan``'s pixel_index, sample_window, mode_radius)."""
+            plan = raymarch.MarchPlan.build(
+                scene, world_from_cam,
+                K if (mh, mw) == (h, w) else G.scale_intrinsics(K, (h, w), (mh, mw)), mh, mw,
+                samples=S, near=self.near, far=self.far, top_k=settings.top_k,
+                top_k_by=settings.top_k_by, chunk_rays=chunk_rays, cull=self.cull,
+                photos=photos, empty_rgb=empty_rgb, **subset)
+            return raymarch.march(plan, session, workers=self.workers, progress=progress)
+
+        if settings.refine is None and settings.depth_window is None:
+            marched, work = march_at(h, w, progress), {}
+        else:
+            marched = adaptive.render(settings, march_at, h, w, near=self.near, far=self.far,
+                                      samples=S, progress=progress)
+            timings["coarse"], work = marched.coarse_s, marched.work
         timings["rays"] = marched.stats.rays_s        # summed over blocks (thread time)
         timings["renderer"] = marched.stats.renderer_s
         image_float = marched.rgb.reshape(h, w, 3)
@@ -442,7 +467,8 @@ class IrisRuntime:
         timings["total"] = time.perf_counter() - t_start
         if not depth:
             return image
-        return RenderResult(image, image_float, z, timings, marched.stats.work(), settings)
+        return RenderResult(image, image_float, z, timings, {**marched.stats.work(), **work},
+                            settings)
 
     # .. argument checks ......................................................................
     def _check_scene(self, scene: Scene, name: str = "images_or_scene") -> None:

@@ -194,10 +194,16 @@ class RenderResult:
     depth:       float32 [H, W]    soft camera depth sum_m w_m z_m in model units, within
                                    [near, far]; 0 where no sample sees any reference view
     timings:     seconds per stage (``load``/``encode`` when images were given, ``rays``: numpy
-                 geometry, ``renderer``: ONNX Runtime, ``upsample`` when scale < 1, ``total``)
+                 geometry, ``renderer``: ONNX Runtime, ``upsample`` when scale < 1, ``coarse``
+                 with ``refine`` / ``depth_window``: wall seconds of the coarse pass and of
+                 choosing what to march again (``rays`` and ``renderer`` sum both passes),
+                 ``total``)
     work:        what the renderer graph was given: ``calls``, and over the calls the sums of
                  R (``rays``), R*S (``points``), R*S*V' (``point_views``) and R*S^2
-                 (``ray_pairs``), R/S/V' the rays, samples and views of a call (FLOP counts)
+                 (``ray_pairs``), R/S/V' the rays, samples and views of a call (FLOP counts);
+                 with ``refine`` / ``depth_window`` also ``coarse_rays``, ``refined_rays``,
+                 ``windowed_rays``, ``kept_samples`` and ``pixels`` (``adaptive.Rendered``:
+                 the fraction refined is refined_rays / pixels)
     settings:    the ``RenderSettings`` used
     """
     image: np.ndarray

@@ -70,7 +70,7 @@ def _err(a, b) -> float:
 def _is_exact(s: RenderSettings) -> bool:
     """No lossy knob set (was ``RenderSettings.is_exact``, which only the tests used)."""
     return (s.samples is None and s.top_k is None and s.scale == 1.0
-            and s.precision in (None, "float32"))
+            and s.precision in (None, "float32") and s.refine is None and s.depth_window is None)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -78,12 +78,14 @@ def _is_exact(s: RenderSettings) -> bool:
 # ----------------------------------------------------------------------------------------------
 
 def test_presets_exist_and_map_to_documented_settings():
-    assert set(QUALITY_PRESETS) == {"exact", "balanced", "fast"}
+    assert set(QUALITY_PRESETS) == {"exact", "balanced", "fast", "adaptive"}
     assert QUALITY_PRESETS["exact"] == RenderSettings() and _is_exact(QUALITY_PRESETS["exact"])
     assert QUALITY_PRESETS["balanced"] == RenderSettings(samples=32, top_k=8, top_k_by="ray")
     assert QUALITY_PRESETS["fast"] == RenderSettings(samples=16, top_k=2, top_k_by="ray",
                                                      scale=0.5, upsample="cubic")
-    for name in ("balanced", "fast"):
+    assert QUALITY_PRESETS["adaptive"] == RenderSettings(upsample="cubic", coarse=0.25, refine=0.1,
+                                                         refine_budget=0.12)
+    for name in ("balanced", "fast", "adaptive"):
         assert not _is_exact(QUALITY_PRESETS[name])
         assert name in (Q.__doc__ or "") or name in (IrisRuntime.render.__doc__ or "")
 
@@ -95,7 +97,8 @@ def test_resolve_settings_overrides_and_rejects():
     assert Q.resolve_settings("fast", scale=None) == QUALITY_PRESETS["fast"]
     for bad in (dict(quality="fastest"), dict(samples=0), dict(top_k=-1), dict(top_k=2.5),
                 dict(top_k_by="pixel"), dict(scale=0.0), dict(scale=1.5), dict(scale=float("nan")),
-                dict(upsample="lanczos"), dict(precision="fp16"), dict(samples=True)):
+                dict(upsample="lanczos"), dict(precision="fp16"), dict(samples=True),
+                dict(refine=-1.0), dict(coarse=0.0), dict(depth_window=-2)):
         quality = bad.pop("quality", None)
         with pytest.raises(InputError):
             Q.resolve_settings(quality, **bad)
@@ -185,7 +188,9 @@ def test_dropping_views_under_top_k_is_exact(model_dir, rt, scene, by):
 @pytest.mark.parametrize("kw", [
     dict(samples=16), dict(samples=33), dict(top_k=1, top_k_by="point"), dict(top_k=2),
     dict(scale=0.5), dict(scale=0.5, upsample="cubic"), dict(scale=0.3),
-    dict(quality="balanced"), dict(quality="fast"), dict(quality="fast", samples=8)])
+    dict(quality="balanced"), dict(quality="fast"), dict(quality="fast", samples=8),
+    dict(quality="adaptive"), dict(quality="adaptive", scale=0.5, top_k=2),
+    dict(depth_window=4, depth_mass=0.0), dict(refine=0.0, refine_budget=0.3, depth_window=2)])
 def test_lossy_knobs_give_finite_output_of_the_right_shape(rt, scene, kw):
     res = rt.render(scene, _pose(scene), height=16, width=24, depth=True, **kw)
     assert res.image.shape == (16, 24, 3) and res.image.dtype == np.uint8
