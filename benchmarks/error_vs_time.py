@@ -1,7 +1,8 @@
 """Error against run time: every speed/quality knob of IrisRuntime.render, two anchors, one run.
 
     python benchmarks/error_vs_time.py                       # models/iris-tiny-rgb.pt, all parts
-                                                             # (~12 min on 2 cores, with export)
+                                                             # (~12 min on 2 cores, with export,
+                                                             # before the sizing part was added)
     python benchmarks/error_vs_time.py --checkpoint runs/tiny/last.pt --scenes 1 --parts knobs
     python benchmarks/error_vs_time.py --quick --model-dir MODEL --out /tmp/evt
                                          # every code path in ~1 min; not a measurement
@@ -18,6 +19,9 @@ in subprocesses, ``python -m benchmarks.evt.child``):
            render (ORT, exact), PSNR/SSIM against the ground truth.
 - scaling: like the paper's Table 11: (reference views, targets) = (4, 1) ... (32, 8), seconds for
            encode + render of all targets: torch eager, the exact ORT path, the balanced preset.
+- sizing:  what a server is sized by: seconds per frame of every preset at 64^2, 128^2, 256^2
+           from 4, 8, 16 reference views, and frames per second of every preset over a 24-pose
+           orbit of one encoded 8-view scene (``--sizing-*``, ``--fps-*``).
 - peak:    float32 matmul peak of this machine (numpy, 4096^3) against the renderer graph's
            analytic FLOPs per second (FLOPs counted from the shapes of every renderer call).
 - memory:  peak RSS of a 512x512 render from 16 reference views (a fresh subprocess).
@@ -44,12 +48,13 @@ from benchmarks.evt.machine import machine_facts, matmul_peak  # noqa: E402
 from benchmarks.evt.targets import evaluate_targets, fastest_exact  # noqa: E402
 from iris_runtime.fileio import sha256_file  # noqa: E402
 
-PARTS = ("knobs", "scaling", "peak", "memory")
+PARTS = ("knobs", "scaling", "sizing", "peak", "memory")
 
 #: --quick: every part and row at toy sizes (a code-path check in about a minute on 2 busy cores,
 #: not a measurement). Applied to the options left at their defaults.
 QUICK = {"runs": 1, "size": 16, "scaling": "4x1,16x1", "scaling_size": 8, "memory_size": 32,
-         "memory_quality": "balanced,exact@16", "matmul_size": 1024}
+         "memory_quality": "balanced,exact@16", "matmul_size": 1024, "sizing_sizes": "8,16",
+         "sizing_views": "4,8", "fps_size": 8, "fps_poses": 2}
 
 
 def parse_args(argv=None) -> argparse.Namespace:
@@ -66,6 +71,16 @@ def parse_args(argv=None) -> argparse.Namespace:
     ap.add_argument("--size", type=int, default=64, help="knobs: target frame size (64: the "
                     "model's; smaller only for quick checks, ground truth area-resized)")
     ap.add_argument("--scaling-size", type=int, default=24, help="scaling: target frame size")
+    ap.add_argument("--sizing-sizes", default=",".join(map(str, R.SIZING_SIZES)),
+                    help="sizing: output sizes (square), a list")
+    ap.add_argument("--sizing-views", default=",".join(map(str, R.SIZING_VIEWS)),
+                    help="sizing: numbers of reference views, a list")
+    ap.add_argument("--fps-views", type=int, default=R.SIZING_FPS_VIEWS,
+                    help="sizing: reference views of the frames-per-second scene")
+    ap.add_argument("--fps-size", type=int, default=R.SIZING_FPS_SIZE,
+                    help="sizing: frame size of the frames-per-second orbit")
+    ap.add_argument("--fps-poses", type=int, default=R.SIZING_FPS_POSES,
+                    help="sizing: poses of the frames-per-second orbit")
     ap.add_argument("--memory-size", type=int, default=512)
     ap.add_argument("--memory-quality", default="balanced,exact@128",
                     help="quality[@size] list (size default --memory-size)")
@@ -85,6 +100,8 @@ def parse_args(argv=None) -> argparse.Namespace:
                                           "measurement") if n)
     args.scaling = [tuple(int(x) for x in s.split("x")) for s in args.scaling.split(",") if s]
     args.memory_quality = [q for q in args.memory_quality.split(",") if q]
+    args.sizing_sizes = [int(x) for x in str(args.sizing_sizes).split(",") if x]
+    args.sizing_views = [int(x) for x in str(args.sizing_views).split(",") if x]
     return args
 
 
@@ -137,6 +154,9 @@ def main(argv=None) -> int:
     if "scaling" in parts:
         log(f"scaling (workers={workers})")
         results["scaling"] = measure.part_scaling(args, rt_best, model, log)
+    if "sizing" in parts:
+        log(f"sizing (workers={workers})")
+        results["sizing"] = measure.part_sizing(args, rt_best, log)
     if "peak" in parts:
         results["peak"].update(measure.part_peak(results["peak"]["matmul"],
                                                  results.get("knobs", {}).get("rows", []),

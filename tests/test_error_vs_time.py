@@ -39,8 +39,11 @@ def test_row_names_are_the_committed_ones(committed):
     names = [r["name"] for r in committed["knobs"]["rows"]]
     assert names[:6] == [R.TORCH_EAGER, R.TORCH_TCMALLOC, R.EXACT, R.EXACT_2_WORKERS,
                          R.EXACT_NO_CULLING, R.EXACT_NO_SCENE_CACHE]
-    assert names[6:] == [k.name for k in R.KNOB_GRID]
-    assert [r["group"] for r in committed["knobs"]["rows"][6:]] == [k.group for k in R.KNOB_GRID]
+    # The grid has grown since the committed run (coarse-to-fine rows): its rows are the grid's,
+    # in the grid's order, with the grid's groups.
+    grid = [(k.name, k.group) for k in R.KNOB_GRID]
+    run = [(r["name"], r["group"]) for r in committed["knobs"]["rows"][6:]]
+    assert run == [g for g in grid if g[0] in set(names)]
     assert set(R.PEAK_ROWS) >= {r["name"] for r in committed["peak"]["rows"]}
 
 
@@ -55,8 +58,47 @@ def test_quick_fills_only_defaults():
     assert args.runs == 2 and args.size == error_vs_time.QUICK["size"]
     assert args.scaling == [(4, 1), (16, 1)] and args.memory_quality == ["balanced", "exact@16"]
     assert "--quick" in args.note
+    assert args.sizing_sizes == [8, 16] and args.sizing_views == [4, 8] and args.fps_poses == 2
     full = error_vs_time.parse_args([])
     assert full.size == 64 and full.scaling == list(R.SCALING) and not full.quick
+    assert full.sizing_sizes == [64, 128, 256] and full.sizing_views == [4, 8, 16]
+    assert "sizing" in error_vs_time.PARTS
+
+
+def test_report_and_targets_of_the_new_sections(committed):
+    """The coarse-to-fine rows, the adaptive target and the sizing section appear when a run has
+    them (the committed run predates them: the tests above)."""
+    import copy
+    res = copy.deepcopy(committed)
+    rows = res["knobs"]["rows"]
+    exact = next(r for r in rows if r["name"] == R.EXACT)
+    ad = dict(exact, name=R.PRESET_ADAPTIVE, group=R.PRESET_GROUP,
+              s_per_frame=exact["s_per_frame"] / 5, psnr_gt=exact["psnr_gt"] - 0.05,
+              psnr_vs_full=35.0, refined_fraction=0.12, windowed_fraction=0.0,
+              kept_sample_fraction=1.0, note="")
+    every = dict(ad, name=R.REFINE_EVERY, group=R.REFINE_GROUP, max_abs_vs_full=2e-7,
+                 s_per_frame=exact["s_per_frame"] * 1.07, refined_fraction=1.0)
+    rows += [every, ad]
+    res["sizing"] = {"seed": 1000000, "frames": 17, "presets": ["exact", "adaptive"],
+                     "workers": 2, "threads": 2, "rows": [
+                         {"views": v, "size": z, "preset": p, "s_per_frame": 0.1 * v * z / 64,
+                          "encode_s": 0.05 * v, "psnr_vs_exact": 100.0 if p == "exact" else 35.0}
+                         for p in ("exact", "adaptive") for v in (4, 8) for z in (64, 128)],
+                     "fps": [{"preset": "exact", "views": 8, "size": 64, "poses": 24,
+                              "seconds": 30.0, "fps": 0.8, "encode_s": 0.1}]}
+    text = report.markdown(res)
+    assert "| refine 1/4, every pixel | 100.0% |" in text
+    assert "| preset adaptive | 12.0% | 0.0% | 100.0% | 5.00x |" in text
+    assert "## Server sizing" in text and "| adaptive | 8 | 0.40 | 0.800 | 1.600 | 35.00 |" in text
+    assert "| exact | 0.80 | 30.00 |" in text
+    got = {t["target"]: t for t in targets.evaluate_targets(res)}
+    t = next(v for k, v in got.items() if k.startswith("adaptive preset >= 4x"))
+    assert t["met"] and t["measured"].startswith("5.00x") and "-0.050 dB" in t["measured"]
+    t = next(v for k, v in got.items() if k.startswith("exact knobs unchanged"))
+    assert t["met"] and "refine every pixel vs full: max abs 2.0e-07" in t["measured"]
+    ad["psnr_gt"] = exact["psnr_gt"] - 0.2                  # too lossy: missed, whatever the speed
+    got = targets.evaluate_targets(res)
+    assert not next(t for t in got if t["target"].startswith("adaptive preset"))["met"]
 
 
 def test_children_are_module_commands():

@@ -1,4 +1,4 @@
-"""The measured parts of the error-against-time benchmark: knobs, scaling, peak, memory.
+"""The measured parts of the error-against-time benchmark: knobs, scaling, sizing, peak, memory.
 
 Each ``part_*`` returns the JSON-ready section of the results (``results[part]``); the report
 (``report``) and the targets (``targets``) read only those sections. ``args`` is the benchmark's
@@ -163,6 +163,11 @@ def part_knobs(args, rt, rt_nocull, rt_par, model, log) -> dict:
             row["numpy_s_per_frame"] = float(np.mean([t["rays"] for t in tims]))
             row["renderer_gflop_per_frame"] = renderer_flops(rt.manifest.config,
                                                              row["work_per_frame"]) / 1e9
+            if "pixels" in tot:                       # coarse-to-fine (iris_runtime.adaptive)
+                row["refined_fraction"] = tot["refined_rays"] / tot["pixels"]
+                row["windowed_fraction"] = tot["windowed_rays"] / max(1, tot["refined_rays"])
+                row["kept_sample_fraction"] = (tot["kept_samples"]
+                                               / max(1, tot["refined_rays"] * rt.samples))
         rows.append(row)
         log(f"  {name:24s} {row['s_per_frame']:7.3f} s/frame  max|d| {err:.2e}  "
             f"PSNR(full) {row['psnr_vs_full']:6.2f}  PSNR(gt) {row['psnr_gt']:6.2f}")
@@ -295,6 +300,89 @@ def part_scaling(args, rt, model, log) -> dict:
             f"{row['exact_s_per_frame']:.3f} balanced {row['balanced_s_per_frame']:.3f}  "
             f"PSNR(bal vs exact) {row['balanced_psnr_vs_exact']:.1f}")
     return {"seed": int(HELDOUT_SEEDS[0]), "frames": n_frames, "rows": rows}
+
+
+def _spread(n_frames: int, refs: int) -> tuple[np.ndarray, int]:
+    """``refs`` reference frames spread evenly over ``n_frames`` frames of an orbit, and one
+    target frame halfway between two of them -> (reference indices, target index)."""
+    idx = np.round(np.linspace(0, n_frames - 1, refs + 1, endpoint=False)).astype(int)
+    return idx[np.arange(refs + 1) != 1], int(idx[1])
+
+
+def _timed_until(fn, runs: int, budget_s: float):
+    """-> (median seconds, all seconds, last result) of up to ``runs`` calls, stopping once they
+    add up to ``budget_s`` (at least one call)."""
+    times, out = [], None
+    while len(times) < runs and sum(times) < budget_s:
+        t = time.perf_counter()
+        out = fn()
+        times.append(time.perf_counter() - t)
+    return statistics.median(times), times, out
+
+
+def part_sizing(args, rt, log) -> dict:
+    """What a user sizes a server by (issue 12, part 3): seconds per frame of every preset at
+    ``args.sizing_sizes`` from ``args.sizing_views`` reference views, and frames per second of
+    every preset over an orbit of ``args.fps_poses`` poses of one encoded scene.
+
+    One held-out scene (seed ``HELDOUT_SEEDS[0]``) with max(views) + 1 frames: per V, V
+    references spread over the orbit and one target between two of them, all encoded once
+    (encode seconds reported), the target rendered at its predicted pose. Per (preset, V): one
+    warm-up render at the smallest size, then per size ``_timed_until`` (``--runs`` runs, at most
+    ``rows.SIZING_SECONDS_PER_CONFIG`` seconds). Error: PSNR against the exact render of the
+    same (V, size) (no ground truth above the model's 64x64)."""
+    from iris_runtime import QUALITY_PRESETS
+    from iris_runtime.orbit import orbit_poses
+    from iris_train.data import HELDOUT_SEEDS, SyntheticScenes
+    presets = ["exact"] + [p for p in QUALITY_PRESETS if p != "exact"]   # the errors' reference
+    n_frames = max(max(args.sizing_views), args.fps_views) + 1
+    images = SyntheticScenes([HELDOUT_SEEDS[0]], n_views=n_frames)[0].images
+    sizes = sorted(args.sizing_sizes)
+    rows = []
+    for V in args.sizing_views:
+        refs, target = _spread(n_frames, V)
+        t0 = time.perf_counter()
+        scene = rt.encode(list(images[list(refs) + [target]]))
+        encode_s = time.perf_counter() - t0
+        sub, pose = scene.subset(list(range(V))), scene.world_from_cam[V]
+        exact = {}
+        for preset in presets:
+            rt.render(sub, pose, height=sizes[0], width=sizes[0], quality=preset)   # warm-up
+            for size in sizes:
+                med, times, res = _timed_until(
+                    lambda: rt.render(sub, pose, height=size, width=size, depth=True,
+                                      quality=preset), args.runs, R.SIZING_SECONDS_PER_CONFIG)
+                out = res.image_float.astype(np.float64)
+                exact.setdefault(size, out)               # the first preset is "exact"
+                row = {"views": V, "size": size, "preset": preset, "s_per_frame": med,
+                       "s_runs": times, "encode_s": encode_s,
+                       "psnr_vs_exact": psnr(out, exact[size]),
+                       "max_abs_vs_exact": float(np.abs(out - exact[size]).max()),
+                       "work": res.work, "load_avg_1min": os.getloadavg()[0]}
+                rows.append(row)
+                log(f"  sizing V={V:2d} {size:3d}^2 {preset:9s} {med:8.3f} s/frame "
+                    f"(x{len(times)})  PSNR vs exact {row['psnr_vs_exact']:6.2f}")
+    # Frames per second: many poses of one encoded scene (the Scene cache), one after another.
+    refs, _ = _spread(n_frames, args.fps_views)
+    t0 = time.perf_counter()
+    scene = rt.encode(list(images[list(refs)]))
+    encode_s = time.perf_counter() - t0
+    poses = orbit_poses(scene.world_from_cam, args.fps_poses, near=rt.near, far=rt.far)
+    fps = []
+    for preset in presets:
+        size = args.fps_size
+        rt.render(scene, poses[0], height=size, width=size, quality=preset)       # warm-up
+        t0 = time.perf_counter()
+        for pose in poses:
+            rt.render(scene, pose, height=size, width=size, quality=preset)
+        secs = time.perf_counter() - t0
+        fps.append({"preset": preset, "views": args.fps_views, "size": size,
+                    "poses": len(poses), "seconds": secs, "fps": len(poses) / secs,
+                    "encode_s": encode_s, "load_avg_1min": os.getloadavg()[0]})
+        log(f"  fps {preset:9s} {len(poses)} poses at {size}^2 from {args.fps_views} views: "
+            f"{len(poses) / secs:.2f} frames/s")
+    return {"seed": int(HELDOUT_SEEDS[0]), "frames": n_frames, "presets": presets,
+            "workers": rt.workers, "threads": rt.threads, "rows": rows, "fps": fps}
 
 
 def peak_rows(knob_rows: list[dict], peak_gflops: float) -> list[dict]:

@@ -60,6 +60,60 @@ def plot(results: dict, path: Path) -> None:
     fig.savefig(path, dpi=110)
 
 
+def coarse_to_fine(rows: list[dict], exact_s: float) -> list[str]:
+    """The work of the coarse-to-fine rows (``RenderSettings.refine`` / ``depth_window``; speed-up
+    against ``exact_s`` seconds per frame): no lines when the run had none (runs before them)."""
+    rows = [r for r in rows if "refined_fraction" in r]
+    if not rows:
+        return []
+    L = ["Coarse-to-fine rows (`iris_runtime.adaptive`): a coarse pass at 1/4 of the rows and "
+         "columns, then the pixels marched again at full resolution (refined, exactly) and, "
+         "of those, the rays marched on a depth window around the coarse weight mode (the "
+         "others keep every sample: the exact fallback).", "",
+         "| knob | pixels refined | rays windowed | samples kept (refined rays) | speed-up vs "
+         "exact | PSNR vs full | PSNR gt |", "|---|---|---|---|---|---|---|"]
+    for r in rows:
+        L.append(f"| {r['name']} | {100 * r['refined_fraction']:.1f}% | "
+                 f"{100 * r['windowed_fraction']:.1f}% | {100 * r['kept_sample_fraction']:.1f}% | "
+                 f"{exact_s / r['s_per_frame']:.2f}x | {r['psnr_vs_full']:.2f} | "
+                 f"{r['psnr_gt']:.2f} |")
+    return L + [""]
+
+
+def sizing(s: dict, runs: int) -> list[str]:
+    """The server-sizing section: seconds per frame per (preset, views, size), frames/s."""
+    sizes = sorted({r["size"] for r in s["rows"]})
+    views = sorted({r["views"] for r in s["rows"]})
+    at = {(r["preset"], r["views"], r["size"]): r for r in s["rows"]}
+    L = ["## Server sizing: seconds per frame and frames per second", "",
+         f"One held-out scene (seed {s['seed']}, {s['frames']} frames); per number of reference "
+         "views V, V frames spread over the orbit are encoded with a target between two of them, "
+         "rendered at its predicted pose at each size (square). Seconds per frame: median of up "
+         f"to {runs} renders after a warm-up (fewer for long frames); the runtime as the scaling "
+         f"part runs it (workers={s['workers']}, threads={s['threads']}). PSNR: against the "
+         "exact render of the same views and size. Encoding is per scene, not per frame.", "",
+         "| preset | V | encode s | " + " | ".join(f"{z}^2 s/frame" for z in sizes) + " | "
+         + " | ".join(f"{z}^2 PSNR vs exact" for z in sizes) + " |",
+         "|---|---|---|" + "---|" * (2 * len(sizes))]
+    for preset in s["presets"]:
+        for v in views:
+            rs = [at.get((preset, v, z)) for z in sizes]
+            enc = next((r["encode_s"] for r in rs if r), float("nan"))
+            L.append(f"| {preset} | {v} | {enc:.2f} | "
+                     + " | ".join("-" if r is None else f"{r['s_per_frame']:.3f}" for r in rs)
+                     + " | " + " | ".join("-" if r is None else f"{r['psnr_vs_exact']:.2f}"
+                                          for r in rs) + " |")
+    if s.get("fps"):
+        f0 = s["fps"][0]
+        L += ["", f"Frames per second: one scene of {f0['views']} reference views encoded once "
+              f"({f0['encode_s']:.2f} s), then {f0['poses']} poses of an orbit around its cameras "
+              f"(`iris_runtime.orbit`) rendered one after another at {f0['size']}^2.", "",
+              "| preset | frames/s | seconds for the orbit |", "|---|---|---|"]
+        for f in s["fps"]:
+            L.append(f"| {f['preset']} | {f['fps']:.2f} | {f['seconds']:.2f} |")
+    return L + [""]
+
+
 def markdown(results: dict) -> str:
     m = results["machine"]
     L = ["# Error against run time (benchmarks/error_vs_time.py)", "",
@@ -97,6 +151,7 @@ def markdown(results: dict) -> str:
                      f"{r.get('renderer_gflop_per_frame', float('nan')):.2f} |")
         L += ["", "Notes: " + "; ".join(f"{r['name']}: {r['note']}" for r in k["rows"]
                                         if r.get("note")), ""]
+        L += coarse_to_fine(k["rows"], exact)
     if "scaling" in results:
         s = results["scaling"]
         L += ["## Scaling (paper Table 11 shape)", "",
@@ -117,6 +172,8 @@ def markdown(results: dict) -> str:
                      f"{r['exact_psnr_gt']:.2f} / {r['balanced_psnr_gt']:.2f} | "
                      f"{r.get('torch_max_abs_vs_exact', float('nan')):.1e} | {paper} |")
         L.append("")
+    if "sizing" in results:
+        L += sizing(results["sizing"], results["args"]["runs"])
     if "peak" in results:
         p = results["peak"]
         L += ["## Renderer throughput against the matmul peak", "",

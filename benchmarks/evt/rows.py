@@ -15,6 +15,8 @@ TOPK_RAY_GROUP = "top-k per ray"
 SAMPLES_GROUP = "samples"
 INT8_GROUP = "int8"
 RESOLUTION_GROUP = "resolution"
+REFINE_GROUP = "adaptive refinement"
+DEPTH_GROUP = "depth-guided samples"
 PRESET_GROUP = "preset"
 
 # Anchors: torch eager, the reference the speed targets are measured against.
@@ -41,8 +43,18 @@ INT8 = "int8"
 SCALE_HALF_LINEAR = "scale 1/2 linear"
 SCALE_HALF_CUBIC = "scale 1/2 cubic"
 SCALE_QUARTER_LINEAR = "scale 1/4 linear"
+SCALE_QUARTER_CUBIC = "scale 1/4 cubic"
+# Coarse-to-fine (iris_runtime.adaptive): a quarter-resolution coarse pass, then the pixels
+# refined exactly / the samples kept around the coarse weight mode.
+REFINE_EVERY = "refine 1/4, every pixel"
+REFINE_BUDGET_10 = "refine 1/4, budget 10%"
+REFINE_BUDGET_20 = "refine 1/4, budget 20%"
+REFINE_THRESHOLD_02 = "refine 1/4, threshold 0.2"
+DEPTH_WINDOW_8 = "depth window 8"
+DEPTH_WINDOW_16_MASS_05 = "depth window 16, mass 0.5"
 PRESET_BALANCED = "preset balanced"
 PRESET_FAST = "preset fast"
+PRESET_ADAPTIVE = "preset adaptive"
 
 
 class Knob(NamedTuple):
@@ -65,9 +77,24 @@ KNOB_GRID = (
     Knob(SCALE_HALF_LINEAR, RESOLUTION_GROUP, {"scale": 0.5, "upsample": "linear"}),
     Knob(SCALE_HALF_CUBIC, RESOLUTION_GROUP, {"scale": 0.5, "upsample": "cubic"}),
     Knob(SCALE_QUARTER_LINEAR, RESOLUTION_GROUP, {"scale": 0.25, "upsample": "linear"}),
+    Knob(SCALE_QUARTER_CUBIC, RESOLUTION_GROUP, {"scale": 0.25, "upsample": "cubic"}),
+    Knob(REFINE_EVERY, REFINE_GROUP, {"coarse": 0.25, "refine": 0.0}),
+    Knob(REFINE_BUDGET_10, REFINE_GROUP, {"coarse": 0.25, "refine": 0.0, "refine_budget": 0.1,
+                                          "upsample": "cubic"}),
+    Knob(REFINE_BUDGET_20, REFINE_GROUP, {"coarse": 0.25, "refine": 0.0, "refine_budget": 0.2,
+                                          "upsample": "cubic"}),
+    Knob(REFINE_THRESHOLD_02, REFINE_GROUP, {"coarse": 0.25, "refine": 0.2, "upsample": "cubic"}),
+    Knob(DEPTH_WINDOW_8, DEPTH_GROUP, {"coarse": 0.25, "depth_window": 8}),
+    Knob(DEPTH_WINDOW_16_MASS_05, DEPTH_GROUP, {"coarse": 0.25, "depth_window": 16,
+                                                "depth_mass": 0.5}),
     Knob(PRESET_BALANCED, PRESET_GROUP, {"quality": "balanced"}),
     Knob(PRESET_FAST, PRESET_GROUP, {"quality": "fast"}),
+    Knob(PRESET_ADAPTIVE, PRESET_GROUP, {"quality": "adaptive"}),
 )
+
+#: Rows whose renders are coarse-to-fine: the report lists the fraction of pixels they refined
+#: and of samples they kept (``RenderResult.work``).
+COARSE_TO_FINE_GROUPS = (REFINE_GROUP, DEPTH_GROUP)
 
 #: The two exact configurations; the faster one runs the scaling and memory parts and is the one
 #: the speed targets are checked on (same output; both measured in the knobs table).
@@ -82,6 +109,18 @@ PEAK_ROWS = (EXACT, EXACT_2_WORKERS, EXACT_NO_CULLING, TOPK_RAY_4, SAMPLES_32, I
 SCALING_EXACT = "exact"
 SCALING_BALANCED = "balanced"
 SCALING_METHODS = ((SCALING_EXACT, {}), (SCALING_BALANCED, {"quality": "balanced"}))
+
+#: Server sizing (issue 12, part 3): seconds per frame of every preset at these output sizes from
+#: these numbers of reference views, and frames per second over an orbit of ``SIZING_FPS_POSES``
+#: poses of one encoded scene of ``SIZING_FPS_VIEWS`` views at ``SIZING_FPS_SIZE``.
+SIZING_SIZES = (64, 128, 256)
+SIZING_VIEWS = (4, 8, 16)
+SIZING_FPS_VIEWS = 8
+SIZING_FPS_SIZE = 64
+SIZING_FPS_POSES = 24
+#: A (preset, views, size) is timed ``--runs`` times, but no more once its runs add up to this
+#: many seconds (a 256^2 exact frame from 16 views is one long run of many renderer calls).
+SIZING_SECONDS_PER_CONFIG = 10.0
 
 #: Scaling grid, like the paper's Table 11: (reference views, targets).
 SCALING = ((4, 1), (8, 2), (12, 4), (16, 8), (32, 8))
