@@ -38,7 +38,9 @@ __all__ = ["PairwisePoses", "GlobalSolve", "CameraRefinement", "flow_matches", "
            "solve_global", "solve_cameras", "TRANSLATION_SOLVERS", "fit_scale", "refine_cameras", "locate_views",
            "FLOW_UPSAMPLE", "FB_TOLERANCE", "FOCAL_GRID", "MIN_INLIERS", "MIN_INLIER_RATIO",
            "ESTIMATOR", "RANSAC_THRESHOLD", "FOCAL_SEARCH_POINTS", "DEFAULT_BASELINE",
-           "COLLAPSED_SPREAD", "CAMERA_SOURCES"]
+           "COLLAPSED_SPREAD", "CAMERA_SOURCES", "DEPTH_TARGET", "MIN_PARALLAX", "SCALE_MODES",
+           "match_depths",
+           "reference_depths", "LOCATE_METHODS", "PNP_THRESHOLD", "PNP_MIN_INLIERS"]
 
 #: Upsampling before flow (DIS works on 4x4+ patches; at 64x64 the flow is too coarse without it).
 FLOW_UPSAMPLE = 4
@@ -64,6 +66,16 @@ COLLAPSED_SPREAD = 1e-6
 #: 16 held-out synthetic scenes of 8 views, whose unit is the renderer's (depths in [0.1, 1.0]):
 #: 0.143 (per scene 0.04-0.25).
 DEFAULT_BASELINE = 0.14
+#: ``refine_cameras(scale="depth")``: the unit-free centres are scaled so that the median depth of
+#: the scene's triangulated flow matches lies this far into the renderer's depth range [near, far]
+#: (0: at near, 1: at far). The synthetic data was built for the range [0.1, 1.0] with median
+#: depths 0.51 (turntables) and 0.67 (rooms) (docs/DATA.md); the value is chosen on validation
+#: scenes, not the held-out ones (docs/TRAINING.md, "Scale of the epipolar cameras").
+DEPTH_TARGET = 0.5
+#: Matches whose two rays meet at less than this angle (radians, ~1 degree) carry no depth.
+MIN_PARALLAX = 0.0175
+#: How ``refine_cameras`` gives the unit-free centres a scale.
+SCALE_MODES = ("depth", "model")
 #: Values of ``CameraRefinement.source`` / ``Scene.camera_source``.
 CAMERA_SOURCES = ("model", "epipolar", "mixed")
 
@@ -248,7 +260,8 @@ TRANSLATION_SOLVERS = ("baselines", "cross")
 
 
 def solve_global(pairwise: PairwisePoses, *, robust: bool = True,
-                 translation: str = "baselines") -> GlobalSolve:
+                 translation: str = "baselines", matches: dict | None = None,
+                 image_size: tuple[int, int] | None = None) -> GlobalSolve:
     """One camera per view from the trusted pairs of ``pairwise``.
 
     Rotations: chordal averaging, min sum w_ij |R_i - R_j R_ij|_F^2 with R_0 = I, w_ij =
@@ -262,7 +275,15 @@ def solve_global(pairwise: PairwisePoses, *, robust: bool = True,
     - ``"baselines"`` (default): min sum w_ij^2 |c_i - c_j - l_ij d_ij|^2 over the centres and
       one baseline length l_ij per pair, subject to sum l_ij = number of pairs (an equality-
       constrained least squares, closed form); the signs of the d_ij enter the fit itself, so
-      the solution cannot mirror, and the constraint keeps it from collapsing.
+      the solution cannot mirror. Directions alone leave the length of a pair free when one of
+      its views has no other trusted pair (and nearly free on near-collinear chains): the least
+      squares then puts the whole sum on that pair and collapses every other centre onto view 0.
+      With ``matches`` (``all_flow_matches`` of the images, of size ``image_size`` (H, W)) the
+      lengths are also tied to each other by the depths the pairs triangulate: two pairs that
+      share a view see the same pixels there at depths proportional to their baselines, so
+      l_e1 = rho l_e2 with rho the median ratio of their unit-baseline depths over the pixels
+      both triangulate (``_baseline_ratios``), added as rows of weight
+      sqrt(common pixels) to the same least squares.
     - ``"cross"``: min sum w_ij^2 |[d_ij]_x (c_i - c_j)|^2 with |c| = 1 (the smallest right
       singular vector), sign by the majority of (c_i - c_j) . d_ij > 0.
 
@@ -303,8 +324,16 @@ def solve_global(pairwise: PairwisePoses, *, robust: bool = True,
                 res = np.array([np.linalg.norm(R[i] - R[j] @ Rij) for (i, j), Rij in zip(pairs, rel)])
                 R = _chordal_rotations(pairs, rel, w0 / (1.0 + (res / 0.1) ** 2), n)
         dirs = [R[j] @ tij for (i, j), tij in zip(pairs, t)]
-        c, gap = (_centres_baselines if translation == "baselines" else _centres_cross)(
-            pairs, dirs, w0, n)
+        if translation == "baselines":
+            ratios = []
+            if matches is not None:
+                if image_size is None:
+                    raise ValueError("image_size: (H, W) is needed with matches")
+                glob = [(int(idx[a]), int(idx[b])) for a, b in pairs]
+                ratios = _baseline_ratios(matches, pairwise, glob, *image_size)
+            c, gap = _centres_baselines(pairs, dirs, w0, n, ratios)
+        else:
+            c, gap = _centres_cross(pairs, dirs, w0, n)
         T = np.tile(np.eye(4), (n, 1, 1))
         T[:, :3, :3], T[:, :3, 3] = R, c
         out[idx] = T
@@ -327,17 +356,72 @@ def _centres_cross(pairs, dirs, w, n):
     return (-c if votes < 0 else c), gap
 
 
-def _centres_baselines(pairs, dirs, w, n):
-    """c_i - c_j = l_ij d_ij, unknowns c_1 .. c_{n-1} and l, with sum l = P: the KKT system of the
-    equality-constrained least squares; then |c| = 1."""
+#: Pixels two pairs must both triangulate in their shared view to tie their baselines.
+MIN_SHARED_DEPTHS = 20
+
+
+def _unit_depths(p, q, T_ij, H, W, focal):
+    """Depth maps (flat [H * W], NaN where nothing lands) in view i and view j of the matches
+    p (view i) -> q (view j), triangulated with the relative pose ``T_ij`` (cam_from_cam[i, j],
+    |t| = 1): the depths of a unit baseline."""
+    T_i, T_j = np.eye(4), np.linalg.inv(T_ij)
+    X, keep = _triangulate_pair(p, q, T_i, T_j, float(focal) * W, H, W)
+    out = []
+    for T, pix in ((T_i, p), (T_j, q)):
+        z = (X[keep] - T[:3, 3]) @ T[:3, :3][:, 2]
+        front = z > 0                                 # the midpoint, not only the ray, in front
+        z, pix = z[front], pix[keep][front]
+        u = np.clip(np.floor(pix[:, 0]).astype(np.int64), 0, W - 1)
+        v = np.clip(np.floor(pix[:, 1]).astype(np.int64), 0, H - 1)
+        cell = v * W + u
+        sums = np.bincount(cell, np.log(z), minlength=H * W)
+        counts = np.bincount(cell, minlength=H * W)
+        out.append(np.where(counts > 0, sums / np.maximum(counts, 1), np.nan))   # mean log z
+    return out
+
+
+def _baseline_ratios(matches, pairwise, pairs, H, W):
+    """[(e1, e2, rho, weight)]: for pairs e1, e2 (indices into ``pairs``, global view indices)
+    that share a view, l_e1 / l_e2 = rho, the median over the pixels of the shared view that
+    both triangulate of exp(log z_e2 - log z_e1) (unit-baseline depths, ``_unit_depths``)."""
+    logz = {}
+    for e, (i, j) in enumerate(pairs):
+        key = (min(i, j), max(i, j))
+        if key not in matches or len(matches[key][0]) == 0:
+            continue
+        p, q = (np.asarray(x, dtype=np.float64) for x in matches[key])
+        a, b = key
+        za, zb = _unit_depths(p, q, np.asarray(pairwise.cam_from_cam[a, b], np.float64), H, W,
+                              pairwise.focal)
+        logz[e, a], logz[e, b] = za, zb
+    out = []
+    for e1 in range(len(pairs)):
+        for e2 in range(e1 + 1, len(pairs)):
+            for v in set(pairs[e1]) & set(pairs[e2]):
+                if (e1, v) not in logz or (e2, v) not in logz:
+                    continue
+                both = np.isfinite(logz[e1, v]) & np.isfinite(logz[e2, v])
+                if both.sum() >= MIN_SHARED_DEPTHS:
+                    rho = float(np.exp(np.median(logz[e2, v][both] - logz[e1, v][both])))
+                    out.append((e1, e2, rho, float(np.sqrt(both.sum()))))
+    return out
+
+
+def _centres_baselines(pairs, dirs, w, n, ratios=()):
+    """c_i - c_j = l_ij d_ij, unknowns c_1 .. c_{n-1} and l, with sum l = P, plus the rows
+    l_e1 / sqrt(rho) - sqrt(rho) l_e2 = 0 of ``ratios``: the KKT system of the equality-
+    constrained least squares; then |c| = 1."""
     P, m = len(pairs), 3 * (n - 1)
-    A = np.zeros((3 * P, m + P))
+    A = np.zeros((3 * P + len(ratios), m + P))
     for r, ((i, j), d, wk) in enumerate(zip(pairs, dirs, w)):
         rows = slice(3 * r, 3 * r + 3)
         for k, s in ((i, 1.0), (j, -1.0)):
             if k > 0:
                 A[rows, 3 * (k - 1):3 * k] += s * wk * np.eye(3)
         A[rows, m + r] = -wk * d
+    for r, (e1, e2, rho, wk) in enumerate(ratios):
+        A[3 * P + r, m + e1] = wk / np.sqrt(rho)
+        A[3 * P + r, m + e2] = -wk * np.sqrt(rho)
     N = A.T @ A
     ev = np.linalg.eigvalsh(N)                        # >= 2 values: m >= 3 and P >= 1
     gap = float(np.sqrt(max(ev[0], 0.0) / ev[1])) if ev[1] > 1e-12 * ev[-1] else 1.0
@@ -354,11 +438,13 @@ def _centres_baselines(pairs, dirs, w, n):
 
 
 def solve_cameras(pairwise: PairwisePoses, *, robust: bool = True,
-                  translation: str = "baselines") -> np.ndarray:
-    """``world_from_cam [V, 4, 4]`` of the global solve (``solve_global``): view 0 = I, unit-free
-    centres (|c| = 1 over the views), NaN rows for the views view 0 does not reach through trusted
-    pairs (``reachable_views``)."""
-    return solve_global(pairwise, robust=robust, translation=translation).world_from_cam
+                  translation: str = "baselines", matches: dict | None = None,
+                  image_size: tuple[int, int] | None = None) -> np.ndarray:
+    """``world_from_cam [V, 4, 4]`` of the global solve (``solve_global``, with the depth ties of
+    ``matches`` when given): view 0 = I, unit-free centres (|c| = 1 over the views), NaN rows for
+    the views view 0 does not reach through trusted pairs (``reachable_views``)."""
+    return solve_global(pairwise, robust=robust, translation=translation, matches=matches,
+                        image_size=image_size).world_from_cam
 
 
 # -- refinement of a model's cameras ----------------------------------------------------------
@@ -397,6 +483,27 @@ def fit_scale(model_centres: np.ndarray, epipolar_centres: np.ndarray,
     return DEFAULT_BASELINE / be, "constant"
 
 
+def match_depths(matches: dict, world_from_cam: np.ndarray, focal: float, H: int, W: int,
+                 pairs=None) -> np.ndarray:
+    """Depths [N] (z in the first camera of each pair) of the flow matches of ``pairs`` (default:
+    every key of ``matches`` whose two views are solved, i.e. have finite ``world_from_cam
+    [V, 4, 4]``), triangulated at focal fx/W by the closed-form midpoint of the two rays. Matches
+    whose rays meet at under ``MIN_PARALLAX``, or whose midpoint lies behind either camera, are
+    left out. The unit is the cameras' (unit-free for a ``solve_global`` result)."""
+    T = np.asarray(world_from_cam, dtype=np.float64)
+    ok_view = np.isfinite(T).all(axis=(1, 2))
+    F = float(focal) * W
+    out = []
+    for (i, j) in (matches if pairs is None else pairs):
+        if not (ok_view[i] and ok_view[j]) or len(matches[i, j][0]) == 0:
+            continue
+        p, q = (np.asarray(x, dtype=np.float64) for x in matches[i, j])
+        X, keep = _triangulate_pair(p, q, T[i], T[j], F, H, W)
+        z = (X[keep] - T[i, :3, 3]) @ T[i, :3, :3][:, 2]
+        out.append(z[z > 0])
+    return np.concatenate(out) if out else np.zeros(0)
+
+
 @dataclass(frozen=True)
 class CameraRefinement:
     """What ``refine_cameras`` did.
@@ -408,7 +515,8 @@ class CameraRefinement:
                     view)
     solved:         bool [V], the views whose camera comes from the epipolar solve
     scale:          the factor applied to the unit-free epipolar centres
-    scale_source:   "fit", "baseline" or "constant" (``fit_scale``)
+    scale_source:   "depth" (``refine_cameras(scale="depth")``), or "fit", "baseline" or
+                    "constant" (``fit_scale``)
     pairwise:       the ``PairwisePoses`` solved from
     """
     world_from_cam: np.ndarray
@@ -421,7 +529,8 @@ class CameraRefinement:
 
 
 def refine_cameras(images, world_from_cam, focal, *, focal_mode: str = "search",
-                   robust: bool = True) -> CameraRefinement:
+                   robust: bool = True, scale: str = "model",
+                   depth_range: tuple[float, float] | None = None) -> CameraRefinement:
     """A model's predicted cameras replaced by the global epipolar solve of its images.
 
     images:         uint8 [V, H, W, 3], the model-resolution photos the model saw
@@ -439,8 +548,15 @@ def refine_cameras(images, world_from_cam, focal, *, focal_mode: str = "search",
                     only as good as the camera head; the search needs none (median 1.06x the
                     true focal)
 
-    The solve's rotations replace the model's; its unit-free centres are scaled by ``fit_scale``
-    against the model's centres of the solved views. Views view 0 does not reach through trusted
+    scale:          how the unit-free centres get a unit. "model": ``fit_scale`` against the
+                    model's centres of the solved views (the renderer keeps the model's units,
+                    whatever they are). "depth": the median of ``match_depths`` over the trusted
+                    pairs is put ``DEPTH_TARGET`` of the way into ``depth_range`` (near, far),
+                    the renderer's sampling range, which is the unit the training data was built
+                    in (``scale_source`` "depth"; "model" fallback when fewer than
+                    ``MIN_INLIERS`` matches triangulate)
+
+    The solve's rotations replace the model's; its unit-free centres are scaled as ``scale`` says. Views view 0 does not reach through trusted
     pairs keep the model's pose (``source`` "mixed", with the searched focal for all views;
     "model" when no view but view 0 is solved: then the model's poses and focal, unchanged).
     """
@@ -452,35 +568,153 @@ def refine_cameras(images, world_from_cam, focal, *, focal_mode: str = "search",
         raise ValueError(f"world_from_cam: expected [{V}, 4, 4], got {T_model.shape}")
     if focal_mode not in ("model", "search"):
         raise ValueError(f"focal_mode: expected 'model' or 'search', got {focal_mode!r}")
+    if scale not in SCALE_MODES:
+        raise ValueError(f"scale: expected one of {SCALE_MODES}, got {scale!r}")
+    if scale == "depth":
+        near, far = (float(x) for x in np.asarray(depth_range, dtype=np.float64).reshape(2)) \
+            if depth_range is not None else (np.nan, np.nan)
+        if not (np.isfinite(near) and np.isfinite(far) and 0 <= near < far):
+            raise ValueError(f"depth_range: expected (near, far) with 0 <= near < far for "
+                             f"scale='depth', got {depth_range!r}")
     if V == 1:
         pp = PairwisePoses(np.tile(np.eye(4), (1, 1, 1, 1)), np.zeros((1, 1), bool),
                            np.zeros((1, 1), np.int32), float(f_model[0]))
         return CameraRefinement(T_model.copy(), f_model.copy(), "model", np.zeros(1, bool), 1.0,
                                 "constant", pp)
-    pp = pairwise_poses(images, None if focal_mode == "search" else float(f_model[0]))
+    matches = all_flow_matches(images)
+    pp = pairwise_poses(images, None if focal_mode == "search" else float(f_model[0]),
+                        matches=matches)
     f_used = f_model.copy() if focal_mode == "model" else np.array([pp.focal, pp.focal * W / H])
-    sol = solve_global(pp, robust=robust)
+    sol = solve_global(pp, robust=robust, matches=matches, image_size=(H, W))
     solved = sol.solved.copy()
     solved[0] = V > 1 and solved[1:].any()
     out = T_model.copy()
-    scale, how = 1.0, "constant"
+    s, how = 1.0, "constant"
     idx = np.flatnonzero(sol.solved)
     if len(idx) >= 2:
-        scale, how = fit_scale(T_model[idx, :3, 3], sol.world_from_cam[idx, :3, 3],
+        depths = np.zeros(0)
+        if scale == "depth":
+            trusted = [(i, j) for (i, j) in matches if pp.trusted[i, j]]
+            depths = match_depths(matches, sol.world_from_cam, pp.focal, H, W, trusted)
+        if len(depths) >= MIN_INLIERS:
+            s, how = (near + DEPTH_TARGET * (far - near)) / float(np.median(depths)), "depth"
+        else:
+            s, how = fit_scale(T_model[idx, :3, 3], sol.world_from_cam[idx, :3, 3],
                                T_model[:, :3, 3])
         out[idx] = sol.world_from_cam[idx]
-        out[idx, :3, 3] *= scale
+        out[idx, :3, 3] *= s
     out[0] = np.eye(4)
     n_solved = int(sol.solved[1:].sum())
     source = "epipolar" if n_solved == V - 1 else "model" if n_solved == 0 else "mixed"
     if source == "model":                  # nothing solved: the model's cameras and focal
         f_used = f_model.copy()
-    return CameraRefinement(out, f_used, source, solved, float(scale), how, pp)
+    return CameraRefinement(out, f_used, source, solved, float(s), how, pp)
 
 
 # -- queries located with the references fixed -------------------------------------------------
+def reference_depths(matches: dict, world_from_cam: np.ndarray, focal: float, H: int, W: int
+                     ) -> np.ndarray:
+    """Sparse depth maps [V, H, W] (z, the cameras' unit; NaN where no match lands) of V views
+    with known cameras: every flow match of ``matches`` (``all_flow_matches``) triangulated by the
+    ray midpoint (``MIN_PARALLAX``, in front of both cameras), its depth in each of the two views
+    written to the pixel it falls in there, the median where several land."""
+    T = np.asarray(world_from_cam, dtype=np.float64)
+    V = T.shape[0]
+    F = float(focal) * W
+    cells, values = [], []
+    for (i, j), (p, q) in matches.items():
+        if not (np.isfinite(T[i]).all() and np.isfinite(T[j]).all()) or len(p) == 0:
+            continue
+        p, q = np.asarray(p, np.float64), np.asarray(q, np.float64)
+        X, keep = _triangulate_pair(p, q, T[i], T[j], F, H, W)
+        for view, pix in ((i, p[keep]), (j, q[keep])):
+            z = (X[keep] - T[view, :3, 3]) @ T[view, :3, :3][:, 2]
+            front = z > 0                             # the midpoint, not only the ray, in front
+            z, pix = z[front], pix[front]
+            u = np.clip(np.floor(pix[:, 0]).astype(np.int64), 0, W - 1)
+            v = np.clip(np.floor(pix[:, 1]).astype(np.int64), 0, H - 1)
+            cells.append((view * H + v) * W + u)
+            values.append(z)
+    out = np.full(V * H * W, np.nan)
+    cells = np.concatenate(cells) if cells else np.zeros(0, np.int64)
+    values = np.concatenate(values) if values else np.zeros(0)
+    if len(cells):
+        order = np.lexsort((values, cells))
+        cells, values = cells[order], values[order]
+        starts = np.flatnonzero(np.r_[True, cells[1:] != cells[:-1]])
+        ends = np.r_[starts[1:], len(cells)]
+        out[cells[starts]] = 0.5 * (values[(starts + ends - 1) // 2] + values[(starts + ends) // 2])
+    return out.reshape(V, H, W)
+
+
+def _triangulate_pair(p, q, Ti, Tj, F, H, W):
+    """World points [N, 3] of matches p (view i) -> q (view j) by the ray midpoint, and the bool
+    [N] of those with parallax >= ``MIN_PARALLAX`` in front of both cameras."""
+    rays = [np.stack([(x[:, 0] - W / 2) / F, (x[:, 1] - H / 2) / F, np.ones(len(x))], 1)
+            for x in (p, q)]
+    a, e = rays[0] @ Ti[:3, :3].T, rays[1] @ Tj[:3, :3].T
+    w = Ti[:3, 3] - Tj[:3, 3]
+    aa, ae, ee = (a * a).sum(1), (a * e).sum(1), (e * e).sum(1)
+    aw, ew = a @ w, e @ w
+    det = aa * ee - ae * ae
+    good = det / (aa * ee) > np.sin(MIN_PARALLAX) ** 2
+    d = np.where(good, det, 1.0)
+    za, ze = (-aw * ee + ae * ew) / d, (aa * ew - ae * aw) / d
+    X = 0.5 * (Ti[:3, 3] + za[:, None] * a + Tj[:3, 3] + ze[:, None] * e)
+    return X, good & (za > 0) & (ze > 0)
+
+
+#: ``locate_views(method="pnp")``: reprojection threshold (pixels of the model image) of OpenCV's
+#: PnP RANSAC, and the fewest 2D-3D inliers a located query needs.
+PNP_THRESHOLD = 1.0
+PNP_MIN_INLIERS = 30
+#: Query-location methods of ``locate_views``.
+LOCATE_METHODS = ("lines", "pnp")
+
+
+def _locate_pnp(refs, T_ref, focal, query, depths, H, W):
+    """One query's world_from_cam by PnP on its flow to every reference, whose pixels are lifted
+    to 3D by ``depths`` [V, H, W] -> ([4, 4], inliers) or (None, 0)."""
+    F = float(focal) * W
+    obj, img = [], []
+    for j in range(refs.shape[0]):
+        pq, pr = flow_matches(query, refs[j])
+        if len(pq) == 0:
+            continue
+        u = np.clip(np.floor(pr[:, 0]).astype(np.int64), 0, W - 1)
+        v = np.clip(np.floor(pr[:, 1]).astype(np.int64), 0, H - 1)
+        z = depths[j, v, u]
+        ok = np.isfinite(z)
+        if not ok.any():
+            continue
+        pr64 = pr[ok].astype(np.float64)
+        ray = np.stack([(pr64[:, 0] - W / 2) / F, (pr64[:, 1] - H / 2) / F,
+                        np.ones(len(pr64))], 1)
+        obj.append(T_ref[j, :3, 3] + (z[ok][:, None] * ray) @ T_ref[j, :3, :3].T)
+        img.append(pq[ok].astype(np.float64))
+    if not obj:
+        return None, 0
+    obj, img = np.concatenate(obj), np.concatenate(img)
+    if len(obj) < PNP_MIN_INLIERS:
+        return None, 0
+    K = intrinsics(float(focal), H, W)
+    ok, rvec, tvec, inl = cv2.solvePnPRansac(obj, img, K, None, iterationsCount=500,
+                                             reprojectionError=PNP_THRESHOLD, confidence=0.999,
+                                             flags=cv2.SOLVEPNP_EPNP)
+    if not ok or inl is None or len(inl) < PNP_MIN_INLIERS:
+        return None, 0
+    inl = inl.ravel()
+    rvec, tvec = cv2.solvePnPRefineLM(obj[inl], img[inl], K, None, rvec, tvec)
+    R_cw = cv2.Rodrigues(rvec)[0]
+    out = np.eye(4)
+    out[:3, :3] = R_cw.T
+    out[:3, 3] = -R_cw.T @ tvec.ravel()
+    return out, len(inl)
+
+
 def locate_views(reference_images, reference_world_from_cam, focal: float, query_images, *,
-                 robust: bool = True, min_links: int = 2) -> tuple[np.ndarray, np.ndarray]:
+                 robust: bool = True, min_links: int = 2, method: str = "pnp"
+                 ) -> tuple[np.ndarray, np.ndarray]:
     """Poses of query photos with the references' cameras held fixed.
 
     reference_images: uint8 [V, H, W, 3]; reference_world_from_cam [V, 4, 4] (their cameras,
@@ -493,9 +727,19 @@ def locate_views(reference_images, reference_world_from_cam, focal: float, query
     the lines c_j + s R_j t_qj (min sum w_j |[R_j t_qj]_x (c_q - c_j)|^2, w_j = sqrt(inliers)).
     A query with fewer than ``min_links`` trusted links, or whose lines are nearly parallel
     (smallest eigenvalue of the 3x3 normal matrix < 1e-3 of its trace), is not solved.
+    ``method="pnp"`` (default) instead lifts the references' pixels to 3D (``reference_depths`` of their
+    pairwise flow, triangulated with their cameras) and solves each query's pose from its flow
+    to every reference by OpenCV's PnP RANSAC (EPnP, ``PNP_THRESHOLD`` px, then Levenberg-
+    Marquardt on the inliers): the centre's distance comes from the references' scale rather than
+    from intersecting direction lines. A query with fewer than ``PNP_MIN_INLIERS`` inliers falls
+    back to the "lines" solve. Chosen on 48 validation scenes (seeds 50000-50047, iris-eval's
+    protocol: 5 references solved, 3 targets located; docs/TRAINING.md, "Epipolar cameras"):
+    RPA@15 / @30 0.517 / 0.709 against 0.504 / 0.701 with "lines".
     Returns ``(world_from_cam [Q, 4, 4] with NaN for unsolved queries, solved bool [Q])``.
     Deterministic (OpenCV's RNG is seeded with 0 per query).
     """
+    if method not in LOCATE_METHODS:
+        raise ValueError(f"method: expected one of {LOCATE_METHODS}, got {method!r}")
     refs = _check_images(reference_images)
     queries = _check_images(query_images)
     T_ref = np.asarray(reference_world_from_cam, dtype=np.float64)
@@ -509,8 +753,16 @@ def locate_views(reference_images, reference_world_from_cam, focal: float, query
     Q = queries.shape[0]
     out = np.full((Q, 4, 4), np.nan)
     ok = np.zeros(Q, dtype=bool)
+    depths = None
+    if method == "pnp":
+        depths = reference_depths(all_flow_matches(refs), T_ref, focal, H, W)
     for q in range(Q):
         cv2.setRNGSeed(0)
+        if depths is not None:
+            T_q, n = _locate_pnp(refs, T_ref, focal, queries[q], depths, H, W)
+            if T_q is not None:
+                out[q], ok[q] = T_q, True
+                continue
         matches = {(0, j + 1): flow_matches(queries[q], refs[j]) for j in range(V)}
         pp = relative_poses(matches, V + 1, K)
         links = [j for j in range(V) if pp.trusted[0, j + 1]]

@@ -317,12 +317,13 @@ class IrisRuntime:
         for one photo, ``[Q, 4, 4]`` for a sequence (OpenCV axes, the scene's canonical frame:
         its first reference is the identity; the scene's shared focal applies).
 
-        The pose is always the model's prediction, also for a Scene encoded with
-        ``cameras="epipolar"``: it is then in the frame of the encoder's cameras of the
-        references, which shares view 0 (= I) and, through the scale fit, the unit with the
-        scene's epipolar cameras, but not the other views' rotations. (An epipolar pose of a
-        query with the references fixed is ``iris_runtime.epipolar.locate_views``; iris-eval
-        measures it, see README "Epipolar cameras"; not wired in here yet.)
+        For a Scene encoded with ``cameras="epipolar"`` (``camera_source`` "epipolar" or
+        "mixed") the pose is the epipolar one with the scene's cameras held fixed
+        (``iris_runtime.epipolar.locate_views``: PnP on the references' triangulated pixels, or
+        the intersection of the pairwise directions), in the scene's frame and unit; a photo it
+        cannot pose (too few trusted links or inliers) gets the model's prediction, which lies in
+        the frame of the encoder's reference cameras (same view 0 and, through the scale, unit,
+        but not the other views' rotations). Otherwise the pose is the model's prediction.
         """
         if not isinstance(scene, Scene):
             raise InputError(f"scene: expected a Scene from IrisRuntime.encode, got "
@@ -352,6 +353,13 @@ class IrisRuntime:
                                  f"images it was encoded from)")
             poses.append(world_from_cam[N:].astype(np.float64))
         poses = np.concatenate(poses)
+        if scene.camera_source != "model" and scene.image_index is not None:
+            from . import epipolar
+            to_uint8 = lambda x: np.rint(x * 255.0).astype(np.uint8).transpose(0, 2, 3, 1)
+            epi, solved = epipolar.locate_views(to_uint8(refs[scene.image_index]),
+                                                scene.world_from_cam, float(scene.focal[0]),
+                                                to_uint8(queries))
+            poses = np.where(solved[:, None, None], epi, poses)
         return poses[0] if single else poses
 
     # -- rendering --------------------------------------------------------------------------

@@ -190,9 +190,11 @@ def test_fit_scale_least_squares_and_its_fallbacks():
     assert s * np.linalg.norm(ce[i] - ce[j], axis=1).mean() == pytest.approx(E.DEFAULT_BASELINE)
 
 
-def _refine_with(monkeypatch, pp, model_poses, focal=(0.9, 0.9)):
-    """refine_cameras with the pairwise step replaced by ``pp`` (no images needed)."""
+def _refine_with(monkeypatch, pp, model_poses, focal=(0.9, 0.9), matches=None):
+    """refine_cameras with the pairwise step replaced by ``pp`` and the flow by ``matches``
+    (default: none, so the translations come from the directions alone; no images needed)."""
     monkeypatch.setattr(E, "pairwise_poses", lambda images, focal=None, **kw: pp)
+    monkeypatch.setattr(E, "all_flow_matches", lambda images: {} if matches is None else matches)
     images = np.zeros((len(model_poses), 16, 16, 3), np.uint8)
     return E.refine_cameras(images, model_poses, np.asarray(focal))
 
@@ -235,6 +237,112 @@ def test_refine_cameras_keeps_the_model_for_unreachable_views(monkeypatch):
     assert ref.source == "model" and not ref.solved.any()
     np.testing.assert_array_equal(ref.world_from_cam, model)
     np.testing.assert_array_equal(ref.focal, [0.7, 0.6])
+
+
+# ----------------------------------------------------------------------------------------------
+# depths from correspondences: triangulation, baseline ties, scale to a depth range (numpy only)
+# ----------------------------------------------------------------------------------------------
+
+H_SYN = W_SYN = 64
+F_SYN = 1.0                                        # fx / W
+
+
+def _forward_cameras(rng, n, spread=0.15, max_angle=0.15):
+    """n cameras looking down +z near the origin (view 0 = I), so a cloud at z in [2, 4] is in
+    front of all of them."""
+    T = np.tile(np.eye(4), (n, 1, 1))
+    for k in range(1, n):
+        T[k, :3, :3] = _rotation(rng, max_angle)
+        T[k, :3, 3] = spread * rng.normal(size=3)
+    return T
+
+
+def _exact_matches(truth, rng, n_points=3000):
+    """``{(i, j): (p, q)}`` for i < j: the projections of one point cloud seen by every view
+    (pixels, centres at +0.5) and the points' depths ``z [V, N]`` in each camera."""
+    X = np.stack([rng.uniform(-1.2, 1.2, n_points), rng.uniform(-1.2, 1.2, n_points),
+                  rng.uniform(2.0, 4.0, n_points)], 1)
+    K = E.intrinsics(F_SYN, H_SYN, W_SYN)
+    pix, z = [], []
+    for T in truth:
+        Y = (X - T[:3, 3]) @ T[:3, :3]
+        z.append(Y[:, 2])
+        pix.append((Y @ K.T)[:, :2] / Y[:, 2:])
+    pix, z = np.stack(pix), np.stack(z)
+    seen = ((pix > 0.0) & (pix < W_SYN)).all(axis=(0, 2)) & (z > 0).all(0)
+    V = len(truth)
+    matches = {(i, j): (pix[i, seen], pix[j, seen]) for i in range(V) for j in range(i + 1, V)}
+    return matches, z[:, seen]
+
+
+def test_match_depths_are_the_true_depths():
+    rng = np.random.default_rng(20)
+    truth = _forward_cameras(rng, 4)
+    matches, z = _exact_matches(truth, rng)
+    d = E.match_depths(matches, truth, F_SYN, H_SYN, W_SYN, pairs=[(0, 1)])
+    # Only the matches whose rays meet at under MIN_PARALLAX are left out.
+    a = (matches[0, 1][0] - [W_SYN / 2, H_SYN / 2]) / (F_SYN * W_SYN)
+    b = (matches[0, 1][1] - [W_SYN / 2, H_SYN / 2]) / (F_SYN * W_SYN)
+    ra = np.c_[a, np.ones(len(a))] @ truth[0, :3, :3].T
+    rb = np.c_[b, np.ones(len(b))] @ truth[1, :3, :3].T
+    cos = (ra * rb).sum(1) / np.linalg.norm(ra, axis=1) / np.linalg.norm(rb, axis=1)
+    enough = np.arccos(np.clip(cos, -1, 1)) > E.MIN_PARALLAX
+    assert 0.5 * z.shape[1] < len(d) == enough.sum()
+    np.testing.assert_allclose(d, z[0, enough], rtol=1e-9)
+    # The depths of every pair, in its first camera; a view without a camera (NaN) is skipped.
+    gone = truth.copy()
+    gone[3] = np.nan
+    every = E.match_depths(matches, gone, F_SYN, H_SYN, W_SYN)
+    assert len(every) <= 3 * z.shape[1]            # pairs (0,1), (0,2), (1,2) only
+    # Sparse depth maps: a pixel holding exactly one point has that point's depth.
+    maps = E.reference_depths({(0, 1): matches[0, 1]}, truth, F_SYN, H_SYN, W_SYN)
+    assert maps.shape == (4, H_SYN, W_SYN) and np.isnan(maps[2:]).all()
+    p = matches[0, 1][0]
+    cell = np.floor(p[:, 1]).astype(int) * W_SYN + np.floor(p[:, 0]).astype(int)
+    single = np.flatnonzero((np.bincount(cell, minlength=H_SYN * W_SYN)[cell] == 1) & enough)
+    np.testing.assert_allclose(maps[0].ravel()[cell[single]], z[0, single], rtol=1e-9)
+
+
+def test_depth_ties_fix_the_baseline_of_a_view_with_one_pair():
+    rng = np.random.default_rng(21)
+    truth = _forward_cameras(rng, 5)
+    matches, _ = _exact_matches(truth, rng)
+    trusted = np.zeros((5, 5), bool)
+    for i, j in [(0, 1), (0, 2), (1, 2), (2, 3), (3, 4)]:      # views 3 and 4 hang on one pair each
+        trusted[i, j] = trusted[j, i] = True
+    pp = _exact_pairwise(truth, trusted)
+    pp = E.PairwisePoses(pp.cam_from_cam, pp.trusted, pp.inliers, F_SYN)
+    tied = E.solve_global(pp, matches=matches, image_size=(H_SYN, W_SYN)).world_from_cam
+    np.testing.assert_allclose(tied[:, :3, :3], truth[:, :3, :3], atol=1e-9)
+    np.testing.assert_allclose(_fitted_centres(tied, truth)[1], truth[:, :3, 3], atol=1e-8)
+    # Directions alone cannot fix those two lengths: the same solve without the ties is off.
+    free = E.solve_cameras(pp)
+    assert np.abs(_fitted_centres(free, truth)[1] - truth[:, :3, 3]).max() > 1e-3
+    with pytest.raises(ValueError, match="image_size"):
+        E.solve_global(pp, matches=matches)
+
+
+def test_refine_cameras_scales_the_scene_into_the_depth_range(monkeypatch):
+    rng = np.random.default_rng(22)
+    truth = _forward_cameras(rng, 5)
+    matches, _ = _exact_matches(truth, rng)
+    pp = _exact_pairwise(truth)
+    pp = E.PairwisePoses(pp.cam_from_cam, pp.trusted, pp.inliers, F_SYN)
+    model = np.tile(np.eye(4), (5, 1, 1))
+    monkeypatch.setattr(E, "pairwise_poses", lambda images, focal=None, **kw: pp)
+    monkeypatch.setattr(E, "all_flow_matches", lambda images: matches)
+    images = np.zeros((5, H_SYN, W_SYN, 3), np.uint8)
+    ref = E.refine_cameras(images, model, [F_SYN, F_SYN], scale="depth", depth_range=(0.1, 1.0))
+    assert ref.scale_source == "depth" and ref.source == "epipolar"
+    d = E.match_depths(matches, ref.world_from_cam, F_SYN, H_SYN, W_SYN)
+    assert np.median(d) == pytest.approx(0.1 + E.DEPTH_TARGET * 0.9, rel=1e-9)
+    np.testing.assert_allclose(_fitted_centres(ref.world_from_cam, truth)[1], truth[:, :3, 3],
+                               atol=1e-8)
+    for bad in (None, (1.0, 0.1), (0.1, np.inf), (-1.0, 1.0)):
+        with pytest.raises(ValueError, match="depth_range"):
+            E.refine_cameras(images, model, [F_SYN, F_SYN], scale="depth", depth_range=bad)
+    with pytest.raises(ValueError, match="scale"):
+        E.refine_cameras(images, model, [F_SYN, F_SYN], scale="metric")
 
 
 def test_refine_cameras_single_view_and_bad_arguments():
@@ -346,14 +454,24 @@ def test_locate_views_with_the_references_fixed(rendered):
     truth = _canonical(rendered.world_from_cam)
     refs, queries = [0, 2, 3, 5, 7], [1, 4, 6]
     focal = rendered.K[0, 0] / rendered.images.shape[2]
-    T, ok = E.locate_views(rendered.images[refs], truth[refs], focal, rendered.images[queries])
+    T, ok = E.locate_views(rendered.images[refs], truth[refs], focal, rendered.images[queries],
+                           method="lines")
     assert ok.all()
     assert _rotation_errors_deg(T, truth[queries]).max() < 5.0
     baseline = np.linalg.norm(truth[refs, :3, 3] - truth[0, :3, 3], axis=1).mean()
     assert np.linalg.norm(T[:, :3, 3] - truth[queries, :3, 3], axis=1).max() < 0.35 * baseline
-    # Too few links asked for: unsolved, NaN.
+    # PnP on the references' triangulated pixels: as close.
     T, ok = E.locate_views(rendered.images[refs], truth[refs], focal, rendered.images[queries],
-                           min_links=6)
+                           method="pnp")
+    assert ok.all()
+    assert _rotation_errors_deg(T, truth[queries]).max() < 5.0
+    assert np.linalg.norm(T[:, :3, 3] - truth[queries, :3, 3], axis=1).max() < 0.35 * baseline
+    with pytest.raises(ValueError, match="method"):
+        E.locate_views(rendered.images[refs], truth[refs], focal, rendered.images[queries],
+                       method="p3p")
+    # Too few links asked for (the lines solve): unsolved, NaN.
+    T, ok = E.locate_views(rendered.images[refs], truth[refs], focal, rendered.images[queries],
+                           min_links=6, method="lines")
     assert not ok.any() and np.isnan(T).all()
 
 
@@ -379,7 +497,14 @@ def test_runtime_epipolar_cameras_beat_the_model(rendered, model_dir):
     assert epi.focal[0] in E.FOCAL_GRID
     np.testing.assert_allclose(epi.K, epi.intrinsics())
     np.testing.assert_array_equal(epi.encoder_focal, model.focal)
-    np.testing.assert_array_equal(rt.locate(epi, images[1]), rt.locate(model, images[1]))
+    # locate on an epipolar scene: the epipolar pose with the scene's cameras fixed; a view
+    # left out of the scene comes back near the camera the full solve gave it.
+    left_out = epi.subset([0, 2, 3, 4, 5, 6, 7])
+    T1 = rt.locate(left_out, images[1])
+    assert _rotation_errors_deg(T1[None], epi.world_from_cam[1:2])[0] < 5.0
+    spread = np.linalg.norm(ce, axis=1).mean()
+    assert np.linalg.norm(T1[:3, 3] - ce[1]) < 0.35 * spread
+    assert not np.array_equal(T1, rt.locate(model, images[1]))
     assert rt.render(epi, 2).shape == (64, 64, 3)
     sub = epi.subset([0, 3])
     assert sub.camera_source == "epipolar"
