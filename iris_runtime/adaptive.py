@@ -45,9 +45,16 @@ import numpy as np
 from . import geometry as G
 from .raymarch import MarchResult, MarchStats
 
-__all__ = ["Rendered", "render", "untrusted", "coarse_size", "depth_windows"]
+__all__ = ["Rendered", "render", "untrusted", "coarse_size", "depth_windows",
+           "BYTES_PER_PIXEL"]
 
 f32 = np.float32
+
+#: Most bytes per pixel of the render that ``render`` holds at once, the fine pass's rgb and
+#: depth included (the exact path holds 16 there): the upsampled coarse pass, the trust score,
+#: the refined pixels' indices and, with ``depth_window``, every pixel's window and their order
+#: (tests/test_adaptive.py measures it with tracemalloc; ``limits.MAX_OUTPUT_PIXELS``).
+BYTES_PER_PIXEL = 80
 
 
 @dataclass(frozen=True, eq=False)
@@ -80,12 +87,20 @@ def _centre_index(n_out: int, n_in: int) -> np.ndarray:
     return np.minimum((np.arange(n_out) + 0.5) * n_in // n_out, n_in - 1).astype(np.int64)
 
 
-def _bilinear_pair(n_out: int, n_in: int) -> tuple[np.ndarray, np.ndarray]:
-    """For each of ``n_out`` pixels along an axis, the two of ``n_in`` that linear interpolation
-    (pixel centres aligned, edges clamped: ``cv2.resize`` INTER_LINEAR) reads."""
+def _bilinear_floor(n_out: int, n_in: int) -> np.ndarray:
+    """For each of ``n_out`` pixels along an axis, ``floor`` of its position among ``n_in``
+    (pixel centres aligned), in [-1, n_in - 1]: linear interpolation (``cv2.resize``
+    INTER_LINEAR) reads the input pixels ``floor`` and ``floor + 1``, clamped to the edges."""
     x = (np.arange(n_out) + 0.5) * (n_in / n_out) - 0.5
-    i0 = np.floor(x).astype(np.int64)
-    return np.clip(i0, 0, n_in - 1), np.clip(i0 + 1, 0, n_in - 1)
+    return np.clip(np.floor(x), -1, n_in - 1).astype(np.int64)
+
+
+def _over_pairs(a: np.ndarray, reduce) -> np.ndarray:
+    """``a`` [h, w] -> [h + 1, w + 1]: entry (i, j) is ``reduce`` over the 2 x 2 pixels that
+    linear interpolation reads for a floor position (i - 1, j - 1) (``_bilinear_floor``),
+    edge-clamped."""
+    p = np.pad(a, 1, mode="edge")
+    return reduce(reduce(p[:-1, :-1], p[1:, :-1]), reduce(p[:-1, 1:], p[1:, 1:]))
 
 
 def untrusted(rgb: np.ndarray, depth: np.ndarray, height: int, width: int,
@@ -115,21 +130,21 @@ def depth_windows(mode: np.ndarray, mass: np.ndarray, height: int, width: int,
     -> int64 [height * width, 2], row-major: from ``window`` bins before the smallest to
     ``window`` bins after the largest mode of the 2 x 2 coarse rays the pixel lies between;
     ``[0, S)`` where one of them has ``mass < min_mass`` or no weight at all (no valid sample).
+    Computed per 2 x 2 block of coarse rays, then looked up per pixel (16 bytes per pixel).
     """
-    h, w = mode.shape
     S = len(z_bins)
     dz = (float(z_bins[-1]) - float(z_bins[0])) / max(1, S - 1)
-    ys, xs = _bilinear_pair(height, h), _bilinear_pair(width, w)
-    corners = [(y[:, None], x[None, :]) for y in ys for x in xs]
-    lo_z = np.min([mode[c] for c in corners], axis=0).reshape(-1) - window * dz
-    hi_z = np.max([mode[c] for c in corners], axis=0).reshape(-1) + window * dz
-    least = np.min([mass[c] for c in corners], axis=0).reshape(-1)
+    least = _over_pairs(mass, np.minimum)
     trusted = (least >= min_mass) & (least > 0)          # 0: a coarse ray that saw nothing
-    # Modes are bin centres: half a bin of slack makes the rounding of lo_z / hi_z irrelevant.
-    lo = np.searchsorted(z_bins, lo_z - 0.5 * dz, side="left")
-    hi = np.searchsorted(z_bins, hi_z + 0.5 * dz, side="right")
-    lo, hi = np.where(trusted, lo, 0), np.where(trusted, np.maximum(hi, lo + 1), S)
-    return np.stack([lo, np.minimum(hi, S)], axis=1).astype(np.int64)
+    # Modes are bin centres: half a bin of slack makes the rounding of the bounds irrelevant.
+    lo = np.searchsorted(z_bins, _over_pairs(mode, np.minimum) - (window + 0.5) * dz, "left")
+    hi = np.searchsorted(z_bins, _over_pairs(mode, np.maximum) + (window + 0.5) * dz, "right")
+    blocks = np.stack([np.where(trusted, lo, 0),
+                       np.where(trusted, np.clip(hi, lo + 1, S), S)], axis=-1)   # [h+1, w+1, 2]
+    h, w = mode.shape
+    rows, cols = _bilinear_floor(height, h) + 1, _bilinear_floor(width, w) + 1
+    return blocks[rows[:, None], cols[None, :]].reshape(height * width, 2).astype(np.int64,
+                                                                               copy=False)
 
 
 def render(settings, march_at: Callable[..., MarchResult], height: int, width: int, *,
@@ -157,8 +172,8 @@ def render(settings, march_at: Callable[..., MarchResult], height: int, width: i
     stats = MarchStats()
     stats.add(coarse.stats)
     rgb_c, depth_c = coarse.rgb.reshape(h, w, 3), coarse.depth.reshape(h, w)
-    if settings.refine is None:                       # depth-guided only: march every pixel
-        pixels, rgb, depth = np.arange(n), np.empty((n, 3), f32), np.empty(n, f32)
+    if settings.refine is None:                # depth-guided only: march every pixel (None)
+        pixels, rgb, depth = None, np.empty((n, 3), f32), np.empty(n, f32)
     else:
         interp = cv2.INTER_CUBIC if settings.upsample == "cubic" else cv2.INTER_LINEAR
         rgb = np.clip(cv2.resize(rgb_c, (width, height), interpolation=interp), 0.0, 1.0)
@@ -173,11 +188,12 @@ def render(settings, march_at: Callable[..., MarchResult], height: int, width: i
     if guided:
         z_bins = G.sample_depths(near, far, samples, 1, dtype=f32)[0]      # the march's depths
         windows = depth_windows(coarse.mode.reshape(h, w), coarse.mass.reshape(h, w), height,
-                                width, z_bins, settings.depth_window,
-                                settings.depth_mass)[pixels]
+                                width, z_bins, settings.depth_window, settings.depth_mass)
+        if pixels is not None:
+            windows = windows[pixels]
         # Rays of equal window length side by side: a block traces its longest window.
         order = np.argsort(windows[:, 1] - windows[:, 0], kind="stable")
-        pixels, windows = pixels[order], windows[order]
+        pixels, windows = (order if pixels is None else pixels[order]), windows[order]
     coarse_s = time.perf_counter() - t0
     if len(pixels):
         fine = march_at(height, width, pixel_index=pixels, sample_window=windows,

@@ -22,8 +22,10 @@ __all__ = ["RENDER_BUDGET", "MAX_CHUNK_RAYS", "MAX_OUTPUT_PIXELS", "MAX_ENCODER_
 RENDER_BUDGET = 32 * 1024
 MAX_CHUNK_RAYS = 256
 #: Output pixels per render (4096 x 4096). The output is assembled whole: float32 rgb + depth, the
-#: uint8 image and the clipping temporaries take ~31 bytes per pixel, 0.5 GB at this limit.
-#: Larger views: render tiles with ``intrinsics``.
+#: uint8 image and the clipping temporaries take ~31 bytes per pixel, 0.5 GB at this limit; a
+#: coarse-to-fine render (``refine``, ``depth_window``) up to ``adaptive.BYTES_PER_PIXEL`` - 16
+#: more while it chooses what to march, ~1.6 GB at this limit. Larger views: render tiles with
+#: ``intrinsics``.
 MAX_OUTPUT_PIXELS = 4096 * 4096
 #: Encoder tokens per ``encode`` call: views x (patches per view + 1 camera token). Cross-view
 #: attention memory grows with the square of the tokens; 4160 tokens (64 views of the tiny model,

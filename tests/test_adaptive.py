@@ -116,10 +116,12 @@ def test_adaptive_preset():
 def test_coarse_size_and_interpolation_footprint():
     assert adaptive.coarse_size(64, 64, 0.25) == (16, 16)
     assert adaptive.coarse_size(3, 5, 0.1) == (1, 1)
-    # cv2.resize INTER_LINEAR reads, per output pixel, the two input pixels _bilinear_pair names.
+    # cv2.resize INTER_LINEAR reads, per output pixel, the input pixels floor and floor + 1
+    # (clamped) of _bilinear_floor.
     import cv2
     for n_out, n_in in ((24, 6), (20, 5), (7, 3), (5, 5)):
-        i0, i1 = adaptive._bilinear_pair(n_out, n_in)
+        f = adaptive._bilinear_floor(n_out, n_in)
+        i0, i1 = np.clip(f, 0, n_in - 1), np.clip(f + 1, 0, n_in - 1)
         for j in range(n_in):
             row = np.zeros((1, n_in), np.float32)
             row[0, j] = 1.0
@@ -137,6 +139,36 @@ def test_untrusted_flags_edges_not_flat_regions():
     np.testing.assert_allclose(score[:8, 14:18], 0.4, atol=1e-6)    # next to the colour edge
     np.testing.assert_allclose(score[:8, :8], 0.0)                  # flat
     np.testing.assert_allclose(score[21:27, :8], 0.5, atol=1e-6)    # next to the depth edge
+
+
+@pytest.mark.parametrize("kw", [dict(refine=0.1, refine_budget=0.12), dict(refine=0.0),
+                                dict(depth_window=8, depth_mass=0.5),
+                                dict(refine=0.0, refine_budget=0.5, depth_window=8,
+                                     depth_mass=0.5)])
+def test_memory_per_pixel_is_bounded(kw):
+    """``adaptive.BYTES_PER_PIXEL``, measured with a stand-in march that returns what the real
+    one returns (its own per-call memory is ``limits.render_memory_bound``'s)."""
+    import tracemalloc
+    rng = np.random.default_rng(0)
+    z = np.linspace(0.1, 1.0, 64, dtype=np.float32)
+
+    def march_at(h, w, pixel_index=None, sample_window=None, mode_radius=None, progress=None):
+        n = h * w if pixel_index is None else len(pixel_index)
+        rgb, depth = rng.random((n, 3), dtype=np.float32), rng.random(n, dtype=np.float32)
+        if mode_radius is None:
+            return raymarch.MarchResult(rgb, depth, raymarch.MarchStats())
+        return raymarch.MarchResult(rgb, depth, raymarch.MarchStats(),
+                                    z[rng.integers(0, 64, n)], rng.random(n, dtype=np.float32))
+
+    n = 512 * 512
+    tracemalloc.start()
+    try:
+        adaptive.render(Q.RenderSettings(**kw), march_at, 512, 512, near=0.1, far=1.0,
+                        samples=64)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak <= adaptive.BYTES_PER_PIXEL * n
 
 
 def test_depth_windows():
