@@ -154,8 +154,9 @@ def main(argv=None) -> int:
               f"gt {r['psnr_gt_delta']:+.3f} (worst frame {r['psnr_gt_delta_worst_frame']:+.3f})")
     for r in depth:
         print(f"depth window {r['depth_window']:2d} mass {r['depth_mass']:.1f}: windowed "
-              f"{100 * r['windowed_fraction']:.1f}%  samples kept {100 * r['kept_sample_fraction']:.1f}%"
-              f"  PSNR vs full {r['psnr_vs_full']:.2f}  gt {r['psnr_gt_delta']:+.3f}  "
+              f"{100 * r['windowed_fraction']:.1f}%  samples kept "
+              f"{100 * r['kept_sample_fraction']:.1f}%  PSNR vs full {r['psnr_vs_full']:.2f}  "
+              f"gt {r['psnr_gt_delta']:+.3f}  "
               f"max abs {r['max_abs_vs_full']:.2f}")
     return 0
 

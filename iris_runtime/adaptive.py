@@ -15,8 +15,9 @@ One **coarse pass** marches the view at ``settings.coarse`` x its resolution wit
   only wrong where the image or the geometry changes within the footprint it interpolates over
   (colour edges, texture, occlusion boundaries). A pixel of the render takes the score of the
   coarse pixel containing its centre, whose 3 x 3 neighbourhood holds the 2 x 2 pixels bilinear
-  interpolation reads. Pixels scoring ``>= refine`` are refined, at most ``refine_budget`` of
-  all (rounded; highest scores first): a threshold says what error is tolerated, a budget bounds the time.
+  interpolation reads (bicubic reads 4 x 4, one pixel further on two sides). Pixels scoring
+  ``>= refine`` are refined, at most ``refine_budget`` of all (rounded; highest scores first):
+  a threshold says what error is tolerated, a budget bounds the time.
 - **Depth-guided samples** (``depth_window``): the coarse pass also keeps each ray's weight mode
   (the depth of its largest renderer weight) and the weight within ``depth_window`` bins of it.
   A ray of the render keeps the samples from ``depth_window`` bins before the nearest to
