@@ -16,9 +16,10 @@ A thin command line over ``IrisRuntime``. It encodes the input images once, then
 
 ``--cameras epipolar`` replaces the model's predicted cameras of the inputs by the global epipolar
 solve of the photos (``IrisRuntime.encode(images, cameras="epipolar")``: optical flow, essential
-matrices at a grid-searched focal, rotation and translation averaging, centres scaled to the
-model's units); every output (renders, ``--view`` poses, orbit, camera files) then uses those
-cameras and that focal. ``--locate`` keeps the model's prediction of the photo's pose.
+matrices at a grid-searched focal, rotation averaging, translation averaging with baselines tied
+by triangulated depth, the scene's median depth put in the middle of the renderer's depth range);
+every output (renders, ``--view`` poses, orbit, camera files) then uses those cameras and that
+focal, and ``--locate`` poses the photo against them (PnP on the inputs' triangulated pixels).
 
 Written to OUT (created if needed; files of the same name are replaced):
 
@@ -122,8 +123,8 @@ def build_parser() -> argparse.ArgumentParser:
                              "IMAGES")
     p.add_argument("--cameras", choices=["model", "epipolar"], default="model",
                    help="cameras of the inputs: the model's prediction (default) or the global "
-                        "epipolar solve of the photos, scaled to the model's units (~1 s per 8 "
-                        "views; views it cannot reach keep the model's camera)")
+                        "epipolar solve of the photos, scaled to the renderer's depth range (a "
+                        "few seconds per 8 views; views it cannot pose keep the model's camera)")
     out = p.add_argument_group("output and speed")
     out.add_argument("--size", metavar="HxW", type=_size,
                      help="output size (default: the model's resolution)")

@@ -257,10 +257,10 @@ class IrisRuntime:
                  "epipolar": the field maps are the encoder's as always, but the poses are the
                  global epipolar solve of the model-resolution images
                  (``iris_runtime.epipolar.refine_cameras``: DIS flow, an essential matrix per
-                 pair at the grid-searched focal, rotation and translation averaging), with the
-                 centres scaled by least squares onto the encoder's centres (so the renderer
-                 keeps its units; collapsed or opposed model centres: the model's mean baseline
-                 or ``epipolar.DEFAULT_BASELINE``, see ``epipolar.fit_scale``). The grid-searched
+                 pair at the grid-searched focal, rotation averaging, translation averaging
+                 with the baselines tied by triangulated depth), with the centres scaled so
+                 that the scene's median triangulated depth lies ``epipolar.DEPTH_TARGET`` of
+                 the way into the renderer's depth range [near, far]. The grid-searched
                  focal becomes the Scene's ``focal`` and ``K`` (rendering uses the focal the
                  poses were solved at); the encoder's is kept in ``Scene.encoder_focal``. Views
                  that view 0 does not reach through trusted pairs keep the encoder's camera
@@ -294,7 +294,7 @@ class IrisRuntime:
         from . import epipolar
         # The batch is uint8 / 255 in float32: rint(x * 255) gives the uint8 pixels back exactly.
         pixels = np.rint(batch * 255.0).astype(np.uint8).transpose(0, 2, 3, 1)
-        ref = epipolar.refine_cameras(pixels, poses64, focal64)
+        ref = epipolar.refine_cameras(pixels, poses64, focal64, depth_range=(self.near, self.far))
         timings["cameras"] = timings.get("cameras", 0.0) + (time.perf_counter() - t2)
         same_focal = bool(np.array_equal(ref.focal, focal64))
         return Scene(maps, ref.world_from_cam, ref.focal,

@@ -34,7 +34,7 @@ from iris_runtime.images import CropResize, fit_to_model, load_image
 
 from .synthetic import GENERATOR_VERSION, SceneData, render_scene
 
-__all__ = ["TRAIN_SEEDS", "HELDOUT_SEEDS", "IMAGE_SUFFIXES", "default_cache_dir", "SyntheticScenes",
+__all__ = ["TRAIN_SEEDS", "HELDOUT_SEEDS", "VALIDATION_SEEDS", "IMAGE_SUFFIXES", "default_cache_dir", "SyntheticScenes",
            "pregenerate", "main", "save_scene", "load_scene", "FolderScene", "load_scene_folder",
            "load_dataset_folder", "relative_to_first"]
 
@@ -44,6 +44,10 @@ __all__ = ["TRAIN_SEEDS", "HELDOUT_SEEDS", "IMAGE_SUFFIXES", "default_cache_dir"
 TRAIN_SEEDS = range(0, 100_000)
 HELDOUT_SEEDS = tuple(range(1_000_000, 1_000_016))
 assert min(HELDOUT_SEEDS) > TRAIN_SEEDS[-1]
+# Validation: where choices are made (methods, constants), so that the held-out scenes only ever
+# report. Inside the training range but above any run's --train-scenes so far (training uses
+# seeds 0 .. train_scenes - 1; iris_train.train refuses a count that would reach them).
+VALIDATION_SEEDS = tuple(range(50_000, 50_048))
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 

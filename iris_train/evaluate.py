@@ -213,7 +213,8 @@ class _TorchBackend:
         self.last_source = "model"
         if cameras == "epipolar":
             from iris_runtime.epipolar import refine_cameras
-            ref = refine_cameras(np.ascontiguousarray(images), self.poses(scene), _focal_of(scene))
+            ref = refine_cameras(np.ascontiguousarray(images), self.poses(scene), _focal_of(scene),
+                                 depth_range=self.depth_range)
             scene = dataclasses.replace(
                 scene, world_from_cam=torch.as_tensor(ref.world_from_cam).to(scene.world_from_cam),
                 focal=torch.as_tensor(ref.focal).to(scene.focal))
@@ -645,21 +646,27 @@ def load_evaluable(path: str | os.PathLike, threads: int | None = None):
     return load_model(path)
 
 
+#: DATA values naming a synthetic set: the held-out scenes (the record) and the validation scenes
+#: (where choices are made; iris_train.data.VALIDATION_SEEDS).
+SYNTHETIC_SETS = ("synthetic:heldout", "synthetic:validation")
+
+
 def load_scenes(data: str, image_size: tuple[int, int], views: int = DEFAULT_VIEWS,
                 limit: int | None = None) -> tuple[Iterable, int]:
-    """DATA argument -> (scenes, count). ``synthetic:heldout`` renders the held-out synthetic scenes
-    lazily; anything else is a folder of scene folders (``iris_train.data.load_dataset_folder``)."""
-    if data == "synthetic:heldout":
-        from .data import HELDOUT_SEEDS, SyntheticScenes
+    """DATA argument -> (scenes, count). ``synthetic:heldout`` / ``synthetic:validation`` render
+    the held-out / validation synthetic scenes lazily; anything else is a folder of scene folders (``iris_train.data.load_dataset_folder``)."""
+    if data in SYNTHETIC_SETS:
+        from . import data as D
+        seeds = D.HELDOUT_SEEDS if data == "synthetic:heldout" else D.VALIDATION_SEEDS
         # Rendered on first use and cached on disk (iris_train.data.default_cache_dir).
-        scenes = SyntheticScenes(list(HELDOUT_SEEDS)[:limit], n_views=views, size=tuple(image_size))
+        scenes = D.SyntheticScenes(list(seeds)[:limit], n_views=views, size=tuple(image_size))
         return (scenes[i] for i in range(len(scenes))), len(scenes)
     from iris_runtime.errors import InputError
     if data.startswith("synthetic:"):
-        raise InputError(f"DATA {data!r}: the only synthetic set is 'synthetic:heldout'")
+        raise InputError(f"DATA {data!r}: the synthetic sets are {list(SYNTHETIC_SETS)}")
     path = Path(data)
     if not path.is_dir():
-        raise InputError(f"DATA {data!r}: not 'synthetic:heldout' and not a folder")
+        raise InputError(f"DATA {data!r}: not one of {list(SYNTHETIC_SETS)} and not a folder")
     from .data import load_dataset_folder
     scenes = load_dataset_folder(path, size=tuple(image_size))[:limit]
     return scenes, len(scenes)
@@ -672,7 +679,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("model", metavar="MODEL",
                         help="checkpoint (.pt) or exported model directory (with iris.json)")
     parser.add_argument("data", metavar="DATA",
-                        help="'synthetic:heldout' or a folder of scene folders")
+                        help="'synthetic:heldout' (the record), 'synthetic:validation' (where "
+                             "choices are made) or a folder of scene folders")
     parser.add_argument("--json", metavar="FILE", type=Path, default=None,
                         help='write {"seq": ..., "rand": ...} to FILE (atomically)')
     parser.add_argument("--scenes", metavar="N", type=int, default=None,

@@ -328,7 +328,10 @@ def train(cfg: TrainConfig, out: Path, resume: bool = False, scenes=None, thread
         elapsed_before = float(payload.get("elapsed", 0.0))
     model.train()
     if scenes is None:
-        from .data import SyntheticScenes
+        from .data import VALIDATION_SEEDS, SyntheticScenes
+        if cfg.train_scenes > min(VALIDATION_SEEDS):
+            raise ValueError(f"train_scenes: at most {min(VALIDATION_SEEDS)} (the validation "
+                             f"scenes start there), got {cfg.train_scenes}")
         scenes = SyntheticScenes(range(cfg.train_scenes), size=(mcfg.image_height, mcfg.image_width))
     teachers = None
     if cfg.teacher_weight or cfg.teacher_translation_weight or cfg.teacher_focal_weight:

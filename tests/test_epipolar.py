@@ -196,7 +196,7 @@ def _refine_with(monkeypatch, pp, model_poses, focal=(0.9, 0.9), matches=None):
     monkeypatch.setattr(E, "pairwise_poses", lambda images, focal=None, **kw: pp)
     monkeypatch.setattr(E, "all_flow_matches", lambda images: {} if matches is None else matches)
     images = np.zeros((len(model_poses), 16, 16, 3), np.uint8)
-    return E.refine_cameras(images, model_poses, np.asarray(focal))
+    return E.refine_cameras(images, model_poses, np.asarray(focal), scale="model")
 
 
 def test_refine_cameras_replaces_poses_in_the_model_units(monkeypatch):
@@ -214,6 +214,34 @@ def test_refine_cameras_replaces_poses_in_the_model_units(monkeypatch):
     np.testing.assert_allclose(ref.focal, [1.0, 1.0])
 
 
+def test_refine_cameras_roots_the_solve_at_the_largest_trusted_set(monkeypatch):
+    """View 0 without a trusted pair: the other four are solved among themselves, view 0 is
+    located against them (here: a stand-in returning its true pose in their frame), and all is
+    re-based on view 0."""
+    rng = np.random.default_rng(9)
+    truth = _random_cameras(rng, 5, max_angle=0.3)
+    trusted = ~np.eye(5, dtype=bool)
+    trusted[0, :] = trusted[:, 0] = False
+    calls = []
+
+    def locate_stub(refs, T_refs, focal, queries, **kw):
+        calls.append(len(queries))
+        # the solve's frame is view 1's, its unit |c| = 1 over views 1-4: map the truth into it
+        frame = np.linalg.inv(truth[1]) @ truth[1:]
+        s = np.linalg.norm(T_refs[:, :3, 3]) / np.linalg.norm(frame[:, :3, 3])
+        q = np.linalg.inv(truth[1]) @ truth[0]
+        q[:3, 3] *= s
+        return q[None], np.ones(1, bool)
+    monkeypatch.setattr(E, "locate_views", locate_stub)
+    model = np.tile(np.eye(4), (5, 1, 1))
+    model[:, :3, 3] = 0.3 * truth[:, :3, 3]
+    ref = _refine_with(monkeypatch, _exact_pairwise(truth, trusted), model)
+    assert calls == [1] and ref.source == "epipolar" and ref.solved.all()
+    np.testing.assert_array_equal(ref.world_from_cam[0], np.eye(4))
+    np.testing.assert_allclose(ref.world_from_cam[:, :3, :3], truth[:, :3, :3], atol=1e-9)
+    np.testing.assert_allclose(ref.world_from_cam[:, :3, 3], model[:, :3, 3], atol=1e-9)
+
+
 def test_refine_cameras_keeps_the_model_for_unreachable_views(monkeypatch):
     rng = np.random.default_rng(8)
     truth = _random_cameras(rng, 5, max_angle=0.3)
@@ -223,6 +251,9 @@ def test_refine_cameras_keeps_the_model_for_unreachable_views(monkeypatch):
     trusted = np.zeros((5, 5), bool)
     for i, j in [(0, 1), (1, 2), (0, 2), (3, 4)]:
         trusted[i, j] = trusted[j, i] = True
+    # Views 3 and 4 lie outside the largest trusted set and cannot be located either.
+    monkeypatch.setattr(E, "locate_views", lambda refs, T, f, q, **kw:
+                        (np.full((len(q), 4, 4), np.nan), np.zeros(len(q), bool)))
     ref = _refine_with(monkeypatch, _exact_pairwise(truth, trusted), model)
     assert ref.source == "mixed"
     np.testing.assert_array_equal(ref.solved, [1, 1, 1, 0, 0])
@@ -346,7 +377,8 @@ def test_refine_cameras_scales_the_scene_into_the_depth_range(monkeypatch):
 
 
 def test_refine_cameras_single_view_and_bad_arguments():
-    one = E.refine_cameras(np.zeros((1, 8, 8, 3), np.uint8), np.eye(4)[None], [1.0, 1.0])
+    one = E.refine_cameras(np.zeros((1, 8, 8, 3), np.uint8), np.eye(4)[None], [1.0, 1.0],
+                           depth_range=(0.1, 1.0))
     assert one.source == "model"
     np.testing.assert_array_equal(one.world_from_cam, np.eye(4)[None])
     with pytest.raises(ValueError, match="images"):
@@ -489,10 +521,15 @@ def test_runtime_epipolar_cameras_beat_the_model(rendered, model_dir):
     assert rpa(epi.world_from_cam, gt)["rpa@15"] > rpa(model.world_from_cam, gt)["rpa@15"]
     assert np.median(relative_pose_errors(epi.world_from_cam, gt)[0]) < 8.0
     np.testing.assert_array_equal(epi.world_from_cam[0], np.eye(4))
-    # Units: the centres are scaled onto the model's (least squares over the views).
-    cm, ce = model.world_from_cam[:, :3, 3], epi.world_from_cam[:, :3, 3]
-    if np.sqrt(np.mean(np.sum(cm * cm, 1))) >= E.COLLAPSED_SPREAD and np.sum(cm * ce) > 0:
-        assert np.sum(cm * ce) / np.sum(ce * ce) == pytest.approx(1.0, rel=1e-9)
+    # Units: the scene's median triangulated depth sits DEPTH_TARGET into the renderer's range.
+    ce = epi.world_from_cam[:, :3, 3]
+    pixels = np.ascontiguousarray(rendered.images)
+    pp = E.pairwise_poses(pixels)
+    trusted = [(i, j) for i in range(8) for j in range(i + 1, 8) if pp.trusted[i, j]]
+    depths = E.match_depths(E.all_flow_matches(pixels), epi.world_from_cam, epi.focal[0], 64, 64,
+                            trusted)
+    assert np.median(depths) == pytest.approx(rt.near + E.DEPTH_TARGET * (rt.far - rt.near),
+                                              rel=1e-9)
     # The grid-searched focal is the scene's, the encoder's is kept (locate checks against it).
     assert epi.focal[0] in E.FOCAL_GRID
     np.testing.assert_allclose(epi.K, epi.intrinsics())
@@ -588,7 +625,7 @@ def test_evaluate_with_epipolar_cameras_on_a_torch_model():
         plain = backend.encode(scene.images[:5])
         epi = backend.encode(scene.images[:5], cameras="epipolar")
         ref = E.refine_cameras(scene.images[:5], backend.poses(plain),
-                               plain.focal.double().numpy())
+                               plain.focal.double().numpy(), depth_range=(cfg.near, cfg.far))
         np.testing.assert_array_equal(epi.world_from_cam.numpy(),
                                       ref.world_from_cam.astype(np.float32))
         np.testing.assert_array_equal(epi.focal.numpy(), ref.focal.astype(np.float32))
