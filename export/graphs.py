@@ -286,7 +286,11 @@ def quantize_int8(src: str | Path, dst: str | Path) -> GraphFile:
             # DefaultTensorType: onnx's shape inference gives no type past ONNX Runtime's
             # contrib ops (export.fast_renderer's "fast-contrib" graph); float32 is every
             # tensor's type here. Graphs whose types are all inferred are unaffected.
-            quantize_dynamic(proto, str(dst), weight_type=QuantType.QInt8,
+            # reduce_range: 7-bit weights. Without AVX-512 VNNI, ORT's u8 x s8 kernels sum
+            # pairs of products in int16 and saturate with 8-bit weights: on an AVX2-only EPYC
+            # the shipped model's int8 renderer was 8.9e-2 off in rgb (tests/test_export.py
+            # bounds it at 5e-2), against ~2e-3 on a VNNI machine (docs/PERFORMANCE.md).
+            quantize_dynamic(proto, str(dst), weight_type=QuantType.QInt8, reduce_range=True,
                              extra_options={"DefaultTensorType": onnx.TensorProto.FLOAT})
     finally:
         quant_logger.setLevel(level)
