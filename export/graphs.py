@@ -289,7 +289,7 @@ def quantize_int8(src: str | Path, dst: str | Path) -> GraphFile:
             # reduce_range: 7-bit weights. Without AVX-512 VNNI, ORT's u8 x s8 kernels sum
             # pairs of products in int16 and saturate with 8-bit weights: on an AVX2-only EPYC
             # the shipped model's int8 renderer was 8.9e-2 off in rgb (tests/test_export.py
-            # bounds it at 5e-2), against ~2e-3 on a VNNI machine (docs/PERFORMANCE.md).
+            # bounds it at 5e-2; 7.4e-3 with 7-bit weights, export validation in iris.json).
             quantize_dynamic(proto, str(dst), weight_type=QuantType.QInt8, reduce_range=True,
                              extra_options={"DefaultTensorType": onnx.TensorProto.FLOAT})
     finally:

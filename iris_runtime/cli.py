@@ -123,8 +123,8 @@ def build_parser() -> argparse.ArgumentParser:
                              "IMAGES")
     p.add_argument("--cameras", choices=["model", "epipolar"], default="model",
                    help="cameras of the inputs: the model's prediction (default) or the global "
-                        "epipolar solve of the photos, scaled to the renderer's depth range (a "
-                        "few seconds per 8 views; views it cannot pose keep the model's camera)")
+                        "epipolar solve of the photos, scaled to the renderer's depth range (V (V - 1) "
+                        "/ 2 optical flows; views it cannot pose keep the model's camera)")
     out = p.add_argument_group("output and speed")
     out.add_argument("--size", metavar="HxW", type=_size,
                      help="output size (default: the model's resolution)")

@@ -70,7 +70,7 @@ DEFAULT_BASELINE = 0.14
 #: the scene's triangulated flow matches lies this far into the renderer's depth range [near, far]
 #: (0: at near, 1: at far). The synthetic data was built for the range [0.1, 1.0] with median
 #: depths 0.51 (turntables) and 0.67 (rooms) (docs/DATA.md); the value is chosen on validation
-#: scenes, not the held-out ones (docs/TRAINING.md, "Scale of the epipolar cameras").
+#: scenes, not the held-out ones (docs/TRAINING.md, "Epipolar cameras at inference").
 DEPTH_TARGET = 0.5
 #: Matches whose two rays meet at less than this angle (radians, ~1 degree) carry no depth.
 MIN_PARALLAX = 0.0175
@@ -370,10 +370,7 @@ def _unit_depths(p, q, T_ij, H, W, focal):
     for T, pix in ((T_i, p), (T_j, q)):
         z = (X[keep] - T[:3, 3]) @ T[:3, :3][:, 2]
         front = z > 0                                 # the midpoint, not only the ray, in front
-        z, pix = z[front], pix[keep][front]
-        u = np.clip(np.floor(pix[:, 0]).astype(np.int64), 0, W - 1)
-        v = np.clip(np.floor(pix[:, 1]).astype(np.int64), 0, H - 1)
-        cell = v * W + u
+        z, cell = z[front], _cells(pix[keep][front], H, W)
         sums = np.bincount(cell, np.log(z), minlength=H * W)
         counts = np.bincount(cell, minlength=H * W)
         out.append(np.where(counts > 0, sums / np.maximum(counts, 1), np.nan))   # mean log z
@@ -547,7 +544,8 @@ def solve_views(images: np.ndarray, pairwise: PairwisePoses, matches: dict, *,
     core = solved.copy()
     rest = np.flatnonzero(~core)
     if len(rest):
-        T_rest, ok = locate_views(images[core_idx], out[core_idx], pairwise.focal, images[rest])
+        T_rest, ok = locate_views(images[core_idx], out[core_idx], pairwise.focal, images[rest],
+                                  reference_matches=sub_matches)
         out[rest[ok]] = T_rest[ok]
         solved[rest[ok]] = True
     if not solved[0]:
@@ -684,11 +682,8 @@ def reference_depths(matches: dict, world_from_cam: np.ndarray, focal: float, H:
         for view, pix in ((i, p[keep]), (j, q[keep])):
             z = (X[keep] - T[view, :3, 3]) @ T[view, :3, :3][:, 2]
             front = z > 0                             # the midpoint, not only the ray, in front
-            z, pix = z[front], pix[front]
-            u = np.clip(np.floor(pix[:, 0]).astype(np.int64), 0, W - 1)
-            v = np.clip(np.floor(pix[:, 1]).astype(np.int64), 0, H - 1)
-            cells.append((view * H + v) * W + u)
-            values.append(z)
+            cells.append(view * H * W + _cells(pix[front], H, W))
+            values.append(z[front])
     out = np.full(V * H * W, np.nan)
     cells = np.concatenate(cells) if cells else np.zeros(0, np.int64)
     values = np.concatenate(values) if values else np.zeros(0)
@@ -701,12 +696,22 @@ def reference_depths(matches: dict, world_from_cam: np.ndarray, focal: float, H:
     return out.reshape(V, H, W)
 
 
+def _rays(pix, F, H, W):
+    """K^-1 [u, v, 1] [N, 3] (z = 1) of pixels [N, 2] at focal F pixels, principal point centred."""
+    return np.stack([(pix[:, 0] - W / 2) / F, (pix[:, 1] - H / 2) / F, np.ones(len(pix))], 1)
+
+
+def _cells(pix, H, W):
+    """Flat index v * W + u [N] of the pixel each point [N, 2] (centres at +0.5) falls in."""
+    u = np.clip(np.floor(pix[:, 0]).astype(np.int64), 0, W - 1)
+    v = np.clip(np.floor(pix[:, 1]).astype(np.int64), 0, H - 1)
+    return v * W + u
+
+
 def _triangulate_pair(p, q, Ti, Tj, F, H, W):
     """World points [N, 3] of matches p (view i) -> q (view j) by the ray midpoint, and the bool
     [N] of those with parallax >= ``MIN_PARALLAX`` in front of both cameras."""
-    rays = [np.stack([(x[:, 0] - W / 2) / F, (x[:, 1] - H / 2) / F, np.ones(len(x))], 1)
-            for x in (p, q)]
-    a, e = rays[0] @ Ti[:3, :3].T, rays[1] @ Tj[:3, :3].T
+    a, e = _rays(p, F, H, W) @ Ti[:3, :3].T, _rays(q, F, H, W) @ Tj[:3, :3].T
     w = Ti[:3, 3] - Tj[:3, 3]
     aa, ae, ee = (a * a).sum(1), (a * e).sum(1), (e * e).sum(1)
     aw, ew = a @ w, e @ w
@@ -735,15 +740,11 @@ def _locate_pnp(refs, T_ref, focal, query, depths, H, W):
         pq, pr = flow_matches(query, refs[j])
         if len(pq) == 0:
             continue
-        u = np.clip(np.floor(pr[:, 0]).astype(np.int64), 0, W - 1)
-        v = np.clip(np.floor(pr[:, 1]).astype(np.int64), 0, H - 1)
-        z = depths[j, v, u]
+        z = depths[j].ravel()[_cells(pr, H, W)]
         ok = np.isfinite(z)
         if not ok.any():
             continue
-        pr64 = pr[ok].astype(np.float64)
-        ray = np.stack([(pr64[:, 0] - W / 2) / F, (pr64[:, 1] - H / 2) / F,
-                        np.ones(len(pr64))], 1)
+        ray = _rays(pr[ok].astype(np.float64), F, H, W)
         obj.append(T_ref[j, :3, 3] + (z[ok][:, None] * ray) @ T_ref[j, :3, :3].T)
         img.append(pq[ok].astype(np.float64))
     if not obj:
@@ -767,8 +768,8 @@ def _locate_pnp(refs, T_ref, focal, query, depths, H, W):
 
 
 def locate_views(reference_images, reference_world_from_cam, focal: float, query_images, *,
-                 robust: bool = True, min_links: int = 2, method: str = "pnp"
-                 ) -> tuple[np.ndarray, np.ndarray]:
+                 robust: bool = True, min_links: int = 2, method: str = "pnp",
+                 reference_matches: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Poses of query photos with the references' cameras held fixed.
 
     reference_images: uint8 [V, H, W, 3]; reference_world_from_cam [V, 4, 4] (their cameras,
@@ -786,7 +787,8 @@ def locate_views(reference_images, reference_world_from_cam, focal: float, query
     to every reference by OpenCV's PnP RANSAC (EPnP, ``PNP_THRESHOLD`` px, then Levenberg-
     Marquardt on the inliers): the centre's distance comes from the references' scale rather than
     from intersecting direction lines. A query with fewer than ``PNP_MIN_INLIERS`` inliers falls
-    back to the "lines" solve. Chosen on 48 validation scenes (seeds 50000-50047, iris-eval's
+    back to the "lines" solve. ``reference_matches``: ``all_flow_matches(reference_images)`` when
+    the caller has it (the PnP depths are built from it). Chosen on 48 validation scenes (seeds 50000-50047, iris-eval's
     protocol: 5 references solved, 3 targets located; docs/TRAINING.md, "Epipolar cameras"):
     RPA@15 / @30 0.517 / 0.709 against 0.504 / 0.701 with "lines".
     Returns ``(world_from_cam [Q, 4, 4] with NaN for unsolved queries, solved bool [Q])``.
@@ -809,7 +811,9 @@ def locate_views(reference_images, reference_world_from_cam, focal: float, query
     ok = np.zeros(Q, dtype=bool)
     depths = None
     if method == "pnp":
-        depths = reference_depths(all_flow_matches(refs), T_ref, focal, H, W)
+        if reference_matches is None:
+            reference_matches = all_flow_matches(refs)
+        depths = reference_depths(reference_matches, T_ref, focal, H, W)
     for q in range(Q):
         cv2.setRNGSeed(0)
         if depths is not None:

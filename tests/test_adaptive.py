@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -25,22 +24,10 @@ from iris_runtime import InputError, IrisRuntime, adaptive, raymarch
 from iris_runtime import quality as Q
 from iris_runtime.runtime import QUALITY_PRESETS
 
-from .conftest import resolve_model_dir
+# The knob tests' models (int8 renderer, both renderer kinds) and runtime, shared with them.
+from .test_speed_knobs import model_dir, rt  # noqa: F401  (pytest fixtures)
 
 H, W = 24, 20
-
-
-@pytest.fixture(scope="session", params=["tiny", "tiny-rgb"])
-def model_dir(request) -> Path:
-    # The same exports as tests/test_speed_knobs.py, so that both files share them.
-    if request.param == "tiny":
-        return resolve_model_dir(request, "torch_export_int8")
-    return resolve_model_dir(request, "torch_export_rgb", "IRIS_TEST_RGB_MODEL_DIR")
-
-
-@pytest.fixture(scope="session")
-def rt(model_dir) -> IrisRuntime:
-    return IrisRuntime(model_dir, threads=1)
 
 
 @pytest.fixture(scope="session")
