@@ -24,7 +24,7 @@ import time
 import numpy as np
 
 
-def rpa_study(data: str, variants: list[str], limit: int | None) -> dict:
+def rpa_study(data: str, variants: list[str], limit: int | None, order: str = "rand") -> dict:
     import iris_runtime.epipolar as E
     from iris_train.evaluate import load_scenes, presentation_order, split_frames
     from iris_train.metrics import rpa
@@ -33,13 +33,15 @@ def rpa_study(data: str, variants: list[str], limit: int | None) -> dict:
     refs, targets = split_frames(8)
     scores = {v: [] for v in variants}
     for index, scene in enumerate(scenes):
-        ref_order, target_order = presentation_order("rand", refs, targets, index)
+        ref_order, target_order = presentation_order(order, refs, targets, index)
         ro, to = list(ref_order), list(target_order)
         images = scene.images
         matches = E.all_flow_matches(images[ro])
         for v in variants:
             focal, translation, locate = v.split("/")
-            f = scene.K[0, 0] / images.shape[2] if focal == "true" else None
+            f = (scene.K[0, 0] / images.shape[2] if focal == "true"
+                 else E.search_focal(matches, *images.shape[1:3], pairs="all") if focal == "all"
+                 else None)
             pp = E.pairwise_poses(images[ro], f, matches=matches)
             if translation == "ties":
                 T_ref, _, _ = E.solve_views(images[ro], pp, matches)
@@ -51,12 +53,13 @@ def rpa_study(data: str, variants: list[str], limit: int | None) -> dict:
             T, ok = E.locate_views(images[ro], T_ref, pp.focal, images[to], method=locate)
             pred[to] = np.where(ok[:, None, None], T, np.eye(4))
             r = rpa(pred, scene.world_from_cam)
-            scores[v].append((r["rpa@15"], r["rpa@30"]))
+            scores[v].append((r["rpa@15"], r["rpa@30"], pp.focal))
         print(f"scene {index + 1}/{total}: " + ", ".join(
             f"{v} {scores[v][-1][0]:.3f}/{scores[v][-1][1]:.3f}" for v in variants), flush=True)
     return {v: {"rpa@15": float(np.mean([s[0] for s in scores[v]])),
                 "rpa@30": float(np.mean([s[1] for s in scores[v]])),
-                "per_scene_rpa@30": [round(s[1], 3) for s in scores[v]]} for v in variants}
+                "per_scene_rpa@30": [round(s[1], 3) for s in scores[v]],
+                "per_scene_focal": [round(s[2], 3) for s in scores[v]]} for v in variants}
 
 
 def scale_study(model_dir: str, data: str, rules: list[str], limit: int | None,
@@ -92,6 +95,8 @@ def main(argv=None) -> int:
     a.add_argument("data", help="synthetic:validation, synthetic:heldout or a folder")
     a.add_argument("--variants", default="search/baselines/lines,search/ties/lines,search/ties/pnp")
     a.add_argument("--scenes", type=int, default=None)
+    a.add_argument("--order", choices=("rand", "seq"), default="rand",
+                   help="presentation order of the frames (iris-eval's Seq or Rand)")
     b = sub.add_parser("scale", help="iris-eval with epipolar cameras per scale rule")
     b.add_argument("model_dir")
     b.add_argument("data")
@@ -100,7 +105,7 @@ def main(argv=None) -> int:
     b.add_argument("--threads", type=int, default=None)
     args = p.parse_args(argv)
     if args.study == "rpa":
-        res = rpa_study(args.data, args.variants.split(","), args.scenes)
+        res = rpa_study(args.data, args.variants.split(","), args.scenes, args.order)
     else:
         res = scale_study(args.model_dir, args.data, args.rules.split(","), args.scenes, args.threads)
     print(json.dumps(res, indent=1))

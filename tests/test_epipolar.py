@@ -9,6 +9,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
@@ -643,3 +644,26 @@ def test_evaluate_with_epipolar_cameras_on_a_torch_model():
             evaluate(model, [scene], progress=False, cameras="colmap")
     finally:
         torch.set_num_threads(threads)
+
+
+def test_search_focal_finds_the_true_focal_in_any_order():
+    """Exact matches at fx/W = 1.3 (a grid value): every pair, whatever the order of the views,
+    picks it; an unknown pair rule is refused."""
+    rng = np.random.default_rng(22)
+    truth = _forward_cameras(rng, 5, spread=0.3, max_angle=0.3)
+    f_true = min(E.FOCAL_GRID, key=lambda f: abs(f - 1.3))
+    X = np.stack([rng.uniform(-1.2, 1.2, 2000), rng.uniform(-1.2, 1.2, 2000), rng.uniform(2, 4, 2000)], 1)
+    K = E.intrinsics(f_true, H_SYN, W_SYN)
+
+    def matches_in(order):
+        pix = []
+        for T in truth[order]:
+            Y = (X - T[:3, 3]) @ T[:3, :3]
+            pix.append((Y @ K.T)[:, :2] / Y[:, 2:])
+        return {(i, j): (pix[i], pix[j]) for i in range(5) for j in range(i + 1, 5)}
+
+    for order in ([0, 1, 2, 3, 4], [3, 0, 4, 1, 2]):
+        cv2.setRNGSeed(0)
+        assert E.search_focal(matches_in(order), H_SYN, W_SYN) == f_true
+    with pytest.raises(ValueError, match="pairs"):
+        E.search_focal(matches_in([0, 1, 2, 3, 4]), H_SYN, W_SYN, pairs="near")
