@@ -87,6 +87,52 @@ def torch_render_frames(model, images_list, refs, targets, threads: int, runs: i
     return meds, alls, outs
 
 
+def torch_parity(model, rt, images_list, refs, targets, size: int, exact_outs) -> dict:
+    """Where the exact path's distance from torch comes from, per stage (no timing):
+
+    - ``exact_vs_torch64``: the exact ORT path against torch in float64 (encode and render), the
+      most exact reference there is;
+    - ``torch32_vs_torch64``: torch eager (float32, what the anchor rows run) against the same;
+    - ``renderer_vs_torch32``: the ORT renderer given torch's own float32 scene (field maps,
+      cameras, focal) and target poses, against torch's render of them: the renderer graph and
+      the numpy ray geometry alone;
+    - ``encoder_maps_vs_torch32`` / ``encoder_poses_vs_torch32``: the encoder graph's field maps
+      and poses against torch's.
+    Max abs over every target frame (rgb in [0, 1])."""
+    import copy
+    import dataclasses
+    import torch
+    model64 = copy.deepcopy(model).double()
+    out = {"exact_vs_torch64": 0.0, "torch32_vs_torch64": 0.0, "renderer_vs_torch32": 0.0,
+           "encoder_maps_vs_torch32": 0.0, "encoder_poses_vs_torch32": 0.0}
+    k = 0
+    with torch.no_grad():
+        for images in images_list:
+            x = torch.from_numpy(np.ascontiguousarray(images)).permute(0, 3, 1, 2) / 255.0
+            sc32 = model.encode(x.float())
+            sc64 = model64.encode(x.double())
+            ort = rt.encode(list(images))
+            out["encoder_maps_vs_torch32"] = max(out["encoder_maps_vs_torch32"], float(
+                np.abs(ort.field_maps - sc32.field_maps.numpy()).max()))
+            out["encoder_poses_vs_torch32"] = max(out["encoder_poses_vs_torch32"], float(
+                np.abs(ort.world_from_cam - sc32.world_from_cam.numpy()).max()))
+            same = dataclasses.replace(ort, field_maps=sc32.field_maps.numpy().astype(ort.field_maps.dtype),
+                                       world_from_cam=sc32.world_from_cam.double().numpy(),
+                                       focal=sc32.focal.double().numpy()).subset(refs)
+            for t in targets:
+                r32, _ = model.render(sc32.subset(refs), sc32.world_from_cam[[t]], size, size)
+                r64, _ = model64.render(sc64.subset(refs), sc64.world_from_cam[[t]], size, size)
+                r32, r64 = r32[0].double().numpy(), r64[0].numpy()
+                pose = sc32.world_from_cam[t].double().numpy()
+                same_out = rt.render(same, pose, height=size, width=size, depth=True).image_float
+                out["exact_vs_torch64"] = max(out["exact_vs_torch64"], float(np.abs(exact_outs[k] - r64).max()))
+                out["torch32_vs_torch64"] = max(out["torch32_vs_torch64"], float(np.abs(r32 - r64).max()))
+                out["renderer_vs_torch32"] = max(out["renderer_vs_torch32"],
+                                                 float(np.abs(same_out.astype(np.float64) - r32).max()))
+                k += 1
+    return out
+
+
 def torch_tcmalloc_anchor(args) -> dict | None:
     """The torch anchor in a subprocess started with tcmalloc preloaded (``child torch-anchor``);
     None when this machine has no tcmalloc."""
@@ -211,9 +257,14 @@ def part_knobs(args, rt, rt_nocull, rt_par, model, log) -> dict:
             continue                                  # exported without --quantize int8
         log(f"knobs: {knob.name}")
         add(knob.name, knob.group, *ort_config(rt, knob.render_kw))
+    parity = None
+    if model is not None:
+        log("knobs: parity with torch float32 and float64, per stage")
+        parity = torch_parity(model, rt, [s.images for s in scenes], refs, targets, size, full_outs)
+        log("  " + ", ".join(f"{k} {v:.1e}" for k, v in parity.items()))
     return {"refs": refs, "targets": targets,
             "scenes": [int(s) for s in HELDOUT_SEEDS[:args.scenes]],
-            "frames": len(frames), "rows": rows}
+            "frames": len(frames), "rows": rows, "parity": parity}
 
 
 def part_scaling(args, rt, model, log) -> dict:
