@@ -33,6 +33,7 @@ import argparse
 import json
 import math
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -87,22 +88,88 @@ def load_or_estimate(scenes, index: int) -> PseudoPoses:
     return pp
 
 
+# -- solved scene cameras: the whole scene posed by the runtime's epipolar solve ---------------
+#: Version of the solved-camera cache (part of the file; another version is recomputed).
+SOLVE_VERSION = 1
+
+
+@dataclass(frozen=True)
+class SolvedCameras:
+    """One camera per view of a training scene from ``iris_runtime.epipolar.refine_cameras`` of
+    its photos (no labels): ``world_from_cam [V, 4, 4]`` in view 0's frame, scaled so that the
+    scene's median triangulated depth is ``DEPTH_TARGET`` into the renderer's [near, far] (the
+    unit ``IrisRuntime.encode(cameras="epipolar")`` gives the renderer at inference); ``focal``
+    the searched fx/W; ``solved`` bool [V] (views the solve could not pose hold NaN)."""
+    world_from_cam: np.ndarray
+    focal: float
+    solved: np.ndarray
+
+    def rebased(self, order: np.ndarray) -> np.ndarray:
+        """The cameras of views ``order`` (all solved) in the frame of ``order[0]`` -> [n, 4, 4]."""
+        T = self.world_from_cam[np.asarray(order)]
+        return np.linalg.inv(T[0]) @ T
+
+
+def solve_scene(images: np.ndarray, depth_range: tuple[float, float]) -> SolvedCameras:
+    """``images`` uint8 ``[V, H, W, 3]`` -> ``SolvedCameras`` (the runtime's solve, seeded)."""
+    from iris_runtime.epipolar import refine_cameras
+    cv2.setRNGSeed(0)
+    V = images.shape[0]
+    ref = refine_cameras(images, np.tile(np.eye(4), (V, 1, 1)), np.ones(2), depth_range=depth_range)
+    T = np.where(ref.solved[:, None, None], ref.world_from_cam, np.nan)
+    solved = ref.solved.copy()
+    if solved.any():
+        solved[0] = True
+        T[0] = np.eye(4)
+    return SolvedCameras(T, float(ref.focal[0]), solved)
+
+
+def solved_cache_path(cache_dir: Path, seed: int, n_views: int) -> Path:
+    return Path(cache_dir) / f"solved_{seed:07d}_v{n_views}.npz"
+
+
+def load_or_solve(scenes, index: int, depth_range: tuple[float, float]) -> SolvedCameras:
+    """``SolvedCameras`` of ``scenes[index]`` (a ``SyntheticScenes``), from the cache or solved."""
+    from iris_runtime.fileio import atomic_write_bytes
+    import io
+    path = solved_cache_path(scenes.cache_dir, scenes.seeds[index], scenes.n_views)
+    if path.is_file():
+        try:
+            with np.load(path) as z:
+                if int(z["version"]) == SOLVE_VERSION and tuple(z["depth_range"]) == tuple(depth_range):
+                    return SolvedCameras(z["world_from_cam"], float(z["focal"]), z["solved"])
+        except (OSError, KeyError, ValueError):
+            pass                                      # unreadable or old: recompute below
+    sc = solve_scene(scenes[index].images, depth_range)
+    buf = io.BytesIO()
+    np.savez(buf, version=SOLVE_VERSION, depth_range=np.asarray(depth_range, np.float64),
+             world_from_cam=sc.world_from_cam, focal=sc.focal, solved=sc.solved)
+    atomic_write_bytes(path, buf.getvalue())
+    return sc
+
+
 def _work(args) -> int:
-    seeds, index = args
+    seeds, index, depth_range = args
     cv2.setNumThreads(1)
     from .data import SyntheticScenes
-    load_or_estimate(SyntheticScenes(seeds), index)
+    scenes = SyntheticScenes(seeds)
+    if depth_range is None:
+        load_or_estimate(scenes, index)
+    else:
+        load_or_solve(scenes, index, depth_range)
     return index
 
 
-def pregenerate(seeds, workers: int = 2) -> None:
+def pregenerate(seeds, workers: int = 2, depth_range: tuple[float, float] | None = None) -> None:
+    """Fill the cache: the pair teacher, or with ``depth_range`` the solved scene cameras."""
     import multiprocessing as mp
     from tqdm import tqdm
     seeds = tuple(seeds)
-    jobs = [(seeds, i) for i in range(len(seeds))]
+    jobs = [(seeds, i, depth_range) for i in range(len(seeds))]
     with mp.get_context("spawn").Pool(workers) as pool:
         for _ in tqdm(pool.imap_unordered(_work, jobs, chunksize=4), total=len(jobs),
-                      desc="pseudo-poses", dynamic_ncols=True):
+                      desc="pseudo-poses" if depth_range is None else "solved cameras",
+                      dynamic_ncols=True):
             pass
 
 
@@ -147,6 +214,10 @@ def main(argv=None) -> int:
     parser.add_argument("--train", type=int, default=0, help="training seeds 0..N-1 to cache")
     parser.add_argument("--heldout", action="store_true", help="the held-out scenes")
     parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--solve", action="store_true",
+                        help="with --train: cache the whole-scene epipolar solve (the cameras "
+                             "iris-train --render-cameras epipolar renders with) instead of the "
+                             "pair teacher")
     parser.add_argument("--score", action="store_true",
                         help="compare with the true poses (held-out scenes): RPA of the teacher "
                              "(trusted pairs; the others count as failures) and, under 'global', "
@@ -154,7 +225,10 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     from .data import HELDOUT_SEEDS, SyntheticScenes
     if args.train:
-        pregenerate(range(args.train), args.workers)
+        from .config import preset
+        cfg = preset("tiny")
+        pregenerate(range(args.train), args.workers,
+                    (cfg.near, cfg.far) if args.solve else None)
     if args.heldout:
         pregenerate(HELDOUT_SEEDS, args.workers)
         if args.score:

@@ -58,6 +58,15 @@ class TrainConfig:
     teacher_translation_weight: float = 0.5   # ... translation direction
     teacher_focal_weight: float = 0.1         # ... log focal
     teacher_scenes: int = 0           # extra scenes per step encoded (all views) for the teacher only
+    # Cameras the renderer is trained with: "model" (the camera head's, trained through the
+    # render), or "epipolar" (each scene's cached whole-scene epipolar solve,
+    # ``pseudo_poses.load_or_solve``: what ``IrisRuntime.encode(cameras="epipolar")`` gives the
+    # renderer at inference; views the solve cannot pose are not drawn). The camera head is then
+    # distilled on the same cameras (``solve_*_weight``); no label is read either way.
+    render_cameras: str = "model"
+    solve_rotation_weight: float = 0.0    # 1 - cos of each view's rotation vs the solve's
+    solve_translation_weight: float = 0.0 # squared error of each view's centre (view 0's frame)
+    solve_focal_weight: float = 0.0       # squared log focal error
     lr: float = 1e-3                  # renderer (latent field + ray renderer)
     encoder_lr_scale: float = 0.1     # encoder and camera head (paper: 0.1x)
     weight_decay: float = 0.05
@@ -73,6 +82,9 @@ class TrainConfig:
     def from_dict(cls, d: dict) -> "TrainConfig":
         known = {f.name for f in dataclasses.fields(cls)}
         return cls(**{k: v for k, v in d.items() if k in known})
+
+
+RENDER_CAMERAS = ("model", "epipolar")
 
 
 class PhotometricLoss(nn.Module):
@@ -101,12 +113,14 @@ class PhotometricLoss(nn.Module):
 
     def forward(self, images: torch.Tensor, ref: list[torch.Tensor], tgt: list[torch.Tensor],
                 pixels: list[torch.Tensor], depths: list[torch.Tensor], teacher: list | None = None,
-                pose_batch: tuple | None = None):
+                pose_batch: tuple | None = None, solved: list | None = None):
         """``images [B, V, 3, H, W]``; per scene b: reference/target view indices, target pixel
         indices ``[T, n]`` into H*W, stratified sample depths ``[T*n, S]``, and the teacher's
         ``(cam_from_cam [V, V, 4, 4], trusted [V, V], focal)`` in the drawn view order (or None);
         ``pose_batch``: ``(images [P, V, 3, H, W], is_reference [P, V], teachers)`` of extra scenes
-        that only the teacher losses see (``TrainConfig.teacher_scenes``)."""
+        that only the teacher losses see (``TrainConfig.teacher_scenes``); ``solved``: per scene
+        the solved cameras ``(world_from_cam [V, 4, 4], focal [2])`` in the drawn order, which the
+        renderer then uses instead of the head's (``TrainConfig.render_cameras``)."""
         model, cfg = self.model, self.cfg
         B, V = images.shape[:2]
         H, W = images.shape[-2:]
@@ -123,11 +137,16 @@ class PhotometricLoss(nn.Module):
             terms.setdefault(name, []).append(value)
 
         for b in range(B):
-            scene = Scene(model.field.prepare(features[b, ref[b]]), world_from_cam[b, ref[b]], focal[b], (H, W),
+            cams, cam_focal = world_from_cam[b], focal[b]
+            if solved is not None:
+                cams, cam_focal = solved[b]
+                for name, value in solve_losses(world_from_cam[b], focal[b], cams, cam_focal).items():
+                    add(name, value)
+            scene = Scene(model.field.prepare(features[b, ref[b]]), cams[ref[b]], cam_focal, (H, W),
                           images[b, ref[b]] if model.cfg.explicit_rgb else None)
             K = scene.intrinsics()
             idx = pixels[b]                                                         # [T, n]
-            origins, directions = G.rays_from_pixels(uv_all[idx], K, world_from_cam[b, tgt[b]])
+            origins, directions = G.rays_from_pixels(uv_all[idx], K, cams[tgt[b]])
             origins, directions = origins.reshape(-1, 3), directions.reshape(-1, 3)
 
             def gt_of(source):
@@ -165,13 +184,16 @@ class PhotometricLoss(nn.Module):
             # so the teacher's pairs per step multiply at a small cost.
             pose_images, pose_ref, pose_teacher = pose_batch
             _, pose_world, pose_focal = model.encode_batch(pose_images, pose_ref)
-            for b, (cam_from_cam, trusted, focal_t) in enumerate(pose_teacher):
-                for name, value in teacher_losses(pose_world[b], pose_focal[b], cam_from_cam, trusted,
-                                                  focal_t).items():
+            for b, target in enumerate(pose_teacher):
+                losses = (solve_losses(pose_world[b], pose_focal[b], *target) if solved is not None
+                          else teacher_losses(pose_world[b], pose_focal[b], *target))
+                for name, value in losses.items():
                     add(name, value)
         weights = {"render": 1.0, "warp": cfg.aux_weight, "warp_blur": cfg.aux_blur_weight,
                    "sweep": cfg.plane_sweep_weight, "teacher_rot": cfg.teacher_weight,
-                   "teacher_dir": cfg.teacher_translation_weight, "teacher_focal": cfg.teacher_focal_weight}
+                   "teacher_dir": cfg.teacher_translation_weight, "teacher_focal": cfg.teacher_focal_weight,
+                   "solve_rot": cfg.solve_rotation_weight, "solve_trans": cfg.solve_translation_weight,
+                   "solve_focal": cfg.solve_focal_weight}
         means = {k: torch.stack(v).mean() for k, v in terms.items()}
         total = sum(weights[k] * v for k, v in means.items())
         return total, {k: float(v.detach()) for k, v in means.items()}
@@ -202,6 +224,19 @@ def teacher_losses(world_from_cam: torch.Tensor, focal: torch.Tensor, cam_from_c
     return out
 
 
+def solve_losses(world_from_cam: torch.Tensor, focal: torch.Tensor, solved_world_from_cam: torch.Tensor,
+                 solved_focal: torch.Tensor) -> dict[str, torch.Tensor]:
+    """The camera head's predicted ``world_from_cam [V, 4, 4]`` and ``focal [2]`` against one scene's
+    solved cameras in the same frame (view 0 = I, the solve's unit): per view 1..V-1, rotation
+    ``1 - cos`` of the angle between the two and the squared distance of the centres; the squared
+    log focal error."""
+    R, R_s = world_from_cam[1:, :3, :3], solved_world_from_cam[1:, :3, :3]
+    cos = ((R * R_s).sum((-1, -2)) - 1) / 2
+    centre = ((world_from_cam[1:, :3, 3] - solved_world_from_cam[1:, :3, 3]) ** 2).sum(-1)
+    return {"solve_rot": (1 - cos).mean(), "solve_trans": centre.mean(),
+            "solve_focal": ((torch.log(focal) - torch.log(solved_focal)) ** 2).mean()}
+
+
 def lr_factor(step: int, cfg: TrainConfig) -> float:
     if step < cfg.warmup:
         return (step + 1) / cfg.warmup
@@ -226,18 +261,44 @@ def make_optimizer(model: IrisModel, cfg: TrainConfig, extra: list | None = None
     return torch.optim.AdamW(groups, lr=cfg.lr, betas=(0.9, 0.95))
 
 
-def draw_batch(scenes, cfg: TrainConfig, mcfg: ModelConfig, rng: np.random.Generator, teachers=None):
+#: Draws of a scene before a step gives up looking for one with enough solved views.
+MAX_SCENE_DRAWS = 100
+
+
+def _draw_solved(scenes, solutions, rng: np.random.Generator, n_views: int):
+    """A random scene with at least ``n_views`` solved views and a random order of ``n_views`` of
+    them -> ``(index, order, (world_from_cam [n, 4, 4], focal [2]) in the order's frame)``."""
+    for _ in range(MAX_SCENE_DRAWS):
+        index = int(rng.integers(len(scenes)))
+        sc = solutions(index)
+        views = np.flatnonzero(sc.solved)
+        if len(views) >= n_views:
+            order = rng.permutation(views)[:n_views]
+            return index, order, (torch.as_tensor(sc.rebased(order), dtype=torch.float32),
+                                  torch.full((2,), sc.focal, dtype=torch.float32))
+    raise RuntimeError(f"no scene with {n_views} solved views in {MAX_SCENE_DRAWS} draws")
+
+
+def draw_batch(scenes, cfg: TrainConfig, mcfg: ModelConfig, rng: np.random.Generator, teachers=None,
+               solutions=None):
     """Random scenes, views, split, target pixels and stratified depths for one step; with
-    ``teachers`` (scene index -> PseudoPoses), each scene's teacher in the drawn view order."""
+    ``teachers`` (scene index -> PseudoPoses), each scene's teacher in the drawn view order; with
+    ``solutions`` (scene index -> SolvedCameras), only solved views are drawn and each scene's
+    solved cameras come along in the drawn order (the last element, else None)."""
     n_views = int(rng.integers(cfg.views_min, cfg.views_max + 1))
     n_tgt = int(rng.integers(cfg.targets_min, cfg.targets_max + 1))
     H, W = mcfg.image_height, mcfg.image_width
     S = cfg.train_samples or mcfg.samples
-    images, ref, tgt, pixels, depths, teacher = [], [], [], [], [], []
+    images, ref, tgt, pixels, depths, teacher, solved = [], [], [], [], [], [], []
     for _ in range(cfg.scenes_per_step):
-        index = int(rng.integers(len(scenes)))
-        data = scenes[index]
-        order = rng.permutation(data.images.shape[0])[:n_views]        # random order: "Rand"
+        if solutions is not None:
+            index, order, cams = _draw_solved(scenes, solutions, rng, n_views)
+            solved.append(cams)
+            data = scenes[index]
+        else:
+            index = int(rng.integers(len(scenes)))
+            data = scenes[index]
+            order = rng.permutation(data.images.shape[0])[:n_views]    # random order: "Rand"
         images.append(data.images[order])
         if teachers is not None:
             pp = teachers(index)
@@ -254,7 +315,18 @@ def draw_batch(scenes, cfg: TrainConfig, mcfg: ModelConfig, rng: np.random.Gener
                                                     stratified=True, rng=rng, dtype=np.float32)))
     batch = torch.as_tensor(np.stack(images)).permute(0, 1, 4, 2, 3).float() / 255.0
     pose_batch = None
-    if teachers is not None and cfg.teacher_scenes:
+    if solutions is not None and cfg.teacher_scenes:
+        V = scenes[0].images.shape[0]
+        pose_images, pose_solved = [], []
+        for _ in range(cfg.teacher_scenes):
+            index, order, cams = _draw_solved(scenes, solutions, rng, V)   # every view solved
+            pose_images.append(scenes[index].images[order])
+            pose_solved.append(cams)
+        pose_ref = torch.ones(cfg.teacher_scenes, V, dtype=torch.bool)
+        pose_ref[:, V - n_tgt:] = False
+        pose_batch = (torch.as_tensor(np.stack(pose_images)).permute(0, 1, 4, 2, 3).float() / 255.0,
+                      pose_ref, pose_solved)
+    elif teachers is not None and cfg.teacher_scenes:
         pose_images, pose_teacher = [], []
         for _ in range(cfg.teacher_scenes):
             index = int(rng.integers(len(scenes)))
@@ -269,7 +341,8 @@ def draw_batch(scenes, cfg: TrainConfig, mcfg: ModelConfig, rng: np.random.Gener
         pose_ref[:, V - n_tgt:] = False          # the last n_tgt views are queries, as in rendering
         pose_batch = (torch.as_tensor(np.stack(pose_images)).permute(0, 1, 4, 2, 3).float() / 255.0,
                       pose_ref, pose_teacher)
-    return batch, ref, tgt, pixels, depths, (teacher if teachers is not None else None), pose_batch
+    return (batch, ref, tgt, pixels, depths, (teacher if teachers is not None else None), pose_batch,
+            solved if solutions is not None else None)
 
 
 def _teacher_lookup(scenes):
@@ -284,6 +357,22 @@ def _teacher_lookup(scenes):
                 memo[index] = pseudo_poses.load_or_estimate(scenes, index)
             else:
                 memo[index] = pseudo_poses.estimate(scenes[index].images)
+        return memo[index]
+    return lookup
+
+
+def _solution_lookup(scenes, depth_range: tuple[float, float]):
+    """scene index -> SolvedCameras, from the cache beside a ``SyntheticScenes`` cache (solved and
+    cached when missing), otherwise solved from the images; kept in memory."""
+    from . import pseudo_poses
+    memo: dict[int, object] = {}
+
+    def lookup(index: int):
+        if index not in memo:
+            if hasattr(scenes, "cache_dir") and hasattr(scenes, "seeds"):
+                memo[index] = pseudo_poses.load_or_solve(scenes, index, depth_range)
+            else:
+                memo[index] = pseudo_poses.solve_scene(scenes[index].images, depth_range)
         return memo[index]
     return lookup
 
@@ -305,8 +394,10 @@ def _setup_distributed() -> tuple[int, int]:
 
 
 def train(cfg: TrainConfig, out: Path, resume: bool = False, scenes=None, threads: int | None = None,
-          max_seconds: float | None = None) -> Path:
-    """Run (or resume) training; returns the path of the last checkpoint."""
+          max_seconds: float | None = None, init: Path | None = None) -> Path:
+    """Run (or resume) training; returns the path of the last checkpoint. ``init``: start from
+    this checkpoint's weights (a fine-tune: fresh optimiser, step 0; its model config must be
+    the preset's); ``resume`` from ``out/last.pt`` takes precedence."""
     rank, world = _setup_distributed()
     if threads:
         torch.set_num_threads(threads)
@@ -318,6 +409,14 @@ def train(cfg: TrainConfig, out: Path, resume: bool = False, scenes=None, thread
     loss_module = PhotometricLoss(model, cfg)
     optimizer = make_optimizer(model, cfg, loss_module.aux_parameters())
     start_step, elapsed_before = 0, 0.0
+    if init is not None and not (resume and ckpt_path.exists()):
+        payload = read_checkpoint(init)
+        if payload["config"] != mcfg.to_dict():
+            raise ValueError(f"init: {str(init)!r} holds another model config than preset "
+                             f"{cfg.preset!r}")
+        model.load_state_dict(payload["model"])
+        if loss_module.sample_logit is not None and payload.get("aux"):
+            loss_module.sample_logit.load_state_dict(payload["aux"])
     if resume and ckpt_path.exists():
         payload = read_checkpoint(ckpt_path)
         model.load_state_dict(payload["model"])
@@ -333,8 +432,12 @@ def train(cfg: TrainConfig, out: Path, resume: bool = False, scenes=None, thread
             raise ValueError(f"train_scenes: at most {min(VALIDATION_SEEDS)} (the validation "
                              f"scenes start there), got {cfg.train_scenes}")
         scenes = SyntheticScenes(range(cfg.train_scenes), size=(mcfg.image_height, mcfg.image_width))
-    teachers = None
-    if cfg.teacher_weight or cfg.teacher_translation_weight or cfg.teacher_focal_weight:
+    if cfg.render_cameras not in RENDER_CAMERAS:
+        raise ValueError(f"render_cameras: expected one of {RENDER_CAMERAS}, got {cfg.render_cameras!r}")
+    teachers = solutions = None
+    if cfg.render_cameras == "epipolar":
+        solutions = _solution_lookup(scenes, (mcfg.near, mcfg.far))
+    elif cfg.teacher_weight or cfg.teacher_translation_weight or cfg.teacher_focal_weight:
         teachers = _teacher_lookup(scenes)
     step_module: nn.Module = loss_module
     if world > 1:
@@ -355,7 +458,8 @@ def train(cfg: TrainConfig, out: Path, resume: bool = False, scenes=None, thread
         for group in optimizer.param_groups:
             group["lr"] = cfg.lr * factor * group["lr_scale"]
         # One generator per (seed, rank, step): a resumed run draws exactly the batches it would have.
-        batch = draw_batch(scenes, cfg, mcfg, np.random.default_rng([cfg.seed, rank, step]), teachers)
+        batch = draw_batch(scenes, cfg, mcfg, np.random.default_rng([cfg.seed, rank, step]), teachers,
+                           solutions)
         loss, terms = step_module(*batch)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
@@ -404,6 +508,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, required=True, help="run directory (checkpoints, log.jsonl)")
     parser.add_argument("--resume", action="store_true", help="continue from OUT/last.pt if it exists")
     parser.add_argument("--threads", type=int, default=None, help="torch intra-op threads per process")
+    parser.add_argument("--init", type=Path, default=None,
+                        help="fine-tune: start from this checkpoint's weights (fresh optimiser)")
     parser.add_argument("--max-minutes", type=float, default=None,
                         help="stop (with a checkpoint) after this wall time; --resume continues")
     for field in dataclasses.fields(TrainConfig):
@@ -415,7 +521,7 @@ def main(argv: list[str] | None = None) -> int:
         preset(cfg.preset)   # fail early on a bad preset name
     except InputError as exc:
         parser.error(str(exc))
-    path = train(cfg, args.out, resume=args.resume, threads=args.threads,
+    path = train(cfg, args.out, resume=args.resume, threads=args.threads, init=args.init,
                  max_seconds=None if args.max_minutes is None else 60 * args.max_minutes)
     if int(os.environ.get("RANK", "0")) == 0:
         print(f"checkpoint: {path}")

@@ -46,8 +46,9 @@ def test_lr_schedule_warms_up_then_decays():
 
 def test_draw_batch_splits_views_into_disjoint_reference_and_target_sets():
     cfg = TrainConfig(**SMALL)
-    images, ref, tgt, pixels, depths, teacher, pose_batch = draw_batch(fake_scenes(), cfg, preset("tiny"),
-                                                  np.random.default_rng(0))
+    images, ref, tgt, pixels, depths, teacher, pose_batch, solved = draw_batch(
+        fake_scenes(), cfg, preset("tiny"), np.random.default_rng(0))
+    assert teacher is None and pose_batch is None and solved is None
     assert images.dtype == torch.float32 and 0 <= float(images.min()) and float(images.max()) <= 1
     for r, t, p, d in zip(ref, tgt, pixels, depths):
         assert len(r) >= 1 and len(t) >= 1 and not set(r.tolist()) & set(t.tolist())
@@ -94,3 +95,90 @@ def test_torchrun_two_processes(tmp_path):
     log = [json.loads(x) for x in (tmp_path / "ddp" / "log.jsonl").read_text().splitlines()]
     assert [r["step"] for r in log] == [0, 1]
     assert read_checkpoint(tmp_path / "ddp" / "last.pt")["step"] == 2
+
+
+# -- training on the solved epipolar cameras (render_cameras="epipolar") -------------------------
+def _poses(rng, n):
+    from scipy.spatial.transform import Rotation
+    T = np.tile(np.eye(4), (n, 1, 1))
+    T[:, :3, :3] = Rotation.random(n, random_state=rng).as_matrix()
+    T[:, :3, 3] = rng.normal(size=(n, 3))
+    return T
+
+
+def test_solved_cameras_rebase_to_the_drawn_first_view():
+    from iris_train.pseudo_poses import SolvedCameras
+    rng = np.random.default_rng(3)
+    T = _poses(rng, 8)
+    sc = SolvedCameras(T, 1.1, np.ones(8, dtype=bool))
+    order = np.array([5, 2, 7])
+    out = sc.rebased(order)
+    np.testing.assert_allclose(out[0], np.eye(4), atol=1e-12)
+    for a in range(3):           # every relative pose is the scene's (float64 reference)
+        for b in range(3):
+            np.testing.assert_allclose(np.linalg.inv(out[b]) @ out[a],
+                                       np.linalg.inv(T[order[b]]) @ T[order[a]], atol=1e-10)
+
+
+def test_solve_losses_vanish_at_the_solve_and_pull_towards_it():
+    from iris_train.train import solve_losses
+    T = torch.as_tensor(_poses(np.random.default_rng(4), 5))
+    T[0] = torch.eye(4, dtype=T.dtype)
+    f = torch.tensor([0.9, 0.9], dtype=torch.float64)
+    at = solve_losses(T, f, T, f)
+    assert all(float(v) < 1e-12 for v in at.values())
+    pred = T.clone()
+    pred[2, :3, 3] += torch.tensor([0.3, 0.0, 0.0], dtype=T.dtype)
+    pred.requires_grad_(True)
+    out = solve_losses(pred, f * 1.2, T, f)
+    assert float(out["solve_trans"].detach()) == pytest.approx(0.3 ** 2 / 4)   # mean over views 1..4
+    assert float(out["solve_focal"].detach()) == pytest.approx(np.log(1.2) ** 2)
+    out["solve_trans"].backward()
+    assert float(pred.grad[2, 0, 3]) > 0 and float(pred.grad[[1, 3, 4]].abs().sum()) == 0
+
+
+def test_draw_batch_with_solutions_draws_only_solved_views():
+    from iris_train.pseudo_poses import SolvedCameras
+    rng = np.random.default_rng(5)
+    # View v of every scene is the constant image 20 * v, so a drawn image names its view.
+    scenes = [FakeScene(np.repeat(20 * np.arange(8, dtype=np.uint8), 64 * 64 * 3).reshape(8, 64, 64, 3))
+              for _ in range(3)]
+    T = _poses(rng, 8)
+    solved = np.array([1, 1, 0, 1, 1, 1, 0, 1], dtype=bool)     # 6 views solved
+    sc = SolvedCameras(np.where(solved[:, None, None], T, np.nan), 1.2, solved)
+    cfg = TrainConfig(**{**SMALL, "views_min": 5, "views_max": 6, "scenes_per_step": 2})
+    for seed in range(5):
+        images, _, _, _, _, _, _, cams = draw_batch(scenes, cfg, preset("tiny"),
+                                                    np.random.default_rng(seed), solutions=lambda i: sc)
+        for b, (world_from_cam, focal) in enumerate(cams):
+            views = (images[b, :, 0, 0, 0] * 255 / 20).round().long().numpy()
+            assert solved[views].all() and len(set(views)) == len(views)
+            np.testing.assert_allclose(world_from_cam.numpy(), sc.rebased(views), atol=1e-5)
+            assert focal.tolist() == pytest.approx([1.2, 1.2])
+    # No scene has enough solved views: a clear error, not a silent draw of unsolved views.
+    cfg7 = TrainConfig(**{**SMALL, "views_min": 7, "views_max": 7})
+    with pytest.raises(RuntimeError, match="solved views"):
+        draw_batch(scenes, cfg7, preset("tiny"), np.random.default_rng(0), solutions=lambda i: sc)
+
+
+def test_train_on_solved_cameras_from_an_init_checkpoint(tmp_path):
+    """A fine-tune: --init weights, the renderer on the solved cameras of a rendered scene, the
+    head distilled on them; a config mismatch is refused."""
+    pytest.importorskip("pyrender")
+    from iris_train.synthetic import render_scene
+    scenes = [render_scene(1_000_003, n_views=8, size=(64, 64))]
+    base = dict(SMALL, views_min=4, views_max=4, preset="tiny-rgb")
+    train(TrainConfig(steps=1, **base), tmp_path / "init", scenes=scenes, threads=1)
+    cfg = TrainConfig(steps=2, render_cameras="epipolar", solve_rotation_weight=10.0,
+                      solve_translation_weight=10.0, solve_focal_weight=1.0, **base)
+    train(cfg, tmp_path / "ft", scenes=scenes, threads=1, init=tmp_path / "init" / "last.pt")
+    log = [json.loads(x) for x in (tmp_path / "ft" / "log.jsonl").read_text().splitlines()]
+    assert {"render", "solve_rot", "solve_trans", "solve_focal"} <= set(log[0]["terms"])
+    assert all(np.isfinite(v) for r in log for v in r["terms"].values())
+    assert read_checkpoint(tmp_path / "ft" / "last.pt")["step"] == 2
+    with pytest.raises(ValueError, match="init"):
+        train(TrainConfig(steps=1, **dict(base, preset="tiny")), tmp_path / "bad", scenes=scenes,
+              threads=1, init=tmp_path / "init" / "last.pt")
+    with pytest.raises(ValueError, match="render_cameras"):
+        train(TrainConfig(steps=1, render_cameras="truth", **base), tmp_path / "bad2", scenes=scenes,
+              threads=1)
