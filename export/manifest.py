@@ -79,7 +79,8 @@ def versions() -> dict[str, str]:
 
 
 def build_manifest(cfg: ModelConfig, graphs: dict[str, dict], validation: dict, *, opset: int,
-                   ir_version: int, exporter: str, source: dict, **export_info) -> dict:
+                   ir_version: int, exporter: str, source: dict, cameras: str = "model",
+                   **export_info) -> dict:
     h, w = cfg.feature_grid
     return {
         "format": FORMAT,
@@ -94,6 +95,7 @@ def build_manifest(cfg: ModelConfig, graphs: dict[str, dict], validation: dict, 
         "near": cfg.near,
         "far": cfg.far,
         "samples": cfg.samples,
+        "cameras": cameras,
         "dims": {"H": cfg.image_height, "W": cfg.image_width, "h": h, "w": w,
                  "C'": cfg.field_channels},
         "export": {"exporter": exporter, "opset": opset, "ir_version": ir_version, **export_info,

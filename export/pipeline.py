@@ -19,7 +19,7 @@ from pathlib import Path
 import onnx
 
 from iris_runtime.fileio import sha256_file
-from iris_train.model import CheckpointError, IrisModel, load_model
+from iris_train.model import CheckpointError, IrisModel, load_model, read_checkpoint, trained_cameras
 
 from . import io_spec
 from .errors import ExportArgumentError, ExportError, OutputExistsError
@@ -107,12 +107,13 @@ def export_model(model_or_ckpt: IrisModel | str | os.PathLike, out_dir: str | os
         raise ExportArgumentError(f"model_or_ckpt: expected an IrisModel or a checkpoint path, got "
                                   f"{type(model_or_ckpt).__name__}")
     if isinstance(model_or_ckpt, IrisModel):
-        model, source = model_or_ckpt, {"checkpoint": None}
+        model, source, cameras = model_or_ckpt, {"checkpoint": None}, "model"
     else:
         ckpt = Path(model_or_ckpt)
         say(f"loading checkpoint {ckpt}")
         model = _load(ckpt)
         source = {"checkpoint": ckpt.name, "sha256": sha256_file(ckpt)}
+        cameras = trained_cameras(read_checkpoint(ckpt))
     was_training = model.training
     model.eval()
 
@@ -152,7 +153,7 @@ def export_model(model_or_ckpt: IrisModel | str | os.PathLike, out_dir: str | os
             raise ExportError(f"unexpected files next to the graphs: {unexpected}")
         ir_version = onnx.load_model(str(files["encoder"]), load_external_data=False).ir_version
         manifest = build_manifest(model.cfg, graphs, report, opset=opset, ir_version=ir_version,
-                                  exporter=EXPORTER, source=source,
+                                  exporter=EXPORTER, source=source, cameras=cameras,
                                   renderer_sampler=RendererGraph(model).sampler,
                                   renderer_graph=renderer)
         write_manifest(tmp / MANIFEST_NAME, manifest)

@@ -121,10 +121,11 @@ def build_parser() -> argparse.ArgumentParser:
                              "the scene): printed, written to located_poses.json (4x4 "
                              "world_from_cam each) and rendered as located_NNN; give it after "
                              "IMAGES")
-    p.add_argument("--cameras", choices=["model", "epipolar"], default="model",
-                   help="cameras of the inputs: the model's prediction (default) or the global "
-                        "epipolar solve of the photos, scaled to the renderer's depth range (V (V - 1) "
-                        "/ 2 optical flows; views it cannot pose keep the model's camera)")
+    p.add_argument("--cameras", choices=["model", "epipolar"], default=None,
+                   help="cameras of the inputs: the model's prediction or the global epipolar "
+                        "solve of the photos, scaled to the renderer's depth range (V (V - 1) / 2 "
+                        "optical flows; views it cannot pose keep the model's camera). Default: "
+                        "the cameras the model was trained with (its manifest's 'cameras')")
     out = p.add_argument_group("output and speed")
     out.add_argument("--size", metavar="HxW", type=_size,
                      help="output size (default: the model's resolution)")
@@ -252,7 +253,7 @@ def run(args: argparse.Namespace) -> int:
     t_encode = time.perf_counter() - t0
     say(f"encoded {V} view(s) at {H}x{W} in {t_encode:.2f} s (model check + image loading "
         f"{t_load:.2f} s); focal fx/W={scene.focal[0]:.4f} fy/H={scene.focal[1]:.4f}")
-    if args.cameras != "model":
+    if (args.cameras or rt.default_cameras) != "model":
         say(f"cameras of the inputs: {scene.camera_source}"
             + {"epipolar": " (every view from the epipolar solve)",
                "mixed": " (views the epipolar solve could not reach keep the model's camera)",

@@ -76,6 +76,14 @@ class Manifest:
     raw: Mapping[str, Any] = field(repr=False)  # the whole document, for reports
     #: config.explicit_rgb: the renderer takes ``colours`` (the reference RGB at the samples).
     explicit_rgb: bool = False
+    #: The cameras the renderer was trained with, and so ``IrisRuntime.encode``'s default:
+    #: "model" (the camera head's) or "epipolar" (``iris-train --render-cameras epipolar``).
+    #: Optional in the file; "model" when absent (every model exported before it existed).
+    cameras: str = "model"
+
+
+#: Values of the manifest's optional "cameras" (``Manifest.cameras``).
+MANIFEST_CAMERAS = ("model", "epipolar")
 
 
 def read_graph_bytes(entry: GraphEntry) -> bytes:
@@ -308,11 +316,15 @@ def read_manifest(model_dir: str | os.PathLike, *, verify_hashes: bool = True) -
                                 f"but config.explicit_rgb is not true (a renderer without explicit "
                                 f"colour takes no reference RGB)")
 
+    cameras = doc.get("cameras", "model")
+    if cameras not in MANIFEST_CAMERAS:
+        raise ManifestError(f"{path}: 'cameras' must be one of {list(MANIFEST_CAMERAS)}, got "
+                            f"{cameras!r}")
     manifest = Manifest(model_dir=root, version=version, config=MappingProxyType(dict(config)),
                         image_size=(int(size[0]), int(size[1])), near=near, far=far,
                         samples=samples, field_channels=field_channels,
                         graphs=MappingProxyType(graphs),
-                        raw=MappingProxyType(doc), explicit_rgb=explicit_rgb)
+                        raw=MappingProxyType(doc), explicit_rgb=explicit_rgb, cameras=cameras)
     if verify_hashes:
         for entry in graphs.values():
             if not entry.path.is_file():

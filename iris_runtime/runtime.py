@@ -247,13 +247,22 @@ class IrisRuntime:
                                  f"or inf for finite images in [0, 1] (broken weights?)")
         return maps, world_from_cam, focal
 
-    def encode(self, images, cameras: str = "model") -> Scene:
+    @property
+    def default_cameras(self) -> str:
+        """``encode``'s cameras when none are asked for: the ones the renderer was trained with
+        (the manifest's "cameras": "epipolar" for a model trained by ``iris-train
+        --render-cameras epipolar``, else "model")."""
+        return self.manifest.cameras
+
+    def encode(self, images, cameras: str | None = None) -> Scene:
         """Run the encoder on ``images`` (a sequence of HxWx3 uint8 RGB arrays, PIL images or
         file paths, any size: centre-cropped to the model's aspect ratio and resized, see
         ``iris_runtime.images.fit_to_model``), every image a reference -> an immutable ``Scene``
         (which keeps the model-resolution images for ``locate``).
 
-        cameras: "model" (default): the encoder's predicted cameras and focal.
+        cameras: None (default): ``default_cameras``, the cameras this model's renderer was
+                 trained with (the manifest's "cameras").
+                 "model": the encoder's predicted cameras and focal.
                  "epipolar": the field maps are the encoder's as always, but the poses are the
                  global epipolar solve of the model-resolution images
                  (``iris_runtime.epipolar.refine_cameras``: DIS flow, an essential matrix per
@@ -268,7 +277,8 @@ class IrisRuntime:
                  views on one core (V (V - 1) / 2 pairs of flow), beside the encoder.
                  Held-out figures: README, "Epipolar cameras".
         """
-        return self._encode(images, {}, self._check_cameras(cameras))
+        return self._encode(images, {}, self._check_cameras(
+            self.default_cameras if cameras is None else cameras))
 
     @staticmethod
     def _check_cameras(cameras) -> str:
@@ -423,7 +433,7 @@ class IrisRuntime:
             scene = images_or_scene
             self._check_scene(scene)
         else:
-            scene = self._encode(images_or_scene, timings)
+            scene = self._encode(images_or_scene, timings, self.default_cameras)
         photos = self._view_images(scene)             # explicit colour: the photos are there
         world_from_cam = self._check_pose(pose, scene)
         K = self._check_intrinsics(intrinsics, scene, height, width)

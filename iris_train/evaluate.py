@@ -200,6 +200,8 @@ class _TorchBackend:
         self.image_size = (model.cfg.image_height, model.cfg.image_width)
         self.depth_range = (model.cfg.near, model.cfg.far)
         self.last_source = "model"
+        # A checkpoint loaded by load_evaluable knows the cameras it was trained with.
+        self.default_cameras = getattr(model, "trained_cameras", "model")
 
     def encode(self, images: np.ndarray, cameras: str = "model"):
         """``cameras="epipolar"``: the model's poses and focal replaced by
@@ -247,6 +249,7 @@ class _RuntimeBackend:
         self.rt = runtime
         self.image_size, self.depth_range = _runtime_geometry(runtime)
         self.last_source = "model"
+        self.default_cameras = getattr(runtime, "default_cameras", "model")
 
     def encode(self, images: np.ndarray, cameras: str = "model"):
         if cameras == "model":                  # (duck-typed runtimes need not know cameras=)
@@ -386,7 +389,7 @@ def _mean_or_none(values: list[float]):
 
 def evaluate(model, scenes: Iterable, *, views: int = DEFAULT_VIEWS, seed: int = RAND_SEED,
              grid: str | os.PathLike | None = None, progress: bool = True,
-             total: int | None = None, cameras: str = "model", locate: str | None = None) -> dict:
+             total: int | None = None, cameras: str | None = None, locate: str | None = None) -> dict:
     """Evaluate ``model`` (an ``IrisModel`` or an ``iris_runtime.IrisRuntime``) on ``scenes``.
 
     ``scenes``: objects with ``images`` uint8 ``[V, H, W, 3]`` (trajectory order) and
@@ -403,7 +406,9 @@ def evaluate(model, scenes: Iterable, *, views: int = DEFAULT_VIEWS, seed: int =
     over scenes (see the module docstring for the protocol; ``depth_spearman`` is None when no
     scene has a true depth). Raises ``ValueError`` when no scene has ``views`` frames.
 
-    ``cameras``: "model" (default) or "epipolar": the references' cameras (and focal) are the
+    ``cameras``: None (default): the cameras the model was trained with (an exported model's
+    ``IrisRuntime.default_cameras``, a checkpoint's training config), or "model", or
+    "epipolar": the references' cameras (and focal) are the
     global epipolar solve of the reference images scaled to the model's units
     (``iris_runtime.epipolar.refine_cameras``; ``IrisRuntime.encode(images, cameras="epipolar")``
     for an exported model, the same function on the torch model's outputs for a checkpoint).
@@ -415,6 +420,8 @@ def evaluate(model, scenes: Iterable, *, views: int = DEFAULT_VIEWS, seed: int =
     "sources": {camera source: scenes}, "targets_epipolar": fraction of targets posed by the
     epipolar solve}``.
     """
+    backend = _backend(model)
+    cameras = backend.default_cameras if cameras is None else cameras
     if cameras not in ("model", "epipolar"):
         raise ValueError(f"cameras: expected 'model' or 'epipolar', got {cameras!r}")
     locate = cameras if locate is None else locate
@@ -422,7 +429,6 @@ def evaluate(model, scenes: Iterable, *, views: int = DEFAULT_VIEWS, seed: int =
         raise ValueError(f"locate: expected 'model' or 'epipolar', got {locate!r}")
     report_cameras = cameras != "model" or locate != "model"
     camera_stats = {order: {"sources": {}, "targets": []} for order in ORDERS}
-    backend = _backend(model)
     refs, targets = split_frames(views)
     refs_a, targets_a = np.asarray(refs), np.asarray(targets)
     training = getattr(model, "training", None)
@@ -642,8 +648,10 @@ def load_evaluable(path: str | os.PathLike, threads: int | None = None):
                                 "(expected an exported model directory or a .pt checkpoint)")
         from iris_runtime import IrisRuntime      # lazily: the runtime is optional here
         return IrisRuntime(path, threads=threads)
-    from .model import load_model
-    return load_model(path)
+    from .model import load_model, read_checkpoint, trained_cameras
+    model = load_model(path)
+    model.trained_cameras = trained_cameras(read_checkpoint(path))
+    return model
 
 
 #: DATA values naming a synthetic set: the held-out scenes (the record) and the validation scenes
@@ -696,10 +704,11 @@ def main(argv: list[str] | None = None) -> int:
                         help="intra-op threads of torch (checkpoint) or ONNX Runtime (exported "
                              "model); default: the library's choice. On a busy machine 1 can be "
                              "much faster than oversubscribed cores")
-    parser.add_argument("--cameras", choices=("model", "epipolar"), default="model",
-                        help="cameras of the references: the model's (default) or the global "
-                             "epipolar solve of their images scaled to the model's units "
-                             "(iris_runtime.epipolar.refine_cameras)")
+    parser.add_argument("--cameras", choices=("model", "epipolar"), default=None,
+                        help="cameras of the references: the model's or the global epipolar "
+                             "solve of their images scaled to the model's units "
+                             "(iris_runtime.epipolar.refine_cameras); default: the cameras the "
+                             "model was trained with (its manifest's or checkpoint's)")
     parser.add_argument("--locate", choices=("model", "epipolar"), default=None,
                         help="poses of the targets: the model's locate, or the epipolar solve "
                              "against the references' cameras (iris_runtime.epipolar."

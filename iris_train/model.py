@@ -301,6 +301,15 @@ def read_checkpoint(path: str | os.PathLike) -> dict:
     return payload
 
 
+def trained_cameras(payload: dict) -> str:
+    """The cameras a checkpoint's renderer was trained with (``TrainConfig.render_cameras``):
+    "epipolar" or "model" (also for checkpoints without a training config). The exported
+    manifest records it as the runtime's default ``cameras``."""
+    train_config = payload.get("train_config")
+    value = train_config.get("render_cameras", "model") if isinstance(train_config, dict) else "model"
+    return value if value in ("model", "epipolar") else "model"
+
+
 def load_model(path: str | os.PathLike) -> IrisModel:
     """Checkpoint -> IrisModel in eval mode on the CPU."""
     payload = read_checkpoint(path)

@@ -116,6 +116,7 @@ def _edit_manifest(d: Path, edit) -> None:
      "relative"),
     (lambda d: d["graphs"]["renderer"].update(file=None), ManifestError, "file"),
     (lambda d: d.update(graphs=[]), ManifestError, "graphs"),
+    (lambda d: d.update(cameras="colmap"), ManifestError, "cameras"),
 ])
 def test_manifest_fields(model_copy, edit, error, match):
     _edit_manifest(model_copy, edit)

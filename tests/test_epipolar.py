@@ -570,7 +570,7 @@ def test_bad_cameras_values_raise_typed_errors(model_dir):
     from iris_runtime.runtime import Scene
     rt = IrisRuntime(model_dir, threads=1)
     images = [np.zeros((64, 64, 3), np.uint8)] * 2
-    for bad in ("Epipolar", "colmap", None, 1, ["model"]):
+    for bad in ("Epipolar", "colmap", 1, ["model"]):
         with pytest.raises(InputError, match="cameras"):
             rt.encode(images, cameras=bad)
     scene = rt.encode(images)
@@ -580,6 +580,39 @@ def test_bad_cameras_values_raise_typed_errors(model_dir):
         Scene(**kwargs, camera_source="colmap")
     with pytest.raises(InputError, match="encoder_focal"):
         Scene(**kwargs, encoder_focal=[0.0, 1.0])
+
+
+@pytest.mark.torch
+def test_default_cameras_follow_the_manifest(rendered, model_dir, tmp_path):
+    """A model trained on epipolar cameras says so in its manifest ("cameras"), and encode,
+    one-shot render and iris-eval then solve the cameras by default; without the key: "model"."""
+    import json
+    import shutil
+
+    from iris_runtime import IrisRuntime
+    from iris_train.evaluate import _backend
+    from iris_train.model import trained_cameras
+    d = tmp_path / "epi"
+    shutil.copytree(model_dir, d)
+    doc = json.loads((d / "iris.json").read_text())
+    assert doc["cameras"] == "model"                  # a random model: no training config
+    doc["cameras"] = "epipolar"
+    (d / "iris.json").write_text(json.dumps(doc))
+    rt_model, rt_epi = IrisRuntime(model_dir, threads=1), IrisRuntime(d, threads=1)
+    assert rt_model.default_cameras == "model" and rt_epi.default_cameras == "epipolar"
+    images = list(rendered.images[:5])
+    default, epi = rt_epi.encode(images), rt_epi.encode(images, cameras="epipolar")
+    assert default.camera_source == epi.camera_source != "model"
+    np.testing.assert_array_equal(default.world_from_cam, epi.world_from_cam)
+    assert rt_epi.encode(images, cameras="model").camera_source == "model"
+    np.testing.assert_array_equal(rt_epi.render(images, np.eye(4)), rt_epi.render(default, 0))
+    assert _backend(rt_epi).default_cameras == "epipolar"
+    del doc["cameras"]                                 # manifests written before the key
+    (d / "iris.json").write_text(json.dumps(doc))
+    assert IrisRuntime(d, threads=1).default_cameras == "model"
+    # The checkpoint side: what the training config says, "model" when it says nothing.
+    assert trained_cameras({"train_config": {"render_cameras": "epipolar"}}) == "epipolar"
+    assert trained_cameras({"train_config": {}}) == trained_cameras({}) == "model"
 
 
 def test_cli_cameras_flag(model_dir, tmp_path):
