@@ -9,6 +9,11 @@ photometric MSE. AdamW with linear warm-up and cosine decay; the encoder and cam
     iris-train --preset tiny --steps 20000 --out runs/tiny
     torchrun --nproc_per_node=2 -m iris_train.train --preset tiny --steps 100 --out runs/ddp
 
+``--render-cameras epipolar`` renders with each training scene's whole-scene epipolar solve
+(``pseudo_poses.load_or_solve``, the cameras ``IrisRuntime.encode(cameras="epipolar")`` gives the
+renderer at inference) instead of the head's, and distils the head on the same cameras; with
+``--init CKPT`` it fine-tunes a trained model (models/README.md has the command of the shipped one).
+
 Multi-process runs use DistributedDataParallel with the gloo backend (CPU); each rank draws its
 own scenes. Checkpoints (``last.pt``, atomic) carry the model config, the training config, the
 optimiser state and the step, so ``--resume`` continues a run exactly where it stopped.
