@@ -83,7 +83,7 @@ def main(argv=None) -> int:
     depth_rows = []
     frame = 0
     for si, s in enumerate(heldout_scenes(args.scenes)):
-        scene = rt.encode(list(s.images))
+        scene = rt.encode(list(s.images), cameras="model")
         sub = scene.subset(list(refs))
         for t in targets:
             pose = scene.world_from_cam[t]

@@ -33,7 +33,7 @@ model_dir, V, budget = sys.argv[2], int(sys.argv[3]), int(sys.argv[4])
 rt = IrisRuntime(model_dir, threads=1)
 rng = np.random.default_rng(0)
 H, W = rt.image_size
-scene = rt.encode([rng.integers(0, 256, (H, W, 3), dtype=np.uint8) for _ in range(V)])
+scene = rt.encode([rng.integers(0, 256, (H, W, 3), dtype=np.uint8) for _ in range(V)], cameras="model")
 pose = np.eye(4); pose[:3, 3] = [0.02, -0.01, 0.03]
 chunk = max(1, budget // (rt.samples * V))
 rt.render(scene, pose, height=1, width=1)               # sessions, first-run costs

@@ -31,7 +31,7 @@ def cases(model_dir: str, threads: int = 1) -> dict[str, np.ndarray]:
         images[i, ..., 0] = 0.5 + 0.5 * np.sin(9 * (xx + 0.03 * i) + 3 * yy)
         images[i, ..., 1] = 0.5 + 0.5 * np.cos(7 * yy - 2 * (xx + 0.03 * i))
     out: dict[str, np.ndarray] = {}
-    scene = rt.encode(images)
+    scene = rt.encode(images, cameras="model")
     out["scene.world_from_cam"] = np.asarray(scene.world_from_cam)
     out["scene.focal"] = np.asarray(scene.focal)
     pose = np.asarray(scene.world_from_cam[1], dtype=np.float64)

@@ -787,8 +787,10 @@ def shipped_pair(tmp_path_factory):
     out = export_model(SHIPPED, tmp_path_factory.mktemp("shipped") / "model", quick=True,
                        progress=False, threads=1)
     runtime = IrisRuntime(out, threads=1)
+    # The shipped renderer was trained on solved cameras, and its export says so.
+    assert runtime.default_cameras == "epipolar"
     paths = sorted(SAMPLE.glob("frame_*.png"))
-    scene = runtime.encode(paths)
+    scene = runtime.encode(paths, cameras="model")     # the graphs against torch: the head's cameras
     from iris_runtime.images import load_image
     model = load_model(SHIPPED)
     return runtime, scene, model, _torch_scene(model, [load_image(p) for p in paths])
@@ -810,13 +812,13 @@ def test_trained_model_runtime_matches_torch(shipped_pair):
 
 @pytest.mark.torch
 def test_trained_model_locate_matches_torch(shipped_pair):
-    """The shipped model (trained before references were isolated, exported under the new
-    contract): the targets of the sample scene located from its references, runtime vs torch."""
+    """The shipped model: the targets of the sample scene located from its references by the
+    encoder (the head's cameras), runtime vs torch."""
     import torch
     runtime, _, model, _ = shipped_pair
     paths = sorted(SAMPLE.glob("frame_*.png"))
     refs, targets = [paths[i] for i in (0, 2, 3, 5, 7)], [paths[i] for i in (1, 4, 6)]
-    scene = runtime.encode(refs)
+    scene = runtime.encode(refs, cameras="model")
     got = runtime.locate(scene, targets)
     with torch.no_grad():
         want = model.locate(torch.from_numpy(scene.reference_images.copy()),

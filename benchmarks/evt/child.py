@@ -81,7 +81,7 @@ def memory(args) -> None:
     images = np.load(args.images)                   # 16 reference frames, uint8 [16, H, W, 3]
     rt = IrisRuntime(args.model_dir, threads=args.threads, workers=args.workers)
     before = hwm_mb()
-    scene = rt.encode(list(images))
+    scene = rt.encode(list(images), cameras="model")
     after_encode = hwm_mb()
     pose = scene.world_from_cam[1].copy()
     pose[:3, 3] += [0.01, 0.0, 0.0]
