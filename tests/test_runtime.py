@@ -798,16 +798,30 @@ def shipped_pair(tmp_path_factory):
 
 @pytest.mark.torch
 def test_trained_model_runtime_matches_torch(shipped_pair):
+    """The encoder against torch float32; the renders, end to end (each side its own scene and
+    target pose), against torch in float64. Not against float32 torch: a sample that projects
+    onto a validity-mask edge flips with the last bit of a pose, so float32 torch itself is up
+    to 4e-5 (target 4) and, at the float32 pose on the float64 path, 3.6e-4 (target 6) from
+    float64 torch on this scene, while the runtime is within 4e-6 of it."""
+    import copy
+
+    import torch
     runtime, scene, model, tscene = shipped_pair
     assert np.abs(scene.world_from_cam - tscene.world_from_cam.double().numpy()).max() <= 1e-5
     assert np.abs(scene.focal - tscene.focal.double().numpy()).max() <= 1e-5
+    model64 = copy.deepcopy(model).double()
+    from iris_runtime.images import load_image
+    x = np.stack([load_image(p) for p in sorted(SAMPLE.glob("frame_*.png"))]).astype(np.float32)
+    with torch.no_grad():
+        t64 = model64.encode(torch.from_numpy(x.transpose(0, 3, 1, 2) * np.float32(1.0 / 255.0)).double())
     refs = [0, 2, 3, 5, 7]
     for target in (1, 4, 6):
-        pose = tscene.world_from_cam[target].double().numpy()
-        res = runtime.render(scene.subset(refs), pose, depth=True)
-        rgb, depth = _torch_render(model, tscene.subset(refs), pose, *runtime.image_size)
-        assert np.abs(res.image_float - rgb).max() <= 1e-4
-        assert np.abs(res.depth - depth).max() <= 1e-4
+        res = runtime.render(scene.subset(refs), scene.world_from_cam[target], depth=True)
+        with torch.no_grad():
+            rgb, depth = model64.render(t64.subset(refs), t64.world_from_cam[[target]],
+                                        *runtime.image_size)
+        assert np.abs(res.image_float - rgb[0].numpy()).max() <= 1e-5
+        assert np.abs(res.depth - depth[0].numpy()).max() <= 1e-4
 
 
 @pytest.mark.torch
