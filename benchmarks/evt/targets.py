@@ -99,22 +99,24 @@ def evaluate_targets(results: dict) -> list[dict]:
                     "met": err <= MAX_ABS_VS_TORCH,
                     "measured": f"max abs {err:.1e} (rgb, all frames)"})
     parity = results.get("knobs", {}).get("parity")
-    if parity:
-        # Issue 12's stricter bar, per stage: the renderer on torch's own inputs, and the whole
-        # path against torch in float64 (float32 torch is itself this far from float64).
-        worst = max(parity["renderer_vs_torch32"], parity["exact_vs_torch64"])
-        out.append({"target": f"output within {_e(MAX_ABS_VS_TORCH_STRICT)} of torch: the renderer "
-                              "on torch's inputs, and the whole path against torch in float64",
-                    "met": worst <= MAX_ABS_VS_TORCH_STRICT,
-                    "measured": f"renderer vs torch float32 on the same scene and poses "
-                                f"{parity['renderer_vs_torch32']:.1e}; exact path vs torch float64 "
-                                f"{parity['exact_vs_torch64']:.1e}; torch float32 vs float64 "
-                                f"{parity['torch32_vs_torch64']:.1e} (encoder maps / poses vs torch "
-                                f"float32 {parity['encoder_maps_vs_torch32']:.1e} / "
-                                f"{parity['encoder_poses_vs_torch32']:.1e})",
-                    "why": "end to end, float32 torch and the float32 ORT path each round the "
-                           "encoder's cameras by ~1e-7, and a render moves ~100x that at colour "
-                           "edges; against float64 the ORT path is the closer of the two"})
+    if ex and torch:
+        # Issue 12's bar, literally: the exact path within 1e-5 of torch eager (float32), end to
+        # end. The per-stage figures say where a miss comes from: the renderer on torch's own
+        # inputs, and both float32 paths against float64 (a sample on a validity-mask edge flips
+        # with the last bit of a pose, on either side).
+        err = torch["max_abs_vs_full"]
+        measured = f"torch eager vs exact {err:.1e}"
+        if parity:
+            measured += (f"; renderer on torch's own scene and poses {parity['renderer_vs_torch32']:.1e}; "
+                         f"against torch float64: exact {parity['exact_vs_torch64']:.1e}, torch "
+                         f"float32 {parity['torch32_vs_torch64']:.1e}; encoder maps / poses vs "
+                         f"torch {parity['encoder_maps_vs_torch32']:.1e} / "
+                         f"{parity['encoder_poses_vs_torch32']:.1e}")
+        out.append({"target": f"output within {_e(MAX_ABS_VS_TORCH_STRICT)} of torch eager",
+                    "met": err <= MAX_ABS_VS_TORCH_STRICT, "measured": measured,
+                    "why": "float32 rounding of the encoder's cameras (~1e-7) moves samples that sit "
+                           "on a validity-mask edge; the renderer given torch's own inputs is the "
+                           "implementation difference"})
     nc = rows.get(R.EXACT_NO_CULLING)
     if nc:
         err = nc["max_abs_vs_full"]
