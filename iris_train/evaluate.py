@@ -203,13 +203,14 @@ class _TorchBackend:
         # A checkpoint loaded by load_evaluable knows the cameras it was trained with.
         self.default_cameras = getattr(model, "trained_cameras", "model")
 
-    def encode(self, images: np.ndarray, cameras: str = "model"):
-        """``cameras="epipolar"``: the model's poses and focal replaced by
+    def encode(self, images: np.ndarray, cameras: str | None = None):
+        """``cameras``: None = ``default_cameras``; ``"epipolar"``: the model's poses and focal replaced by
         ``iris_runtime.epipolar.refine_cameras`` of the images, as ``IrisRuntime.encode`` does."""
         import dataclasses
 
         import torch
         x = torch.from_numpy(np.ascontiguousarray(images)).permute(0, 3, 1, 2).float() / 255.0
+        cameras = self.default_cameras if cameras is None else cameras
         with torch.no_grad():
             scene = self.model.encode(x)
         self.last_source = "model"
@@ -251,8 +252,9 @@ class _RuntimeBackend:
         self.last_source = "model"
         self.default_cameras = getattr(runtime, "default_cameras", "model")
 
-    def encode(self, images: np.ndarray, cameras: str = "model"):
-        if cameras == "model":                  # (duck-typed runtimes need not know cameras=)
+    def encode(self, images: np.ndarray, cameras: str | None = None):
+        cameras = self.default_cameras if cameras is None else cameras
+        if cameras == self.default_cameras:     # (duck-typed runtimes need not know cameras=)
             scene = self.rt.encode(list(images))
         else:
             scene = self.rt.encode(list(images), cameras=cameras)

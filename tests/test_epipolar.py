@@ -606,7 +606,10 @@ def test_default_cameras_follow_the_manifest(rendered, model_dir, tmp_path):
     np.testing.assert_array_equal(default.world_from_cam, epi.world_from_cam)
     assert rt_epi.encode(images, cameras="model").camera_source == "model"
     np.testing.assert_array_equal(rt_epi.render(images, np.eye(4)), rt_epi.render(default, 0))
-    assert _backend(rt_epi).default_cameras == "epipolar"
+    backend = _backend(rt_epi)
+    assert backend.default_cameras == "epipolar"
+    assert backend.encode(np.stack(images), cameras="model").camera_source == "model"
+    assert backend.encode(np.stack(images)).camera_source != "model"
     del doc["cameras"]                                 # manifests written before the key
     (d / "iris.json").write_text(json.dumps(doc))
     assert IrisRuntime(d, threads=1).default_cameras == "model"
