@@ -24,9 +24,10 @@ it), moved here so that a server without torch gets the same cameras. Convention
 with world_from_cam poses (R_k, c_k): R_ij = R_j^T R_i and t_ij ∝ R_j^T (c_i - c_j).
 
 Cost: V (V - 1) / 2 pairs of DIS flow plus one essential matrix each, and the focal search (11
-focals x every pair, since it scores every pair): ``IrisRuntime.encode(cameras="epipolar")`` of the
-8-view sample scene at 64x64 takes 5.9 s on one core against 0.03 s for the encoder alone
-(measured 2026-12-02, one-off timings; with the old search over pairs 2-3 apart: 3.1-3.4 s).
+focals x every pair): ``IrisRuntime.encode(cameras="epipolar")`` of the 8-view sample scene at
+64x64 takes 5.7 s on one core against 0.02 s with the encoder's cameras, 3.2 s with the focal
+searched over pairs 2-3 apart (``benchmarks/epipolar_cost.py``,
+benchmarks/results/epipolar_cost.json).
 """
 from __future__ import annotations
 

@@ -82,8 +82,11 @@ class Manifest:
     cameras: str = "model"
 
 
-#: Values of the manifest's optional "cameras" (``Manifest.cameras``).
-MANIFEST_CAMERAS = ("model", "epipolar")
+#: The cameras a renderer can be given: the encoder's ("model") or the global epipolar solve of
+#: the images ("epipolar", ``iris_runtime.epipolar.refine_cameras``). The values of the manifest's
+#: optional "cameras" (``Manifest.cameras``), of ``IrisRuntime.encode(cameras=...)`` and of
+#: ``iris-train --render-cameras``.
+CAMERAS = ("model", "epipolar")
 
 
 def read_graph_bytes(entry: GraphEntry) -> bytes:
@@ -317,8 +320,8 @@ def read_manifest(model_dir: str | os.PathLike, *, verify_hashes: bool = True) -
                                 f"colour takes no reference RGB)")
 
     cameras = doc.get("cameras", "model")
-    if cameras not in MANIFEST_CAMERAS:
-        raise ManifestError(f"{path}: 'cameras' must be one of {list(MANIFEST_CAMERAS)}, got "
+    if cameras not in CAMERAS:
+        raise ManifestError(f"{path}: 'cameras' must be one of {list(CAMERAS)}, got "
                             f"{cameras!r}")
     manifest = Manifest(model_dir=root, version=version, config=MappingProxyType(dict(config)),
                         image_size=(int(size[0]), int(size[1])), near=near, far=far,

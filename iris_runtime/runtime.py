@@ -44,7 +44,7 @@ from .errors import InputError, ManifestError, ModelFileError
 from .images import fit_to_model, load_image
 from .limits import (MAX_CHUNK_RAYS, MAX_CHUNK_SAMPLES, MAX_ENCODER_TOKENS, MAX_LOCATE_CALLS,
                      MAX_OUTPUT_PIXELS, RENDER_BUDGET, render_memory_bound)
-from .manifest import MANIFEST_NAME, Manifest, read_graph_bytes, read_manifest
+from .manifest import CAMERAS, MANIFEST_NAME, Manifest, read_graph_bytes, read_manifest
 from .quality import PRECISIONS, QUALITY_PRESETS, RenderSettings
 from .scene import CAMERA_SOURCES, RenderResult, Scene, check_pose
 from .validation import check_intrinsics
@@ -55,9 +55,6 @@ __all__ = ["IrisRuntime", "Scene", "RenderResult", "check_pose", "CAMERAS", "CAM
            "render_memory_bound",
            "PRECISIONS", "RenderSettings", "QUALITY_PRESETS"]
 
-#: Values of ``IrisRuntime.encode(images, cameras=...)``: the encoder's cameras, or the global
-#: epipolar solve of the images (``iris_runtime.epipolar.refine_cameras``).
-CAMERAS = ("model", "epipolar")
 
 
 def _is_single_image(x) -> bool:
@@ -273,9 +270,9 @@ class IrisRuntime:
                  focal becomes the Scene's ``focal`` and ``K`` (rendering uses the focal the
                  poses were solved at); the encoder's is kept in ``Scene.encoder_focal``. Views
                  that view 0 does not reach through trusted pairs keep the encoder's camera
-                 (``Scene.camera_source`` "mixed"; "model" if none is reached). Costs ~6 s for 8
-                 views at 64x64 on one core (V (V - 1) / 2 pairs of flow, the focal search
-                 over every pair; ``iris_runtime.epipolar``), beside 0.03 s of encoder.
+                 (``Scene.camera_source`` "mixed"; "model" if none is reached). Costs 5.7 s for 8
+                 views at 64x64 on one core against 0.02 s with the encoder's cameras
+                 (``benchmarks/epipolar_cost.py``).
                  Held-out figures: README, "Epipolar cameras".
         """
         return self._encode(images, {}, self._check_cameras(

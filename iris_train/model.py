@@ -302,12 +302,16 @@ def read_checkpoint(path: str | os.PathLike) -> dict:
 
 
 def trained_cameras(payload: dict) -> str:
-    """The cameras a checkpoint's renderer was trained with (``TrainConfig.render_cameras``):
-    "epipolar" or "model" (also for checkpoints without a training config). The exported
-    manifest records it as the runtime's default ``cameras``."""
+    """The cameras a checkpoint's renderer was trained with (``TrainConfig.render_cameras``, one
+    of ``iris_runtime.manifest.CAMERAS``; "model" for checkpoints without a training config).
+    The exported manifest records it as the runtime's default ``cameras``."""
+    from iris_runtime.manifest import CAMERAS
     train_config = payload.get("train_config")
     value = train_config.get("render_cameras", "model") if isinstance(train_config, dict) else "model"
-    return value if value in ("model", "epipolar") else "model"
+    if value not in CAMERAS:
+        raise CheckpointError(f"train_config.render_cameras: expected one of {list(CAMERAS)}, "
+                              f"got {value!r}")
+    return value
 
 
 def load_model(path: str | os.PathLike) -> IrisModel:

@@ -67,24 +67,37 @@ def cache_path(cache_dir: Path, seed: int, n_views: int) -> Path:
     return Path(cache_dir) / f"pseudo_{seed:07d}_v{n_views}.npz"
 
 
+def _read_cache(path: Path, **key) -> dict | None:
+    """The arrays of the ``.npz`` cache file ``path`` if its ``key`` arrays (version, ...) equal
+    ``key``; None when it is missing, unreadable or stale (the caller recomputes)."""
+    if not path.is_file():
+        return None
+    try:
+        with np.load(path) as z:
+            if all(np.array_equal(z[k], v) for k, v in key.items()):
+                return {k: z[k] for k in z.files}
+    except (OSError, KeyError, ValueError):
+        pass
+    return None
+
+
+def _write_cache(path: Path, **arrays) -> None:
+    import io
+    from iris_runtime.fileio import atomic_write_bytes
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    atomic_write_bytes(path, buf.getvalue())
+
+
 def load_or_estimate(scenes, index: int) -> PseudoPoses:
     """Pseudo-poses of ``scenes[index]`` (a ``SyntheticScenes``), from the cache or computed."""
-    from iris_runtime.fileio import atomic_write_bytes
-    import io
-    seed = scenes.seeds[index]
-    path = cache_path(scenes.cache_dir, seed, scenes.n_views)
-    if path.is_file():
-        try:
-            with np.load(path) as z:
-                if int(z["version"]) == TEACHER_VERSION:
-                    return PseudoPoses(z["cam_from_cam"], z["trusted"], z["inliers"], float(z["focal"]))
-        except (OSError, KeyError, ValueError):
-            pass                                      # unreadable or old: recompute below
+    path = cache_path(scenes.cache_dir, scenes.seeds[index], scenes.n_views)
+    z = _read_cache(path, version=TEACHER_VERSION)
+    if z is not None:
+        return PseudoPoses(z["cam_from_cam"], z["trusted"], z["inliers"], float(z["focal"]))
     pp = estimate(scenes[index].images)
-    buf = io.BytesIO()
-    np.savez(buf, version=TEACHER_VERSION, cam_from_cam=pp.cam_from_cam, trusted=pp.trusted,
-             inliers=pp.inliers, focal=pp.focal)
-    atomic_write_bytes(path, buf.getvalue())
+    _write_cache(path, version=TEACHER_VERSION, cam_from_cam=pp.cam_from_cam, trusted=pp.trusted,
+                 inliers=pp.inliers, focal=pp.focal)
     return pp
 
 
@@ -116,12 +129,9 @@ def solve_scene(images: np.ndarray, depth_range: tuple[float, float]) -> SolvedC
     cv2.setRNGSeed(0)
     V = images.shape[0]
     ref = refine_cameras(images, np.tile(np.eye(4), (V, 1, 1)), np.ones(2), depth_range=depth_range)
+    # ref.solved holds view 0 (= I) whenever any view is solved, none when the solve failed.
     T = np.where(ref.solved[:, None, None], ref.world_from_cam, np.nan)
-    solved = ref.solved.copy()
-    if solved.any():
-        solved[0] = True
-        T[0] = np.eye(4)
-    return SolvedCameras(T, float(ref.focal[0]), solved)
+    return SolvedCameras(T, float(ref.focal[0]), ref.solved.copy())
 
 
 def solved_cache_path(cache_dir: Path, seed: int, n_views: int) -> Path:
@@ -130,21 +140,13 @@ def solved_cache_path(cache_dir: Path, seed: int, n_views: int) -> Path:
 
 def load_or_solve(scenes, index: int, depth_range: tuple[float, float]) -> SolvedCameras:
     """``SolvedCameras`` of ``scenes[index]`` (a ``SyntheticScenes``), from the cache or solved."""
-    from iris_runtime.fileio import atomic_write_bytes
-    import io
     path = solved_cache_path(scenes.cache_dir, scenes.seeds[index], scenes.n_views)
-    if path.is_file():
-        try:
-            with np.load(path) as z:
-                if int(z["version"]) == SOLVE_VERSION and tuple(z["depth_range"]) == tuple(depth_range):
-                    return SolvedCameras(z["world_from_cam"], float(z["focal"]), z["solved"])
-        except (OSError, KeyError, ValueError):
-            pass                                      # unreadable or old: recompute below
+    key = {"version": SOLVE_VERSION, "depth_range": np.asarray(depth_range, np.float64)}
+    z = _read_cache(path, **key)
+    if z is not None:
+        return SolvedCameras(z["world_from_cam"], float(z["focal"]), z["solved"])
     sc = solve_scene(scenes[index].images, depth_range)
-    buf = io.BytesIO()
-    np.savez(buf, version=SOLVE_VERSION, depth_range=np.asarray(depth_range, np.float64),
-             world_from_cam=sc.world_from_cam, focal=sc.focal, solved=sc.solved)
-    atomic_write_bytes(path, buf.getvalue())
+    _write_cache(path, **key, world_from_cam=sc.world_from_cam, focal=sc.focal, solved=sc.solved)
     return sc
 
 

@@ -37,9 +37,10 @@ import torch.nn as nn
 
 from iris_runtime.errors import InputError
 from iris_runtime.geometry import sample_depths
+from iris_runtime.manifest import CAMERAS
 
 from . import geometry as G
-from . import ibr
+from . import ibr, pseudo_poses
 from .config import ModelConfig, preset
 from .model import IrisModel, Scene, build_model, read_checkpoint, save_checkpoint
 
@@ -87,9 +88,6 @@ class TrainConfig:
     def from_dict(cls, d: dict) -> "TrainConfig":
         known = {f.name for f in dataclasses.fields(cls)}
         return cls(**{k: v for k, v in d.items() if k in known})
-
-
-RENDER_CAMERAS = ("model", "epipolar")
 
 
 class PhotometricLoss(nn.Module):
@@ -266,6 +264,19 @@ def make_optimizer(model: IrisModel, cfg: TrainConfig, extra: list | None = None
     return torch.optim.AdamW(groups, lr=cfg.lr, betas=(0.9, 0.95))
 
 
+def _as_batch(images: list) -> torch.Tensor:
+    """uint8 ``[V, H, W, 3]`` per scene -> float ``[B, V, 3, H, W]`` in [0, 1]."""
+    return torch.as_tensor(np.stack(images)).permute(0, 1, 4, 2, 3).float() / 255.0
+
+
+def _teacher_in_order(pp, order: np.ndarray) -> tuple:
+    """A scene's pair teacher restricted to the views ``order``, in that order:
+    ``(cam_from_cam [n, n, 4, 4], trusted [n, n], focal)``."""
+    sel = np.ix_(order, order)
+    return (torch.as_tensor(pp.cam_from_cam[sel], dtype=torch.float32),
+            torch.as_tensor(pp.trusted[sel]), pp.focal)
+
+
 #: Draws of a scene before a step gives up looking for one with enough solved views.
 MAX_SCENE_DRAWS = 100
 
@@ -306,10 +317,7 @@ def draw_batch(scenes, cfg: TrainConfig, mcfg: ModelConfig, rng: np.random.Gener
             order = rng.permutation(data.images.shape[0])[:n_views]    # random order: "Rand"
         images.append(data.images[order])
         if teachers is not None:
-            pp = teachers(index)
-            sel = np.ix_(order, order)
-            teacher.append((torch.as_tensor(pp.cam_from_cam[sel], dtype=torch.float32),
-                            torch.as_tensor(pp.trusted[sel]), pp.focal))
+            teacher.append(_teacher_in_order(teachers(index), order))
         # View 0 of the drawn order is the canonical frame, so it is always a reference.
         roles = 1 + rng.permutation(n_views - 1)
         tgt.append(torch.as_tensor(np.sort(roles[:n_tgt])))
@@ -318,66 +326,36 @@ def draw_batch(scenes, cfg: TrainConfig, mcfg: ModelConfig, rng: np.random.Gener
         pixels.append(torch.as_tensor(rng.integers(0, H * W, size=(n_tgt, n))))
         depths.append(torch.as_tensor(sample_depths(mcfg.near, mcfg.far, S, n_tgt * n,
                                                     stratified=True, rng=rng, dtype=np.float32)))
-    batch = torch.as_tensor(np.stack(images)).permute(0, 1, 4, 2, 3).float() / 255.0
     pose_batch = None
-    if solutions is not None and cfg.teacher_scenes:
-        V = scenes[0].images.shape[0]
-        pose_images, pose_solved = [], []
+    if cfg.teacher_scenes and (solutions is not None or teachers is not None):
+        pose_images, pose_targets = [], []
         for _ in range(cfg.teacher_scenes):
-            index, order, cams = _draw_solved(scenes, solutions, rng, V)   # every view solved
+            if solutions is not None:                    # every view solved
+                index, order, target = _draw_solved(scenes, solutions, rng, scenes[0].images.shape[0])
+            else:
+                index = int(rng.integers(len(scenes)))
+                order = rng.permutation(scenes[index].images.shape[0])
+                target = _teacher_in_order(teachers(index), order)
             pose_images.append(scenes[index].images[order])
-            pose_solved.append(cams)
-        pose_ref = torch.ones(cfg.teacher_scenes, V, dtype=torch.bool)
-        pose_ref[:, V - n_tgt:] = False
-        pose_batch = (torch.as_tensor(np.stack(pose_images)).permute(0, 1, 4, 2, 3).float() / 255.0,
-                      pose_ref, pose_solved)
-    elif teachers is not None and cfg.teacher_scenes:
-        pose_images, pose_teacher = [], []
-        for _ in range(cfg.teacher_scenes):
-            index = int(rng.integers(len(scenes)))
-            order = rng.permutation(scenes[index].images.shape[0])
-            pose_images.append(scenes[index].images[order])
-            pp = teachers(index)
-            sel = np.ix_(order, order)
-            pose_teacher.append((torch.as_tensor(pp.cam_from_cam[sel], dtype=torch.float32),
-                                 torch.as_tensor(pp.trusted[sel]), pp.focal))
+            pose_targets.append(target)
         V = pose_images[0].shape[0]
         pose_ref = torch.ones(cfg.teacher_scenes, V, dtype=torch.bool)
         pose_ref[:, V - n_tgt:] = False          # the last n_tgt views are queries, as in rendering
-        pose_batch = (torch.as_tensor(np.stack(pose_images)).permute(0, 1, 4, 2, 3).float() / 255.0,
-                      pose_ref, pose_teacher)
-    return (batch, ref, tgt, pixels, depths, (teacher if teachers is not None else None), pose_batch,
+        pose_batch = (_as_batch(pose_images), pose_ref, pose_targets)
+    return (_as_batch(images), ref, tgt, pixels, depths, (teacher if teachers is not None else None), pose_batch,
             solved if solutions is not None else None)
 
 
-def _teacher_lookup(scenes):
-    """scene index -> PseudoPoses: from the cache beside a ``SyntheticScenes`` cache (computed
-    and cached when missing), otherwise computed from the images; kept in memory."""
-    from . import pseudo_poses
+def _per_scene(scenes, cached, compute):
+    """scene index -> ``cached(scenes, index)`` for a ``SyntheticScenes`` (read from beside its
+    cache, computed and written when missing), else ``compute(images)``; kept in memory. For
+    the pair teacher and the solved cameras alike."""
     memo: dict[int, object] = {}
+    on_disk = hasattr(scenes, "cache_dir") and hasattr(scenes, "seeds")
 
     def lookup(index: int):
         if index not in memo:
-            if hasattr(scenes, "cache_dir") and hasattr(scenes, "seeds"):
-                memo[index] = pseudo_poses.load_or_estimate(scenes, index)
-            else:
-                memo[index] = pseudo_poses.estimate(scenes[index].images)
-        return memo[index]
-    return lookup
-
-
-def _solution_lookup(scenes, depth_range: tuple[float, float]):
-    """scene index -> SolvedCameras, from the cache beside a ``SyntheticScenes`` cache (solved and
-    cached when missing), otherwise solved from the images; kept in memory."""
-    from . import pseudo_poses
-    memo: dict[int, object] = {}
-
-    def lookup(index: int):
-        if index not in memo:
-            if hasattr(scenes, "cache_dir") and hasattr(scenes, "seeds"):
-                memo[index] = pseudo_poses.load_or_solve(scenes, index, depth_range)
-            else:
-                memo[index] = pseudo_poses.solve_scene(scenes[index].images, depth_range)
+            memo[index] = cached(scenes, index) if on_disk else compute(scenes[index].images)
         return memo[index]
     return lookup
 
@@ -437,13 +415,15 @@ def train(cfg: TrainConfig, out: Path, resume: bool = False, scenes=None, thread
             raise ValueError(f"train_scenes: at most {min(VALIDATION_SEEDS)} (the validation "
                              f"scenes start there), got {cfg.train_scenes}")
         scenes = SyntheticScenes(range(cfg.train_scenes), size=(mcfg.image_height, mcfg.image_width))
-    if cfg.render_cameras not in RENDER_CAMERAS:
-        raise ValueError(f"render_cameras: expected one of {RENDER_CAMERAS}, got {cfg.render_cameras!r}")
+    if cfg.render_cameras not in CAMERAS:
+        raise ValueError(f"render_cameras: expected one of {CAMERAS}, got {cfg.render_cameras!r}")
     teachers = solutions = None
     if cfg.render_cameras == "epipolar":
-        solutions = _solution_lookup(scenes, (mcfg.near, mcfg.far))
+        depth_range = (mcfg.near, mcfg.far)
+        solutions = _per_scene(scenes, lambda sc, i: pseudo_poses.load_or_solve(sc, i, depth_range),
+                               lambda images: pseudo_poses.solve_scene(images, depth_range))
     elif cfg.teacher_weight or cfg.teacher_translation_weight or cfg.teacher_focal_weight:
-        teachers = _teacher_lookup(scenes)
+        teachers = _per_scene(scenes, pseudo_poses.load_or_estimate, pseudo_poses.estimate)
     step_module: nn.Module = loss_module
     if world > 1:
         step_module = nn.parallel.DistributedDataParallel(step_module)

@@ -800,9 +800,9 @@ def shipped_pair(tmp_path_factory):
 def test_trained_model_runtime_matches_torch(shipped_pair):
     """The encoder against torch float32; the renders, end to end (each side its own scene and
     target pose), against torch in float64. Not against float32 torch: a sample that projects
-    onto a validity-mask edge flips with the last bit of a pose, so float32 torch itself is up
-    to 4e-5 (target 4) and, at the float32 pose on the float64 path, 3.6e-4 (target 6) from
-    float64 torch on this scene, while the runtime is within 4e-6 of it."""
+    onto a validity-mask edge flips with the last bit of a pose, so two float32 paths can differ
+    by far more than their rounding (``benchmarks/error_vs_time.py`` reports the parity per
+    stage, against float32 and float64 torch)."""
     import copy
 
     import torch
