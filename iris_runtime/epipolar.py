@@ -3,7 +3,8 @@
 The cameras a scene's photos were taken from, from the photos alone:
 
 1. ``flow_matches``: dense correspondences between two photos (OpenCV DIS optical flow on 4x
-   upsampled grey images), kept where the forward and backward flows agree;
+   upsampled grey images), kept where the forward and backward flows agree and both photos have
+   texture;
 2. ``search_focal``: one shared focal by a grid search (the focal whose essential matrices explain
    the most flow vectors, over pairs two or three views apart);
 3. ``pairwise_poses``: per pair the essential matrix (OpenCV ``USAC_ACCURATE``, 5-point, 0.25 px)
@@ -37,9 +38,9 @@ import cv2
 import numpy as np
 
 __all__ = ["PairwisePoses", "GlobalSolve", "CameraRefinement", "flow_matches", "all_flow_matches",
-           "intrinsics", "search_focal", "relative_poses", "pairwise_poses", "reachable_views",
+           "canonical_order", "intrinsics", "search_focal", "relative_poses", "pairwise_poses", "reachable_views",
            "solve_global", "solve_cameras", "TRANSLATION_SOLVERS", "fit_scale", "refine_cameras", "locate_views",
-           "FLOW_UPSAMPLE", "FB_TOLERANCE", "FOCAL_GRID", "MIN_INLIERS", "MIN_INLIER_RATIO",
+           "FLOW_UPSAMPLE", "FB_TOLERANCE", "TEXTURE_MIN", "FOCAL_GRID", "MIN_INLIERS", "MIN_INLIER_RATIO",
            "ESTIMATOR", "RANSAC_THRESHOLD", "FOCAL_SEARCH_POINTS", "FOCAL_PAIRS", "DEFAULT_BASELINE",
            "COLLAPSED_SPREAD", "CAMERA_SOURCES", "DEPTH_TARGET", "MIN_PARALLAX", "SCALE_MODES",
            "match_depths",
@@ -49,6 +50,10 @@ __all__ = ["PairwisePoses", "GlobalSolve", "CameraRefinement", "flow_matches", "
 FLOW_UPSAMPLE = 4
 #: Forward-backward disagreement (pixels of the model image) above which a flow vector is dropped.
 FB_TOLERANCE = 0.5
+#: Flow vectors are kept only where both photos have texture: the smallest eigenvalue of the
+#: structure tensor (``cv2.cornerMinEigenVal`` of the grey photo at model resolution, 3x3 window,
+#: 3x3 Sobel; OpenCV scales it to [0, 1] for uint8) above this at both ends. 0 keeps every vector.
+TEXTURE_MIN = 3e-6
 #: Focal candidates fx/W (vertical fields of view from about 35 to 80 degrees).
 FOCAL_GRID = tuple(float(f) for f in np.geomspace(0.6, 1.6, 11))
 #: A pair is trusted when the estimator keeps at least this many flow vectors and this fraction.
@@ -98,7 +103,17 @@ class PairwisePoses:
 
 def flow_matches(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Pixel correspondences ``p -> q`` ``[N, 2]`` float32 (pixels of the given images, centres at
-    +0.5) from forward-backward-consistent DIS flow between uint8 RGB images a and b [H, W, 3]."""
+    +0.5) from forward-backward-consistent DIS flow between uint8 RGB images a and b [H, W, 3],
+    where both a at p and b at q have texture (``TEXTURE_MIN``).
+
+    Why the texture test: DIS fills a flat region (a sky, a plain backdrop) with the flow of its
+    surroundings or with zero, and forward and backward agree there, so those vectors pass the
+    consistency check; zero flow over half the image fits R = I with any translation, and the
+    essential matrix of a turntable scene came out as the identity rotation (errors equal to the
+    true rotation, 10-67 degrees). ``scripts/epipolar_study.py rpa synthetic:validation --scenes
+    24 --texture-min T``: RPA@15 / @30 0.385 / 0.607 without the test (T = 0), 0.512 / 0.685 at
+    1e-6, 0.515 / 0.689 at 3e-6 (the default), 0.506 / 0.685 at 1e-5, 0.482 / 0.650 at 1e-4
+    (docs/TRAINING.md, "Texture")."""
     up = FLOW_UPSAMPLE
     H, W = a.shape[:2]
     grey = [cv2.resize(cv2.cvtColor(x, cv2.COLOR_RGB2GRAY), (W * up, H * up),
@@ -114,13 +129,32 @@ def flow_matches(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     back = cv2.remap(bwd, q[:, :1] - 0.5, q[:, 1:] - 0.5, cv2.INTER_LINEAR).reshape(-1, 2)
     ok = ((np.linalg.norm(f + back, axis=1) < FB_TOLERANCE * up)
           & (q[:, 0] > 0) & (q[:, 1] > 0) & (q[:, 0] < W * up) & (q[:, 1] < H * up))
-    return p[ok] / up, q[ok] / up
+    p, q = p[ok] / up, q[ok] / up
+    if TEXTURE_MIN > 0:
+        textured = [cv2.cornerMinEigenVal(cv2.cvtColor(x, cv2.COLOR_RGB2GRAY), 3, ksize=3).ravel()
+                    > TEXTURE_MIN for x in (a, b)]
+        keep = textured[0][_cells(p, H, W)] & textured[1][_cells(q, H, W)]
+        p, q = p[keep], q[keep]
+    return p, q
 
 
 def all_flow_matches(images: np.ndarray) -> dict:
     """``{(i, j): (p, q)}`` for every pair i < j of uint8 ``images [V, H, W, 3]``."""
     V = images.shape[0]
     return {(i, j): flow_matches(images[i], images[j]) for i in range(V) for j in range(i + 1, V)}
+
+
+def canonical_order(images: np.ndarray) -> np.ndarray:
+    """``perm`` int64 [V]: the order the solve looks at uint8 ``images [V, H, W, 3]`` in, fixed by
+    their content (ascending SHA-256 of each image's bytes; identical images keep their given
+    order). Flow is computed i -> j for i < j, OpenCV's robust estimators draw in call order and
+    the global solve roots its gauge at the first view, so a solve in the given order depends on
+    the order of the photos: on 16 validation scenes the same photos in iris-eval's Seq and Rand
+    orders gave renders up to 1.3 dB apart, all of it from the cameras (``scripts/epipolar_study.py
+    order``). Solved in this order, the cameras are a function of the set of photos."""
+    import hashlib
+    keys = [hashlib.sha256(np.ascontiguousarray(x).tobytes()).hexdigest() for x in images]
+    return np.array(sorted(range(len(keys)), key=lambda k: (keys[k], k)), dtype=np.int64)
 
 
 def intrinsics(focal: float, H: int, W: int) -> np.ndarray:
@@ -516,19 +550,20 @@ def match_depths(matches: dict, world_from_cam: np.ndarray, focal: float, H: int
 
 
 def solve_views(images: np.ndarray, pairwise: PairwisePoses, matches: dict, *,
-                robust: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """One camera per view of ``images`` uint8 [V, H, W, 3], in view 0's frame, unit-free.
+                robust: bool = True, root: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One camera per view of ``images`` uint8 [V, H, W, 3], in view ``root``'s frame, unit-free.
 
     The largest set of views connected by trusted pairs (``pairwise.trusted``; ties: the one
-    with view 0, else the lowest view) is solved by ``solve_global`` (with the depth ties of
-    ``matches``), rooted at its lowest view; every other view, view 0 included when it is not
+    with ``root``, else the lowest view) is solved by ``solve_global`` (with the depth ties of
+    ``matches``), rooted at its lowest view; every other view, ``root`` included when it is not
     in that set, is then located against it (``locate_views``, PnP on the set's triangulated
-    pixels), and all poses are re-based so that view 0 = I. Without that, a view 0 with no
-    trusted pair left the whole scene to the model's cameras, and views outside view 0's set
-    kept cameras from another frame.
+    pixels), and all poses are re-based so that view ``root`` = I. Without that, a root with no
+    trusted pair left the whole scene to the model's cameras, and views outside the root's set
+    kept cameras from another frame. (``refine_cameras`` solves in ``canonical_order`` and roots
+    the result at the caller's view 0.)
 
     Returns ``(world_from_cam [V, 4, 4]`` (NaN rows: not solved), ``solved`` bool [V], ``core``
-    bool [V]: the views of the trusted set); nothing is solved when view 0 can be neither
+    bool [V]: the views of the trusted set); nothing is solved when the root can be neither
     solved nor located, or when no pair is trusted.
     """
     V, H, W = images.shape[:3]
@@ -542,7 +577,7 @@ def solve_views(images: np.ndarray, pairwise: PairwisePoses, matches: dict, *,
             comp = order[reachable_views(trusted[np.ix_(order, order)])]
             seen[comp] = True
             comps.append(np.sort(comp))
-    core_idx = max(comps, key=lambda c: (len(c), 0 in c, -c[0]))
+    core_idx = max(comps, key=lambda c: (len(c), root in c, -c[0]))
     if len(core_idx) < 2:
         return none
     sub_matches = {(a, b): matches[core_idx[a], core_idx[b]]
@@ -562,11 +597,11 @@ def solve_views(images: np.ndarray, pairwise: PairwisePoses, matches: dict, *,
                                   reference_matches=sub_matches)
         out[rest[ok]] = T_rest[ok]
         solved[rest[ok]] = True
-    if not solved[0]:
+    if not solved[root]:
         return none
-    out = np.linalg.inv(out[0]) @ np.where(solved[:, None, None], out, np.eye(4))
+    out = np.linalg.inv(out[root]) @ np.where(solved[:, None, None], out, np.eye(4))
     out[~solved] = np.nan
-    out[0] = np.eye(4)
+    out[root] = np.eye(4)
     return out, solved, core
 
 
@@ -624,7 +659,9 @@ def refine_cameras(images, world_from_cam, focal, *, focal_mode: str = "search",
                     ("depth") vs 21.69 ("model"), nearest reference 20.67
 
     The cameras are ``solve_views``' (the largest trusted set solved, the other views located
-    against it by PnP), their unit-free centres scaled as ``scale`` says. Views it cannot pose
+    against it by PnP) of the photos taken in ``canonical_order`` and rooted at view 0, so the
+    same photos in any order give the same cameras (up to the choice of view 0 and float
+    rounding); their unit-free centres scaled as ``scale`` says. Views it cannot pose
     keep the model's pose (``source`` "mixed", with the searched focal for all views; "model"
     when no view but view 0 is solved: then the model's poses and focal, unchanged).
     """
@@ -649,19 +686,24 @@ def refine_cameras(images, world_from_cam, focal, *, focal_mode: str = "search",
                            np.zeros((1, 1), np.int32), float(f_model[0]))
         return CameraRefinement(T_model.copy(), f_model.copy(), "model", np.zeros(1, bool), 1.0,
                                 "constant", pp)
-    matches = all_flow_matches(images)
-    pp = pairwise_poses(images, None if focal_mode == "search" else float(f_model[0]),
+    perm = canonical_order(images)          # solve index a <-> view perm[a]; view k <-> inv[k]
+    inv = np.argsort(perm)
+    canon = images[perm]
+    matches = all_flow_matches(canon)
+    pp = pairwise_poses(canon, None if focal_mode == "search" else float(f_model[0]),
                         matches=matches)
     f_used = f_model.copy() if focal_mode == "model" else np.array([pp.focal, pp.focal * W / H])
-    T_epi, solved, core = solve_views(images, pp, matches, robust=robust)
+    T_can, solved_can, core_can = solve_views(canon, pp, matches, robust=robust, root=int(inv[0]))
+    T_epi, solved = T_can[inv], solved_can[inv]
     out = T_model.copy()
     s, how = 1.0, "constant"
     idx = np.flatnonzero(solved)
     if len(idx) >= 2:
         depths = np.zeros(0)
         if scale == "depth":
-            trusted = [(i, j) for (i, j) in matches if pp.trusted[i, j] and core[i] and core[j]]
-            depths = match_depths(matches, T_epi, pp.focal, H, W, trusted)
+            trusted = [(a, b) for (a, b) in matches
+                       if pp.trusted[a, b] and core_can[a] and core_can[b]]
+            depths = match_depths(matches, T_can, pp.focal, H, W, trusted)
         if len(depths) >= MIN_INLIERS:
             s, how = (near + DEPTH_TARGET * (far - near)) / float(np.median(depths)), "depth"
         else:
@@ -674,6 +716,8 @@ def refine_cameras(images, world_from_cam, focal, *, focal_mode: str = "search",
     if source == "model":                  # nothing solved: the model's cameras and focal
         f_used = f_model.copy()
         solved = np.zeros(V, dtype=bool)
+    pp = PairwisePoses(pp.cam_from_cam[np.ix_(inv, inv)], pp.trusted[np.ix_(inv, inv)],
+                       pp.inliers[np.ix_(inv, inv)], pp.focal)      # in the caller's order
     return CameraRefinement(out, f_used, source, solved, float(s), how, pp)
 
 
@@ -805,6 +849,11 @@ def locate_views(reference_images, reference_world_from_cam, focal: float, query
     the caller has it (the PnP depths are built from it). Chosen on 48 validation scenes (seeds 50000-50047, iris-eval's
     protocol: 5 references solved, 3 targets located; docs/TRAINING.md, "Epipolar cameras"):
     RPA@15 / @30 0.517 / 0.709 against 0.504 / 0.701 with "lines".
+    The references are taken in ``canonical_order`` (``reference_matches`` is used only when
+    they already are, as ``solve_views`` passes them) and the queries solved in the first one's
+    frame; each query is located on its own. So neither the order of the references, nor the
+    reference their frame is rooted at, nor the order of the queries changes a pose (up to float
+    rounding).
     Returns ``(world_from_cam [Q, 4, 4] with NaN for unsolved queries, solved bool [Q])``.
     Deterministic (OpenCV's RNG is seeded with 0 per query).
     """
@@ -819,6 +868,13 @@ def locate_views(reference_images, reference_world_from_cam, focal: float, query
                          f"{queries.shape}")
     if T_ref.shape != (V, 4, 4):
         raise ValueError(f"reference_world_from_cam: expected [{V}, 4, 4], got {T_ref.shape}")
+    perm = canonical_order(refs)
+    if (perm != np.arange(V)).any():
+        refs, T_ref, reference_matches = refs[perm], T_ref[perm], None
+    # Solved in the first canonical reference's frame: EPnP and its RANSAC draws see the same
+    # coordinates whichever reference the caller's frame is rooted at.
+    anchor = T_ref[0].copy()
+    T_ref = np.linalg.inv(anchor) @ T_ref
     K = intrinsics(float(focal), H, W)
     Q = queries.shape[0]
     out = np.full((Q, 4, 4), np.nan)
@@ -862,4 +918,6 @@ def locate_views(reference_images, reference_world_from_cam, focal: float, query
         out[q, :3, :3] = R
         out[q, :3, 3] = np.linalg.solve(M, rhs)
         ok[q] = True
+    out[ok] = anchor @ out[ok]
     return out, ok
+

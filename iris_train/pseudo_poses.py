@@ -46,7 +46,8 @@ from iris_runtime.epipolar import (ESTIMATOR, FB_TOLERANCE, FLOW_UPSAMPLE,  # no
                                    RANSAC_THRESHOLD, PairwisePoses, flow_matches, intrinsics,
                                    pairwise_poses, solve_global)
 
-TEACHER_VERSION = 3
+#: 4: flow vectors without texture dropped (``epipolar.TEXTURE_MIN``); 3: as stored before.
+TEACHER_VERSION = 4
 
 #: The teacher's result: ``iris_runtime.epipolar.PairwisePoses`` (cam_from_cam [V, V, 4, 4],
 #: trusted, inliers, focal), under the name the training code knows it by.
@@ -103,7 +104,9 @@ def load_or_estimate(scenes, index: int) -> PseudoPoses:
 
 # -- solved scene cameras: the whole scene posed by the runtime's epipolar solve ---------------
 #: Version of the solved-camera cache (part of the file; another version is recomputed).
-SOLVE_VERSION = 1
+#: 2: the solve takes the photos in ``epipolar.canonical_order`` and drops flow vectors without
+#: texture (``epipolar.TEXTURE_MIN``); 1, F1's teacher: in the stored order, every vector.
+SOLVE_VERSION = 2
 
 
 @dataclass(frozen=True)

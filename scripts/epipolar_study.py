@@ -6,12 +6,18 @@ solved from their own photos; targets 1, 4, 6 located against them; RPA over all
     python scripts/epipolar_study.py rpa synthetic:validation
     python scripts/epipolar_study.py rpa synthetic:heldout --variants search/ties/pnp,true/ties/pnp
     python scripts/epipolar_study.py scale MODEL_DIR synthetic:validation --scenes 8
+    python scripts/epipolar_study.py order MODEL_DIR synthetic:validation --scenes 16
 
 ``rpa`` needs no model: per variant FOCAL/TRANSLATION/LOCATE with FOCAL "search" (the grid search)
-or "true" (the scene's), TRANSLATION "ties" (baselines tied by triangulated depth, the default),
-"baselines" (pair directions only) or "cross", LOCATE "pnp" or "lines". ``scale`` runs iris-eval
+or "true" (the scene's) or a number (that fx/W for every scene), TRANSLATION "ties" (baselines tied by triangulated depth, the default),
+"baselines" (pair directions only) or "cross", LOCATE "pnp" or "lines"; ``--texture-min`` sets the match filter
+``iris_runtime.epipolar.TEXTURE_MIN`` (0 keeps every flow vector). ``scale`` runs iris-eval
 (``cameras="epipolar"``) through an exported model once per camera scale rule of
 ``iris_runtime.epipolar.refine_cameras`` ("depth", "model") and prints the Rand figures.
+``order`` splits the Seq/Rand PSNR gap of an exported model into its two causes: per scene it
+renders the targets in Seq order, in Rand order, and in each order with the cameras the *other*
+order solved (re-based on this order's view 0, same focal and unit). If the swapped-camera rows
+follow the cameras rather than the order, the gap comes from the camera solve, not the renderer.
 """
 from __future__ import annotations
 
@@ -24,27 +30,33 @@ import time
 import numpy as np
 
 
-def rpa_study(data: str, variants: list[str], limit: int | None, order: str = "rand") -> dict:
+def rpa_study(data: str, variants: list[str], limit: int | None, order: str = "rand",
+              texture_min: float | None = None) -> dict:
     import iris_runtime.epipolar as E
     from iris_train.evaluate import load_scenes, presentation_order, split_frames
     from iris_train.metrics import rpa
 
     scenes, total = load_scenes(data, (64, 64), limit=limit)
     refs, targets = split_frames(8)
+    if texture_min is not None:                    # the match filter of this run
+        E.TEXTURE_MIN = texture_min
     scores = {v: [] for v in variants}
     for index, scene in enumerate(scenes):
         ref_order, target_order = presentation_order(order, refs, targets, index)
-        ro, to = list(ref_order), list(target_order)
+        # The solve sees the references in canonical order, rooted at the presented view 0,
+        # as refine_cameras does.
+        ro = [ref_order[k] for k in E.canonical_order(scene.images[ref_order])]
+        root, to = ro.index(ref_order[0]), list(target_order)
         images = scene.images
         matches = E.all_flow_matches(images[ro])
         for v in variants:
             focal, translation, locate = v.split("/")
             f = (scene.K[0, 0] / images.shape[2] if focal == "true"
                  else E.search_focal(matches, *images.shape[1:3], pairs="all") if focal == "all"
-                 else None)
+                 else None if focal == "search" else float(focal))
             pp = E.pairwise_poses(images[ro], f, matches=matches)
             if translation == "ties":
-                T_ref, _, _ = E.solve_views(images[ro], pp, matches)
+                T_ref, _, _ = E.solve_views(images[ro], pp, matches, root=root)
             else:
                 T_ref = E.solve_global(pp, translation=translation).world_from_cam
             T_ref = np.where(np.isfinite(T_ref), T_ref, np.eye(4))   # unsolved: identity
@@ -88,6 +100,48 @@ def scale_study(model_dir: str, data: str, rules: list[str], limit: int | None,
     return out
 
 
+def order_study(model_dir: str, data: str, limit: int | None, threads: int | None) -> dict:
+    import dataclasses
+
+    from iris_runtime import IrisRuntime
+    from iris_runtime.geometry import intrinsics_from_focal
+    from iris_train.evaluate import load_scenes, presentation_order, split_frames
+    from iris_train.metrics import psnr
+
+    rt = IrisRuntime(model_dir, threads=threads)
+    scenes, total = load_scenes(data, rt.image_size, limit=limit)
+    refs, targets = (list(x) for x in split_frames(8))
+    rows = {k: [] for k in ("seq", "rand", "seq|rand cameras", "rand|seq cameras")}
+    for index, scene in enumerate(scenes):
+        images = scene.images
+        gt = images[targets].astype(np.float64) / 255.0
+        enc, cams = {}, {}
+        for order in ("seq", "rand"):
+            ro, to = presentation_order(order, refs, targets, index)
+            s = rt.encode(images[ro], cameras="epipolar")
+            pred = np.tile(np.eye(4), (8, 1, 1))                   # frame order
+            pred[ro] = s.world_from_cam
+            pred[to] = rt.locate(s, images[to])                   # epipolar, as in iris-eval
+            enc[order], cams[order] = (s, ro), (pred, s.focal)
+        for order, other in (("seq", "seq"), ("rand", "rand"), ("seq", "rand"), ("rand", "seq")):
+            s, ro = enc[order]
+            pred, focal = cams[other]
+            pred = np.linalg.inv(pred[ro[0]]) @ pred              # re-based on this order's view 0
+            scene_o = dataclasses.replace(s, world_from_cam=pred[ro], focal=focal,
+                                          K=intrinsics_from_focal(focal, *rt.image_size))
+            p = float(np.mean([psnr(np.clip(rt.render(scene_o, pred[t], depth=True).image_float,
+                                            0, 1), g) for t, g in zip(targets, gt)]))
+            rows[order if order == other else f"{order}|{other} cameras"].append(p)
+        print(f"scene {index + 1}/{total}: " + ", ".join(f"{k} {v[-1]:.2f}" for k, v in rows.items()),
+              flush=True)
+    out = {k: {"psnr": float(np.mean(v)), "per_scene": [round(x, 2) for x in v]}
+           for k, v in rows.items()}
+    out["gap seq-rand"] = out["seq"]["psnr"] - out["rand"]["psnr"]
+    out["gap with the same cameras (seq cams)"] = out["seq"]["psnr"] - out["rand|seq cameras"]["psnr"]
+    out["gap with the same cameras (rand cams)"] = out["seq|rand cameras"]["psnr"] - out["rand"]["psnr"]
+    return out
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="study", required=True)
@@ -97,15 +151,25 @@ def main(argv=None) -> int:
     a.add_argument("--scenes", type=int, default=None)
     a.add_argument("--order", choices=("rand", "seq"), default="rand",
                    help="presentation order of the frames (iris-eval's Seq or Rand)")
+    a.add_argument("--texture-min", type=float, default=None,
+                   help="epipolar.TEXTURE_MIN for this run (0: keep textureless flow vectors)")
     b = sub.add_parser("scale", help="iris-eval with epipolar cameras per scale rule")
     b.add_argument("model_dir")
     b.add_argument("data")
     b.add_argument("--rules", default="model,depth")
     b.add_argument("--scenes", type=int, default=None)
     b.add_argument("--threads", type=int, default=None)
+    c = sub.add_parser("order", help="Seq/Rand PSNR gap: camera solve or renderer?")
+    c.add_argument("model_dir")
+    c.add_argument("data")
+    c.add_argument("--scenes", type=int, default=None)
+    c.add_argument("--threads", type=int, default=None)
     args = p.parse_args(argv)
-    if args.study == "rpa":
-        res = rpa_study(args.data, args.variants.split(","), args.scenes, args.order)
+    if args.study == "order":
+        res = order_study(args.model_dir, args.data, args.scenes, args.threads)
+    elif args.study == "rpa":
+        res = rpa_study(args.data, args.variants.split(","), args.scenes, args.order,
+                        args.texture_min)
     else:
         res = scale_study(args.model_dir, args.data, args.rules.split(","), args.scenes, args.threads)
     print(json.dumps(res, indent=1))

@@ -453,6 +453,35 @@ def test_epipolar_imports_torch_free():
     assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr
 
 
+
+def test_flow_matches_leave_out_the_flat_part_of_a_photo():
+    """Left half flat grey, right half texture; b is a shifted 2 px to the right. Flow in the flat
+    half is unconstrained (DIS fills it with zero or its neighbours' flow, and forward and backward
+    agree), so no vector may start or end there; the textured half keeps its vectors, with the
+    true shift. With the test off (TEXTURE_MIN = 0) the flat half does yield vectors."""
+    rng = np.random.default_rng(3)
+    H, W = 32, 64
+    tex = cv2.GaussianBlur(rng.integers(0, 256, (H, W + 8, 3), dtype=np.uint8), (3, 3), 0.8)
+    a = np.full((H, W, 3), 128, np.uint8)
+    b = a.copy()
+    a[:, W // 2:] = tex[:, 4 + W // 2:4 + W]
+    b[:, W // 2:] = tex[:, 2 + W // 2:2 + W]          # content moves 2 px to the right
+    p, q = E.flow_matches(a, b)
+    assert len(p) > 200
+    # (the border of the flat half is an edge: the 3x3 window and Sobel see it from 2 px away)
+    assert p[:, 0].min() >= W // 2 - 2.5 and q[:, 0].min() >= W // 2 - 2.5
+    inner = (p[:, 0] > W // 2 + 4) & (p[:, 0] < W - 4)
+    np.testing.assert_allclose(np.median(q[inner] - p[inner], axis=0), [2.0, 0.0], atol=0.1)
+    flat_eig = cv2.cornerMinEigenVal(cv2.cvtColor(a, cv2.COLOR_RGB2GRAY), 3, ksize=3)
+    assert flat_eig[:, :W // 2 - 2].max() <= E.TEXTURE_MIN < np.median(flat_eig[:, W // 2 + 2:])
+    old = E.TEXTURE_MIN
+    try:
+        E.TEXTURE_MIN = 0.0
+        p0, _ = E.flow_matches(a, b)
+    finally:
+        E.TEXTURE_MIN = old
+    assert (p0[:, 0] < W // 2 - 4).sum() > 100
+
 # ----------------------------------------------------------------------------------------------
 # on a rendered scene (needs iris_train: torch + pyrender)
 # ----------------------------------------------------------------------------------------------
@@ -480,6 +509,55 @@ def test_global_solve_on_a_rendered_scene(rendered):
     assert rpa(T, rendered.world_from_cam)["rpa@30"] >= 0.7
     # Deterministic.
     np.testing.assert_array_equal(E.solve_cameras(E.pairwise_poses(rendered.images)), T)
+
+
+def test_canonical_order_is_a_function_of_the_set_of_images():
+    rng = np.random.default_rng(5)
+    images = rng.integers(0, 256, (6, 8, 8, 3), dtype=np.uint8)
+    perm = E.canonical_order(images)
+    assert sorted(perm.tolist()) == list(range(6)) and perm.dtype == np.int64
+    for shuffle in (rng.permutation(6) for _ in range(5)):
+        np.testing.assert_array_equal(images[shuffle][E.canonical_order(images[shuffle])],
+                                      images[perm])
+    # Identical photos keep their given order (any order of them is the same images).
+    twins = np.stack([images[0], images[1], images[0]])
+    assert E.canonical_order(twins).tolist().index(0) < E.canonical_order(twins).tolist().index(2)
+
+
+@pytest.mark.torch
+def test_refine_cameras_does_not_depend_on_the_order_of_the_photos(rendered):
+    """The same photos in another order give the same cameras, re-based on the new view 0 (the
+    Seq/Rand gap of iris-eval came from the solve's order, scripts/epipolar_study.py order)."""
+    refs = [0, 2, 3, 5, 7]
+    model = np.tile(np.eye(4), (5, 1, 1))
+    a = E.refine_cameras(rendered.images[refs], model, [1.0, 1.0], depth_range=(0.1, 1.0))
+    assert a.source == "epipolar"
+    for order in ([3, 0, 4, 1, 2], [4, 3, 2, 1, 0], [0, 2, 1, 4, 3]):
+        b = E.refine_cameras(rendered.images[refs][order], model, [1.0, 1.0],
+                             depth_range=(0.1, 1.0))
+        expected = _canonical(a.world_from_cam[order])
+        np.testing.assert_allclose(b.world_from_cam, expected, atol=1e-9)
+        np.testing.assert_array_equal(b.focal, a.focal)
+        assert b.scale == pytest.approx(a.scale, rel=1e-12)
+        np.testing.assert_array_equal(b.pairwise.trusted, a.pairwise.trusted[np.ix_(order, order)])
+        np.testing.assert_array_equal(b.pairwise.inliers, a.pairwise.inliers[np.ix_(order, order)])
+
+
+@pytest.mark.torch
+def test_locate_views_does_not_depend_on_the_order_of_the_references(rendered):
+    truth = _canonical(rendered.world_from_cam)
+    refs, queries = [0, 2, 3, 5, 7], [1, 4, 6]
+    focal = rendered.K[0, 0] / rendered.images.shape[2]
+    T, ok = E.locate_views(rendered.images[refs], truth[refs], focal, rendered.images[queries])
+    shuffled = [7, 3, 0, 5, 2]
+    # ... and the frame rooted at the new first reference, as a user who gives them in this
+    # order sees it: the same poses in that frame.
+    frame = np.linalg.inv(truth[7])
+    T2, ok2 = E.locate_views(rendered.images[shuffled], frame @ truth[shuffled], focal,
+                             rendered.images[queries[::-1]])
+    np.testing.assert_array_equal(ok2, ok[::-1])
+    assert ok.all()
+    np.testing.assert_allclose(T2, frame @ T[::-1], atol=1e-6)     # LM stops at its tolerance
 
 
 @pytest.mark.torch
@@ -523,12 +601,14 @@ def test_runtime_epipolar_cameras_beat_the_model(rendered, model_dir):
     assert np.median(relative_pose_errors(epi.world_from_cam, gt)[0]) < 8.0
     np.testing.assert_array_equal(epi.world_from_cam[0], np.eye(4))
     # Units: the scene's median triangulated depth sits DEPTH_TARGET into the renderer's range.
+    # (The solve takes the photos in canonical order: the matches and depths are that order's.)
     ce = epi.world_from_cam[:, :3, 3]
-    pixels = np.ascontiguousarray(rendered.images)
+    perm = E.canonical_order(rendered.images)
+    pixels = np.ascontiguousarray(rendered.images[perm])
     pp = E.pairwise_poses(pixels)
     trusted = [(i, j) for i in range(8) for j in range(i + 1, 8) if pp.trusted[i, j]]
-    depths = E.match_depths(E.all_flow_matches(pixels), epi.world_from_cam, epi.focal[0], 64, 64,
-                            trusted)
+    depths = E.match_depths(E.all_flow_matches(pixels), epi.world_from_cam[perm], epi.focal[0],
+                            64, 64, trusted)
     assert np.median(depths) == pytest.approx(rt.near + E.DEPTH_TARGET * (rt.far - rt.near),
                                               rel=1e-9)
     # The grid-searched focal is the scene's, the encoder's is kept (locate checks against it).
