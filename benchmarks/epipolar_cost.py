@@ -1,7 +1,8 @@
 """What solving the cameras costs at encode time: ``IrisRuntime.encode`` of the committed 8-view
 sample scene with the encoder's cameras, and with the epipolar solve under each focal-search
 pair rule of ``iris_runtime.epipolar.search_focal`` ("all", the default, and "gap", the first
-rule). Median of ``--runs`` wall times after one warm-up per configuration, one process.
+rule), and with the default rule but the texture test of ``flow_matches`` off (``TEXTURE_MIN``
+= 0). Median of ``--runs`` wall times after one warm-up per configuration, one process.
 
     python benchmarks/epipolar_cost.py MODEL_DIR              # an iris-export output
     python benchmarks/epipolar_cost.py MODEL_DIR --threads 1 --runs 3 --json out.json
@@ -28,14 +29,17 @@ def measure(model_dir: str, threads: int, runs: int) -> dict:
     cv2.setNumThreads(threads)
     rt = IrisRuntime(model_dir, threads=threads)
     paths = sorted(SAMPLE.glob("frame_*.png"))
-    original = E.search_focal
+    original, texture = E.search_focal, E.TEXTURE_MIN
     out = {"views": len(paths), "size": list(rt.image_size), "threads": threads, "runs": runs}
     try:
-        for name, cameras, pairs in (("encoder cameras", "model", None),
-                                     ("epipolar, focal over every pair", "epipolar", "all"),
-                                     ("epipolar, focal over pairs 2-3 apart", "epipolar", "gap")):
+        for name, cameras, pairs, texture_min in (
+                ("encoder cameras", "model", None, texture),
+                ("epipolar, focal over every pair", "epipolar", "all", texture),
+                ("epipolar, focal over pairs 2-3 apart", "epipolar", "gap", texture),
+                ("epipolar, every pair, texture test off", "epipolar", "all", 0.0)):
             if pairs is not None:
                 E.search_focal = functools.partial(original, pairs=pairs)
+            E.TEXTURE_MIN = texture_min
             rt.encode(paths, cameras=cameras)                      # warm-up
             times = []
             for _ in range(runs):
@@ -45,7 +49,7 @@ def measure(model_dir: str, threads: int, runs: int) -> dict:
             out[name] = {"median_s": statistics.median(times), "runs_s": times}
             print(f"{name:40s} {statistics.median(times):7.3f} s", flush=True)
     finally:
-        E.search_focal = original
+        E.search_focal, E.TEXTURE_MIN = original, texture
     return out
 
 

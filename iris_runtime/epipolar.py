@@ -6,7 +6,7 @@ The cameras a scene's photos were taken from, from the photos alone:
    upsampled grey images), kept where the forward and backward flows agree and both photos have
    texture;
 2. ``search_focal``: one shared focal by a grid search (the focal whose essential matrices explain
-   the most flow vectors, over pairs two or three views apart);
+   the most flow vectors, over every pair);
 3. ``pairwise_poses``: per pair the essential matrix (OpenCV ``USAC_ACCURATE``, 5-point, 0.25 px)
    and the relative pose it implies (``cv2.recoverPose``: a rotation and a unit translation, sign
    fixed by cheirality) -> ``PairwisePoses``;
@@ -26,11 +26,10 @@ with world_from_cam poses (R_k, c_k): R_ij = R_j^T R_i and t_ij ∝ R_j^T (c_i -
 
 Cost: V (V - 1) / 2 pairs of DIS flow plus one essential matrix each, and the focal search (11
 focals x every pair): ``IrisRuntime.encode(cameras="epipolar")`` of the 8-view sample scene at
-64x64 takes 8.4 s on one core against 0.04 s with the encoder's cameras, 4.6 s with the focal
-searched over pairs 2-3 apart (``benchmarks/epipolar_cost.py``,
-benchmarks/results/epipolar_cost.json; one run, a slower machine state than the earlier 5.7 s vs
-0.02 s). The texture test of ``flow_matches`` makes ``refine_cameras`` of that scene 17% faster
-(8.38 s vs 10.09 s with ``TEXTURE_MIN = 0``, medians of 3, same process): fewer vectors to score.
+64x64 takes 8.5 s on one core against 0.03 s with the encoder's cameras, 4.9 s with the focal
+searched over pairs 2-3 apart, 10.0 s with the texture test of ``flow_matches`` off (fewer
+vectors to score with it; ``benchmarks/epipolar_cost.py``, benchmarks/results/epipolar_cost.json,
+medians of 3 in one process).
 """
 from __future__ import annotations
 
@@ -39,7 +38,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-__all__ = ["PairwisePoses", "GlobalSolve", "CameraRefinement", "flow_matches", "all_flow_matches",
+__all__ = ["PairwisePoses", "GlobalSolve", "CameraRefinement", "dis_flow", "flow_matches", "all_flow_matches",
            "canonical_order", "intrinsics", "search_focal", "relative_poses", "pairwise_poses", "reachable_views",
            "solve_global", "solve_cameras", "TRANSLATION_SOLVERS", "fit_scale", "refine_cameras", "locate_views",
            "FLOW_UPSAMPLE", "FB_TOLERANCE", "TEXTURE_MIN", "FOCAL_GRID", "MIN_INLIERS", "MIN_INLIER_RATIO",
@@ -103,7 +102,13 @@ class PairwisePoses:
     focal: float
 
 
-def flow_matches(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def dis_flow(g0: np.ndarray, g1: np.ndarray) -> np.ndarray:
+    """Dense flow [h, w, 2] float32 from grey uint8 image g0 to g1 (OpenCV DIS, medium preset):
+    the flow of ``flow_matches``."""
+    return cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM).calc(g0, g1, None)
+
+
+def flow_matches(a: np.ndarray, b: np.ndarray, flow=dis_flow) -> tuple[np.ndarray, np.ndarray]:
     """Pixel correspondences ``p -> q`` ``[N, 2]`` float32 (pixels of the given images, centres at
     +0.5) from forward-backward-consistent DIS flow between uint8 RGB images a and b [H, W, 3],
     where both a at p and b at q have texture (``TEXTURE_MIN``).
@@ -115,14 +120,16 @@ def flow_matches(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     true rotation, 10-67 degrees). ``scripts/epipolar_study.py rpa synthetic:validation --scenes
     24 --texture-min T``: RPA@15 / @30 0.385 / 0.607 without the test (T = 0), 0.512 / 0.685 at
     1e-6, 0.515 / 0.689 at 3e-6 (the default), 0.506 / 0.685 at 1e-5, 0.482 / 0.650 at 1e-4
-    (docs/TRAINING.md, "Texture")."""
+    (docs/TRAINING.md, "Texture").
+
+    ``flow``: the dense flow, ``(g0, g1) -> [h, w, 2]`` on the upsampled grey images
+    (default ``dis_flow``; ``scripts/epipolar_study.py flow`` compares OpenCV's others)."""
     up = FLOW_UPSAMPLE
     H, W = a.shape[:2]
-    grey = [cv2.resize(cv2.cvtColor(x, cv2.COLOR_RGB2GRAY), (W * up, H * up),
-                       interpolation=cv2.INTER_CUBIC) for x in (a, b)]
-    dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
-    fwd = dis.calc(grey[0], grey[1], None)
-    bwd = dis.calc(grey[1], grey[0], None)
+    grey = [cv2.cvtColor(x, cv2.COLOR_RGB2GRAY) for x in (a, b)]
+    big = [cv2.resize(g, (W * up, H * up), interpolation=cv2.INTER_CUBIC) for g in grey]
+    fwd = flow(big[0], big[1])
+    bwd = flow(big[1], big[0])
     step = up // 2
     ys, xs = np.mgrid[0:H * up:step, 0:W * up:step]
     p = np.stack([xs.ravel(), ys.ravel()], 1).astype(np.float32) + 0.5
@@ -133,8 +140,7 @@ def flow_matches(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
           & (q[:, 0] > 0) & (q[:, 1] > 0) & (q[:, 0] < W * up) & (q[:, 1] < H * up))
     p, q = p[ok] / up, q[ok] / up
     if TEXTURE_MIN > 0:
-        textured = [cv2.cornerMinEigenVal(cv2.cvtColor(x, cv2.COLOR_RGB2GRAY), 3, ksize=3).ravel()
-                    > TEXTURE_MIN for x in (a, b)]
+        textured = [cv2.cornerMinEigenVal(g, 3, ksize=3).ravel() > TEXTURE_MIN for g in grey]
         keep = textured[0][_cells(p, H, W)] & textured[1][_cells(q, H, W)]
         p, q = p[keep], q[keep]
     return p, q
@@ -152,8 +158,9 @@ def canonical_order(images: np.ndarray) -> np.ndarray:
     order). Flow is computed i -> j for i < j, OpenCV's robust estimators draw in call order and
     the global solve roots its gauge at the first view, so a solve in the given order depends on
     the order of the photos: on 16 validation scenes the same photos in iris-eval's Seq and Rand
-    orders gave renders up to 1.3 dB apart, all of it from the cameras (``scripts/epipolar_study.py
-    order``). Solved in this order, the cameras are a function of the set of photos."""
+    orders gave renders up to 3.3 dB apart (mean 0.72 dB), and with the cameras swapped between
+    the orders the renders followed the cameras (``scripts/epipolar_study.py order``,
+    docs/logs/order_study_f1_before.log). Solved in this order, the cameras are a function of the set of photos."""
     import hashlib
     keys = [hashlib.sha256(np.ascontiguousarray(x).tobytes()).hexdigest() for x in images]
     return np.array(sorted(range(len(keys)), key=lambda k: (keys[k], k)), dtype=np.int64)

@@ -270,8 +270,8 @@ class IrisRuntime:
                  focal becomes the Scene's ``focal`` and ``K`` (rendering uses the focal the
                  poses were solved at); the encoder's is kept in ``Scene.encoder_focal``. Views
                  that view 0 does not reach through trusted pairs keep the encoder's camera
-                 (``Scene.camera_source`` "mixed"; "model" if none is reached). Costs 8.4 s for 8
-                 views at 64x64 on one core against 0.04 s with the encoder's cameras
+                 (``Scene.camera_source`` "mixed"; "model" if none is reached). Costs 8.5 s for 8
+                 views at 64x64 on one core against 0.03 s with the encoder's cameras
                  (``benchmarks/epipolar_cost.py``).
                  Held-out figures: README, "Epipolar cameras".
         """

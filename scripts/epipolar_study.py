@@ -1,12 +1,14 @@
 """The measurements behind the epipolar camera choices (docs/TRAINING.md, "Epipolar cameras").
 
-Two studies, both under iris-eval's protocol (8 frames; references 0, 2, 3, 5, 7 in Rand order
-solved from their own photos; targets 1, 4, 6 located against them; RPA over all pairs):
+Four studies; ``rpa``, ``scale`` and ``order`` under iris-eval's protocol (8 frames; references
+0, 2, 3, 5, 7 solved from their own photos; targets 1, 4, 6 located against them; RPA over all
+pairs):
 
     python scripts/epipolar_study.py rpa synthetic:validation
     python scripts/epipolar_study.py rpa synthetic:heldout --variants search/ties/pnp,true/ties/pnp
     python scripts/epipolar_study.py scale MODEL_DIR synthetic:validation --scenes 8
     python scripts/epipolar_study.py order MODEL_DIR synthetic:validation --scenes 16
+    python scripts/epipolar_study.py flow synthetic:validation --scenes 6
 
 ``rpa`` needs no model: per variant FOCAL/TRANSLATION/LOCATE with FOCAL "search" (the grid search)
 or "true" (the scene's) or a number (that fx/W for every scene), TRANSLATION "ties" (baselines tied by triangulated depth, the default),
@@ -18,6 +20,8 @@ or "true" (the scene's) or a number (that fx/W for every scene), TRANSLATION "ti
 renders the targets in Seq order, in Rand order, and in each order with the cameras the *other*
 order solved (re-based on this order's view 0, same focal and unit). If the swapped-camera rows
 follow the cameras rather than the order, the gap comes from the camera solve, not the renderer.
+``flow`` scores the correspondences of OpenCV's dense flows (through ``flow_matches``' checks)
+and of SIFT against the true ones (rendered depth, true cameras): why DIS (medium) is the flow.
 """
 from __future__ import annotations
 
@@ -142,6 +146,93 @@ def order_study(model_dir: str, data: str, limit: int | None, threads: int | Non
     return out
 
 
+#: Dense flows of the ``flow`` study: OpenCV's, on the upsampled grey images of ``flow_matches``.
+def _flows():
+    import cv2
+
+    def dis(preset, fine=False):
+        def calc(g0, g1):
+            d = cv2.DISOpticalFlow_create(preset)
+            if fine:
+                d.setFinestScale(0)
+                d.setGradientDescentIterations(25)
+                d.setPatchSize(8)
+                d.setPatchStride(3)
+            return d.calc(g0, g1, None)
+        return calc
+    return {
+        "dis": None,                                   # flow_matches' default, epipolar.dis_flow
+        "dis-fine": dis(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM, fine=True),
+        "dis-ultrafast": dis(cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST),
+        "farneback": lambda g0, g1: cv2.calcOpticalFlowFarneback(g0, g1, None, 0.5, 5, 15, 5, 5,
+                                                                 1.1, 0),
+        "deepflow": lambda g0, g1: cv2.optflow.createOptFlow_DeepFlow().calc(g0, g1, None),
+        "pcaflow": lambda g0, g1: cv2.optflow.createOptFlow_PCAFlow().calc(g0, g1, None),
+        "sift": "sift",
+    }
+
+
+def _sift_matches(a, b):
+    """Mutual nearest SIFT matches passing Lowe's ratio test (0.8) on the 4x upsampled grey
+    photos -> (p, q) [N, 2] in model pixels (centres at +0.5)."""
+    import cv2
+    import iris_runtime.epipolar as E
+    up = E.FLOW_UPSAMPLE
+    H, W = a.shape[:2]
+    grey = [cv2.resize(cv2.cvtColor(x, cv2.COLOR_RGB2GRAY), (W * up, H * up),
+                       interpolation=cv2.INTER_CUBIC) for x in (a, b)]
+    sift = cv2.SIFT_create(contrastThreshold=0.01)
+    (k0, d0), (k1, d1) = (sift.detectAndCompute(g, None) for g in grey)
+    if d0 is None or d1 is None or len(k0) < 2 or len(k1) < 2:
+        return np.zeros((0, 2)), np.zeros((0, 2))
+    bf = cv2.BFMatcher(cv2.NORM_L2)
+    back = {m.queryIdx: m.trainIdx for m in bf.match(d1, d0)}
+    good = [m for m, n in (x for x in bf.knnMatch(d0, d1, k=2) if len(x) == 2)
+            if m.distance < 0.8 * n.distance and back.get(m.trainIdx) == m.queryIdx]
+    p = np.array([k0[m.queryIdx].pt for m in good]).reshape(-1, 2)
+    q = np.array([k1[m.trainIdx].pt for m in good]).reshape(-1, 2)
+    return (p + 0.5) / up, (q + 0.5) / up
+
+
+def flow_study(data: str, methods: list[str], limit: int | None) -> dict:
+    """Correspondence accuracy per method against the truth (the rendered depth and true cameras):
+    per pair of views 1, 2 and 4 apart (from views 0, 2, 4, 6), the matches within 0.5 px of the
+    true correspondence among those that land on geometry ("good", and their fraction)."""
+    import iris_runtime.epipolar as E
+    from iris_train.evaluate import load_scenes
+
+    scenes = list(load_scenes(data, (64, 64), limit=limit)[0])
+    flows = _flows()
+    out = {}
+    for m in methods:
+        if m not in flows:
+            raise SystemExit(f"flow: unknown method {m!r}; expected one of {sorted(flows)}")
+        stats, t0 = {1: [], 2: [], 4: []}, time.perf_counter()
+        for s in scenes:
+            T, D, K = s.world_from_cam, s.depth, s.K
+            H, W = s.images.shape[1:3]
+            for gap, rows in stats.items():
+                for i in range(0, 8 - gap, 2):
+                    j = i + gap
+                    a, b = s.images[i], s.images[j]
+                    p, q = (_sift_matches(a, b) if flows[m] == "sift"
+                            else E.flow_matches(a, b) if flows[m] is None
+                            else E.flow_matches(a, b, flows[m]))
+                    z = D[i].ravel()[E._cells(p, H, W)]
+                    x = np.stack([(p[:, 0] - K[0, 2]) / K[0, 0], (p[:, 1] - K[1, 2]) / K[1, 1],
+                                  np.ones(len(p))], 1) * z[:, None]
+                    y = (x @ T[i, :3, :3].T + T[i, :3, 3] - T[j, :3, 3]) @ T[j, :3, :3]
+                    with np.errstate(divide="ignore", invalid="ignore"):
+                        qt = K[:2, :2] @ (y[:, :2] / y[:, 2:]).T + K[:2, 2:]
+                    err = np.linalg.norm(q - qt.T, axis=1)[z > 0]
+                    rows.append(((err < 0.5).sum(), (err < 0.5).mean() if len(err) else 0.0))
+        out[m] = {"seconds": time.perf_counter() - t0, **{
+            f"gap {g}": {"good": float(np.mean([r[0] for r in v])),
+                         "fraction": float(np.mean([r[1] for r in v]))} for g, v in stats.items()}}
+        print(m, json.dumps(out[m]), flush=True)
+    return out
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="study", required=True)
@@ -164,8 +255,14 @@ def main(argv=None) -> int:
     c.add_argument("data")
     c.add_argument("--scenes", type=int, default=None)
     c.add_argument("--threads", type=int, default=None)
+    d = sub.add_parser("flow", help="correspondence accuracy of OpenCV's flows and SIFT")
+    d.add_argument("data")
+    d.add_argument("--methods", default="dis,dis-fine,dis-ultrafast,farneback,deepflow,pcaflow,sift")
+    d.add_argument("--scenes", type=int, default=6)
     args = p.parse_args(argv)
-    if args.study == "order":
+    if args.study == "flow":
+        res = flow_study(args.data, args.methods.split(","), args.scenes)
+    elif args.study == "order":
         res = order_study(args.model_dir, args.data, args.scenes, args.threads)
     elif args.study == "rpa":
         res = rpa_study(args.data, args.variants.split(","), args.scenes, args.order,
