@@ -90,7 +90,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from iris_train.geometry import tent_weights
+from iris_train.geometry import tent_axes
 from iris_train.layers import MASK_FILL, sinusoidal_encoding
 from iris_train.model import SAMPLERS as MODEL_SAMPLERS
 from iris_train.model import IrisModel, sampler_for
@@ -158,7 +158,30 @@ class FastRendererGraph(nn.Module):
                 rows = torch.cat([cue, wc], dim=-1)
                 const = field.rgb_to_maps.bias[ch] - 0.5 * wc.sum(-1)                 # [W]
                 self._keep(f"slot{i}_const", const)
+            # The mask bias column: added to u (the masked max-pool's input), not to k or v.
+            rows = torch.cat([rows, torch.full_like(rows[:, :1], 1.0 if i == 0 else 0.0)], -1)
             self._keep(f"slot{i}_rows", rows)
+        # The design matrix A = [tent | extras] as (row part @ expand_rows) * (wx @ expand_cols):
+        # the 0/1 matmuls copy wy[y] and wx[x] to cell (y, x), so the tent columns are its outer
+        # product bit for bit, and the extras' columns are the extra times sum_x wx = 1 (the
+        # tent weights of a clamped coordinate sum to one, within one rounding). This replaces a
+        # short-span broadcast Mul and a Concat over [V, N, hw + E] (9 % of a call; profile in
+        # docs/PERFORMANCE.md) with two thin matmuls and one same-shape Mul.
+        h, w = cfg.feature_grid
+        E = rows.shape[-1]
+        expand_rows = torch.zeros(h + E, h * w + E, dtype=ref.dtype)
+        expand_rows[:h, :h * w] = torch.eye(h, dtype=ref.dtype).repeat_interleave(w, dim=1)
+        expand_rows[h:, h * w:] = torch.eye(E, dtype=ref.dtype)
+        expand_cols = torch.ones(w, h * w + E, dtype=ref.dtype)
+        expand_cols[:, :h * w] = torch.eye(w, dtype=ref.dtype).repeat(1, h)
+        self._keep("expand_rows", expand_rows)                  # wy[y] -> (y, .), extras -> self
+        self._keep("expand_cols", expand_cols)                  # wx[x] -> (., x), sum -> extras
+        # Per-head sums and broadcasts in the view attention as 0/1 matmuls (a ReduceSum over
+        # the last axis and a broadcast Mul over heads in the layout ONNX Runtime runs slowly).
+        H = cfg.field_heads
+        head_of = torch.arange(W) // (W // H)
+        self._keep("head_sum", (head_of[:, None] == torch.arange(H)).to(ref.dtype))  # [W, H]
+        self._keep("head_expand", self.head_sum.t())                                  # [H, W]
         # View blocks: the attention scale folded into the query projection.
         for i, block in enumerate(field.view_transformer.blocks):
             scale = (W // block.heads) ** -0.5
@@ -192,18 +215,21 @@ class FastRendererGraph(nn.Module):
             self._keep(f"inject{i}_wdir", inject.weight[:, P:])
 
     # -- the latent field, view-major --------------------------------------------------------
-    def _sample_slots(self, field_maps, grid, cues, colours):
-        """Every slot's ``[V, N, W]``: sampled maps + cue term (+ colour term)."""
+    def _sample_slots(self, field_maps, grid, cues, colours, bias):
+        """Every slot's ``[V, N, W]``: sampled maps + cue term (+ colour term); the first slot
+        (u) also + the mask ``bias``."""
         V, C, h, w = field_maps.shape
         N = grid.shape[1] * grid.shape[2]
         extras = [cues.reshape(V, N, 4)]
         if colours is not None:
             extras.append(colours.reshape(V, N, 3))
+        extras.append(bias[..., None])
         consts = [getattr(self, f"slot{i}_const", None) for i in range(len(self.slots))]
         rows = [getattr(self, f"slot{i}_rows") for i in range(len(self.slots))]
         out = []
         if self.sampler == "dense":
-            A = torch.cat([tent_weights(grid.reshape(V, N, 2), h, w), *extras], dim=-1)
+            wy, wx = tent_axes(grid.reshape(V, N, 2), h, w)                          # [V, N, h|w]
+            A = (torch.cat([wy, *extras], dim=-1) @ self.expand_rows) * (wx @ self.expand_cols)
             maps = field_maps.reshape(V, C, h * w)
             for ch, r, const in zip(self.slots, rows, consts):
                 m = maps[:, ch]                                                       # [V, W, hw]
@@ -250,21 +276,19 @@ class FastRendererGraph(nn.Module):
         """View transformer on view-major slots -> ``(next_norm(f + next_delta), f + next_delta)``
         with the point features ``f [N, W]`` (point-major)."""
         cfg = self.model.cfg
-        W, H = cfg.field_width, cfg.field_heads
-        Dh = W // H
-        V, N, _ = slots[0].shape
         blocks = self.model.field.view_transformer.blocks
-        # Masked max-pool over views; 0 for a point seen by no view (layers.masked_max).
-        q = (slots[0] + bias[..., None]).amax(0) * any_view[:, None]                   # [N, W]
+        # Masked max-pool over views (the bias is in slots[0]); 0 for a point seen by no view
+        # (layers.masked_max).
+        q = slots[0].amax(0) * any_view[:, None]                                       # [N, W]
         normed = blocks[0].norm_q(q)
         for i, block in enumerate(blocks):
             k, v = slots[1 + 2 * i], slots[2 + 2 * i]
             qh = F.linear(normed, getattr(self, f"view{i}_wq"), getattr(self, f"view{i}_bq"))
-            logits = (k * qh).reshape(V, N, H, Dh).sum(-1) + bias[..., None]           # [V, N, H]
+            logits = (k * qh) @ self.head_sum + bias[..., None]                       # [V, N, H]
             e = torch.exp(logits - logits.amax(0, keepdim=True))
             # Normaliser times any_view: all-zero weights for a point seen by no view.
-            weights = e * (any_view[:, None] / e.sum(0))                               # [V, N, H]
-            out = (weights[..., None] * v.reshape(V, N, H, Dh)).sum(0).reshape(N, W)
+            weights = e * (any_view[:, None] / _sum_views(e))                               # [V, N, H]
+            out = _sum_views((weights @ self.head_expand) * v)                         # [N, W]
             normed, q = self._add_norm(q, *self._linear(out, block.proj), block.norm_mlp)
             delta, b = self._mlp(block.mlp, normed)
             if i + 1 < len(blocks):
@@ -324,7 +348,7 @@ class FastRendererGraph(nn.Module):
             return (pos + per_ray[:, None]).reshape(N, W)
 
         # The field's last residual update, the first injection and the first ray norm in one.
-        normed, x = self._field(self._sample_slots(field_maps, grid, cues, colours), bias,
+        normed, x = self._field(self._sample_slots(field_maps, grid, cues, colours, bias), bias,
                                 any_view, rt.blocks[0].norm1, injection(0))
         attn = None
         last = len(rt.blocks) - 1
@@ -344,7 +368,7 @@ class FastRendererGraph(nn.Module):
             logits = renderer.sample_logit(normed).reshape(R, S) + key_bias[:, 0, 0]   # [R, S]
             w = torch.softmax(logits, dim=-1) * sample_mask
             mv = m.reshape(V, R, S, 1)
-            mean_colour = (colours * mv).sum(0) / mv.sum(0).clamp_min(1.0)             # [R, S, 3]
+            mean_colour = _sum_views(colours * mv) / _sum_views(mv).clamp_min(1.0)             # [R, S, 3]
             blend = (w[:, None, :] @ mean_colour)[:, 0].clamp(BLEND_EPS, 1 - BLEND_EPS)
             rgb = torch.sigmoid(torch.log(blend) - torch.log1p(-blend) + renderer.rgb_head(h))
             return rgb, w
@@ -352,6 +376,15 @@ class FastRendererGraph(nn.Module):
         H = rt.blocks[last].heads
         weights = ((pool / H)[:, None, None, :] @ attn).sum(1)[:, 0]                   # [R, S]
         return rgb, weights
+
+
+def _sum_views(x: torch.Tensor) -> torch.Tensor:
+    """``x.sum(0)`` of a view-major ``x [V, ...]`` as ``ones [1, V] @ x [V, -1]``: ONNX Runtime's
+    MatMul runs this reduction over the leading axis ~8x faster than its ReduceSum (0.28 vs
+    2.25 ms on [5, 6528, 64], docs/PERFORMANCE.md)."""
+    V = x.shape[0]
+    ones = torch.ones(1, V, dtype=x.dtype, device=x.device)
+    return (ones @ x.reshape(V, -1)).reshape(x.shape[1:])
 
 
 def renderer_wrapper(model: IrisModel, renderer: str = "reference") -> nn.Module:

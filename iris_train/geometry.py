@@ -16,6 +16,7 @@ __all__ = [
     "CUE_EPS", "DEPTH_EPS", "GRID_CLIP", "NORM_EPS", "pixel_centres", "intrinsics_from_focal",
     "scale_intrinsics", "invert_pose", "compose", "rotation_from_6d", "rays_from_pixels",
     "sample_depths", "project_points", "pixels_to_grid", "sample_bilinear", "sample_bilinear_dense",
+    "tent_axes",
     "geometric_cue",
 ]
 
@@ -180,17 +181,24 @@ def sample_bilinear_dense(feature_maps: torch.Tensor, grid: torch.Tensor) -> tor
     return out.reshape((V,) + tuple(lead) + (C,))
 
 
-def tent_weights(grid: torch.Tensor, h: int, w: int) -> torch.Tensor:
-    """The dense bilinear weight matrix ``[V, N, h*w]`` of ``grid [V, N, 2]`` on an h x w map
-    (align_corners=False, border-clamped): per axis the tent max(0, 1 - |cell - g|), their
-    product per cell. ``sample_bilinear_dense`` multiplies it with the maps; the fast renderer
-    graph appends more columns to it first."""
+def tent_axes(grid: torch.Tensor, h: int, w: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The per-axis bilinear weights of ``grid [..., 2]`` on an h x w map (align_corners=False,
+    border-clamped): ``(wy [..., h], wx [..., w])``, the tent max(0, 1 - |cell - g|) per row and
+    per column; cell (y, x) weighs ``wy[y] * wx[x]`` (``tent_weights``)."""
     gx = (((grid[..., 0] + 1.0) * w - 1.0) / 2.0).clamp(0.0, w - 1.0)
     gy = (((grid[..., 1] + 1.0) * h - 1.0) / 2.0).clamp(0.0, h - 1.0)
     xs = torch.arange(w, dtype=grid.dtype, device=grid.device)
     ys = torch.arange(h, dtype=grid.dtype, device=grid.device)
-    wx = (1.0 - (gx[..., None] - xs).abs()).clamp_min(0.0)                         # [V, N, w]
-    wy = (1.0 - (gy[..., None] - ys).abs()).clamp_min(0.0)                         # [V, N, h]
+    wx = (1.0 - (gx[..., None] - xs).abs()).clamp_min(0.0)                         # [..., w]
+    wy = (1.0 - (gy[..., None] - ys).abs()).clamp_min(0.0)                         # [..., h]
+    return wy, wx
+
+
+def tent_weights(grid: torch.Tensor, h: int, w: int) -> torch.Tensor:
+    """The dense bilinear weight matrix ``[V, N, h*w]`` of ``grid [V, N, 2]`` on an h x w map
+    (align_corners=False, border-clamped): ``tent_axes``' row and column weights, their product
+    per cell. ``sample_bilinear_dense`` multiplies it with the maps."""
+    wy, wx = tent_axes(grid, h, w)
     return (wy[..., :, None] * wx[..., None, :]).reshape(grid.shape[0], grid.shape[1], h * w)
 
 

@@ -170,9 +170,10 @@ def test_field_semantics_for_points_seen_by_no_view(model):
                                        inputs["mask"], inputs.get("colours"))
     fast = FastRendererGraph(model)
     m = inputs["mask"].float().reshape(V, R * S)
+    bias = (1.0 - m) * -1e30
     slots = fast._sample_slots(inputs["field_maps"], inputs["grid"], inputs["cues"],
-                               inputs.get("colours"))
-    _, got = fast._field(slots, (1.0 - m) * -1e30, m.amax(0),
+                               inputs.get("colours"), bias)
+    _, got = fast._field(slots, bias, m.amax(0),
                          model.renderer.ray_transformer.blocks[0].norm1, torch.zeros(1))
     unseen = ~inputs["mask"].any(0).reshape(-1)
     assert unseen.sum() >= R                                   # sample 0 of every ray at least
