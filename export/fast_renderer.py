@@ -320,16 +320,24 @@ class FastRendererGraph(nn.Module):
     def forward(self, field_maps: torch.Tensor, grid: torch.Tensor, cues: torch.Tensor,
                 mask: torch.Tensor, positions: torch.Tensor, directions: torch.Tensor,
                 colours: torch.Tensor | None = None):
-        cfg = self.model.cfg
-        if cfg.explicit_rgb and colours is None:
+        colours = self._check_colours(colours)
+        return self._render(lambda bias: self._sample_slots(field_maps, grid, cues, colours, bias),
+                            field_maps.dtype, mask, positions, directions, colours)
+
+    def _check_colours(self, colours):
+        if self.model.cfg.explicit_rgb and colours is None:
             raise ExportArgumentError("colours: this model (explicit_rgb) renders from the "
                                       "reference RGB sampled at the samples, [V', R, S, 3]")
-        if not cfg.explicit_rgb:
-            colours = None
+        return colours if self.model.cfg.explicit_rgb else None
+
+    def _render(self, sample_slots, dtype, mask, positions, directions, colours):
+        """Field and ray transformer on the view slots ``sample_slots(bias)`` (view-major, the
+        first slot with the mask ``bias`` added) of the points of ``mask [V, R, S]``."""
+        cfg = self.model.cfg
         V, R, S = mask.shape
         N = R * S
         W = cfg.field_width
-        m = mask.to(field_maps.dtype).reshape(V, N)                                    # [V, N]
+        m = mask.to(dtype).reshape(V, N)                                               # [V, N]
         bias = (1.0 - m) * MASK_FILL                                                   # 0 / -1e30
         any_view = m.amax(0)                                                           # [N] 0 / 1
 
@@ -348,7 +356,7 @@ class FastRendererGraph(nn.Module):
             return (pos + per_ray[:, None]).reshape(N, W)
 
         # The field's last residual update, the first injection and the first ray norm in one.
-        normed, x = self._field(self._sample_slots(field_maps, grid, cues, colours, bias), bias,
+        normed, x = self._field(sample_slots(bias), bias,
                                 any_view, rt.blocks[0].norm1, injection(0))
         attn = None
         last = len(rt.blocks) - 1
@@ -376,6 +384,46 @@ class FastRendererGraph(nn.Module):
         H = rt.blocks[last].heads
         weights = ((pool / H)[:, None, None, :] @ attn).sum(1)[:, 0]                   # [R, S]
         return rgb, weights
+
+
+class SelectedViewsRendererGraph(FastRendererGraph):
+    """The renderer on per-point pre-selected views (``iris_runtime.io_spec.RENDERER_VIEWS``).
+
+    The inputs are the (view, point) pairs the caller keeps, view-major and compacted: pair m of
+    view v has its ``grid``, ``cues`` (and ``colours``) at ``[v, m]``; each point has K view
+    slots, slot k of point (r, s) holding pair ``pairs[k, r, s]`` (a flat index v * M + m) where
+    ``mask[k, r, s]``. The maps are sampled at the pairs only (the parent's dense tent matmul,
+    per view, on M pairs instead of every point of the call), then each slot's features are
+    gathered, and the field runs on K slots. Same values as ``FastRendererGraph`` fed every view
+    of the call with the pairs that are not kept masked (the field pools and attends over the
+    valid views of each point, in any order): per-point top-k shrinks the sampling to the kept
+    pairs and the field's view axis to K, instead of masking them.
+    """
+
+    def __init__(self, model: IrisModel, contrib: bool = False):
+        super().__init__(model, contrib=contrib)
+
+    def forward(self, field_maps: torch.Tensor, grid: torch.Tensor, cues: torch.Tensor,
+                pairs: torch.Tensor, mask: torch.Tensor, positions: torch.Tensor,
+                directions: torch.Tensor, colours: torch.Tensor | None = None):
+        colours = self._check_colours(colours)
+        V, M = grid.shape[:2]
+        K, R, S = pairs.shape
+        index = pairs.reshape(K * R * S)
+
+        def gather(x):                                    # [V, M, C] -> [K, R * S, C]
+            return x.reshape(V * M, x.shape[-1])[index].reshape(K, R * S, x.shape[-1])
+
+        def slots(bias):
+            # The mask bias belongs to the slots, not to the pairs: added after the gather.
+            per_pair = self._sample_slots(field_maps, grid[:, :, None], cues[:, :, None],
+                                          None if colours is None else colours[:, :, None],
+                                          torch.zeros_like(cues[..., 0]))
+            out = [gather(p) for p in per_pair]
+            return [out[0] + bias[..., None], *out[1:]]
+
+        slot_colours = None if colours is None else gather(colours).reshape(K, R, S, 3)
+        return self._render(slots, field_maps.dtype, mask, positions, directions, slot_colours)
 
 
 def _sum_views(x: torch.Tensor) -> torch.Tensor:

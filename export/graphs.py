@@ -149,6 +149,13 @@ def example_inputs(cfg: ModelConfig, graph: str, generator: torch.Generator | No
     H, W, h, w, C = (fixed_dims(cfg)[k] for k in ("H", "W", "h", "w", "C'"))
     if graph == "encoder":      # two references and a query: the mask's both kinds of rows
         return (torch.rand(V, 3, H, W, generator=g), torch.arange(V) < V - 1)
+    if graph == "renderer_views":        # M = 9 pairs per view, K = 7 view slots per point
+        M, K = 9, 7
+        args = (torch.randn(V, C, h, w, generator=g), torch.rand(V, M, 2, generator=g) * 2 - 1,
+                torch.randn(V, M, 4, generator=g), torch.randint(0, V * M, (K, R, S), generator=g),
+                torch.rand(K, R, S, generator=g) > 0.3, torch.randn(R, S, 3, generator=g),
+                torch.randn(R, 3, generator=g))
+        return args + ((torch.rand(V, M, 3, generator=g),) if cfg.explicit_rgb else ())
     mask = torch.rand(V, R, S, generator=g) > 0.3
     args = (torch.randn(V, C, h, w, generator=g), torch.rand(V, R, S, 2, generator=g) * 2 - 1,
             torch.randn(V, R, S, 4, generator=g), mask, torch.randn(R, S, 3, generator=g),
@@ -231,7 +238,7 @@ def _check_self_contained(proto: onnx.ModelProto, name: str) -> None:
 
 def export_graph(model: IrisModel, graph: str, path: str | Path, opset: int = DEFAULT_OPSET,
                  wrapper: nn.Module | None = None) -> GraphFile:
-    """Export ``graph`` ("encoder" or "renderer") of ``model`` to one self-contained file ``path``.
+    """Export ``graph`` ("encoder", "renderer" or "renderer_views") of ``model`` to one self-contained file ``path``.
 
     ``wrapper``: the module to export instead of ``WRAPPERS[graph](model)``, with the same I/O
     (e.g. ``export.fast_renderer.FastRendererGraph``); its ``custom_translation_table``

@@ -23,7 +23,7 @@ from iris_train.model import CheckpointError, IrisModel, load_model, read_checkp
 
 from . import io_spec
 from .errors import ExportArgumentError, ExportError, OutputExistsError
-from .fast_renderer import RENDERER_KINDS, renderer_wrapper
+from .fast_renderer import RENDERER_KINDS, SelectedViewsRendererGraph, renderer_wrapper
 from .graphs import DEFAULT_OPSET, EXPORTER, RendererGraph, check_opset, export_graph, quantize_int8
 from .manifest import MANIFEST_NAME, build_manifest, graph_entry, write_manifest
 from .validate import validate
@@ -67,7 +67,9 @@ def export_model(model_or_ckpt: IrisModel | str | os.PathLike, out_dir: str | os
                  opset: int = DEFAULT_OPSET, quantize: str | None = None, force: bool = False,
                  progress: bool = True, quick: bool = False, threads: int | None = None,
                  renderer: str = "fast") -> Path:
-    """Export ``model_or_ckpt`` to ``out_dir/{encoder.onnx, renderer.onnx, iris.json}``.
+    """Export ``model_or_ckpt`` to ``out_dir/{encoder.onnx, renderer.onnx, iris.json}`` (and, for
+    the "fast" renderer graphs, ``renderer_views.onnx``: the renderer on per-point pre-selected
+    views, ``io_spec.RENDERER_VIEWS``, which ``top_k_by="point"`` renders with).
 
     ``model_or_ckpt``: an ``IrisModel`` or a checkpoint path. ``opset``: ONNX opset (>= 18).
     ``quantize="int8"`` adds ``renderer.int8.onnx`` (dynamic int8; its error is recorded, not
@@ -131,6 +133,14 @@ def export_model(model_or_ckpt: IrisModel | str | os.PathLike, out_dir: str | os
             say(f"exported {graph}: {result.nodes} nodes, {result.path.stat().st_size / 1e6:.1f} MB "
                 f"in {result.seconds:.1f} s")
             files[graph], entries[graph] = result.path, result
+        if renderer != "reference":    # per-point pre-selected views (top_k_by="point")
+            spec = io_spec.spec_for("renderer_views", model.cfg.explicit_rgb)
+            say("exporting renderer_views (per-point pre-selected views)")
+            result = export_graph(model, "renderer_views", tmp / spec["file"], opset,
+                                  wrapper=SelectedViewsRendererGraph(
+                                      model, contrib=renderer == "fast-contrib"))
+            say(f"exported renderer_views: {result.nodes} nodes in {result.seconds:.1f} s")
+            files["renderer_views"], entries["renderer_views"] = result.path, result
         if quantize == "int8":
             result = quantize_int8(files["renderer"], tmp / INT8_FILE)
             say(f"quantised renderer to int8: {result.nodes} nodes, "
@@ -140,7 +150,7 @@ def export_model(model_or_ckpt: IrisModel | str | os.PathLike, out_dir: str | os
         report = validate(model, files, quick=quick, threads=threads, progress=say)
         graphs = {}
         for name, path in files.items():
-            base = "renderer" if name.startswith("renderer") else name
+            base = name if name in ("encoder", "renderer_views") else "renderer"
             extra = {"variant_of": base, "precision": "int8",
                      "quantization": "onnxruntime.quantization.quantize_dynamic(weight_type=QInt8)"} \
                 if name != base else {"precision": "float32"}

@@ -58,18 +58,20 @@ import onnxruntime as ort
 import torch
 import torch.nn.functional as F
 
+from iris_runtime.raymarch import select_point_views
 from iris_train import geometry as G
 from iris_train.model import IrisModel, Scene
 
 from . import io_spec
 from .errors import ValidationError
+from .fast_renderer import SelectedViewsRendererGraph
 from .graphs import EncoderGraph, RendererGraph, fixed_dims
 
 PROBE_SEED = 0
 VIEW_COUNTS = (1, 3, 8)
 #: (references, queries) of the encoder probes with queries.
 QUERY_COUNTS = ((1, 1), (3, 2), (5, 3))
-_ORT_TYPES = {"float32": "tensor(float)", "bool": "tensor(bool)"}
+_ORT_TYPES = {"float32": "tensor(float)", "bool": "tensor(bool)", "int64": "tensor(int64)"}
 
 
 @dataclass
@@ -135,6 +137,21 @@ def random_renderer_inputs(model: IrisModel, n_views: int, n_rays: int, n_sample
             colours[:, 0], colours[:, 1] = 0.0, 1.0
         inputs["colours"] = colours
     return inputs
+
+
+def selected_view_inputs(inputs: dict[str, torch.Tensor], k: int, generator: torch.Generator
+                         ) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
+    """Per-point pre-selected views (``io_spec.RENDERER_VIEWS``) from view-major renderer
+    ``inputs``: each point keeps at most ``k`` of its valid views, drawn at random. Returns
+    ``(selected, masked)``: the selected-views inputs (``raymarch.select_point_views``, the
+    runtime's own builder) and ``inputs`` with the views not kept masked out, which the renderer
+    must render to the same values."""
+    V, R, S = inputs["mask"].shape
+    order = torch.rand(V, R, S, generator=generator).argsort(0)[:k]                # [k, R, S]
+    chosen = torch.zeros(V, R, S, dtype=torch.bool).scatter_(0, order, True)
+    masked = {**inputs, "mask": inputs["mask"] & chosen}
+    selected = select_point_views({n: x.detach().numpy() for n, x in masked.items()})
+    return {n: torch.from_numpy(x) for n, x in selected.items()}, masked
 
 
 def _novel_pose(scene: Scene) -> torch.Tensor:
@@ -267,6 +284,35 @@ def renderer_probes(model: IrisModel, view_counts=VIEW_COUNTS, n_rays: int = 128
     return probes
 
 
+def renderer_views_probes(model: IrisModel, view_counts=VIEW_COUNTS, n_rays: int = 128,
+                          seed: int = PROBE_SEED) -> list[Probe]:
+    """Probes of the selected-views renderer (``io_spec.RENDERER_VIEWS``): random and scene
+    inputs as in ``renderer_probes``, each point keeping about half of its views
+    (``selected_view_inputs``); the reference is the torch model on the same inputs with the
+    unselected views masked."""
+    cfg = model.cfg
+    g = torch.Generator().manual_seed(seed + 1)
+    wrapper = RendererGraph(model).eval()
+    probes = []
+
+    def add(name, inputs, k):
+        selected, masked = selected_view_inputs(inputs, k, g)
+        reference = wrapper(**masked)
+        probes.append(Probe(f"{name} k={k}", selected, {"rgb": _numpy(reference[0]),
+                                                       "weights": _numpy(reference[1])},
+                            _mask_info(selected["mask"])))
+
+    for V in view_counts:
+        k = max(1, (V + 1) // 2)
+        for R, S in [(1, cfg.samples), (n_rays, cfg.samples)]:
+            add(f"random V={V} R={R} S={S}", random_renderer_inputs(model, V, R, S, g), k)
+        scene = model.encode(scene_images(V, cfg.image_height, cfg.image_width, g))
+        origins, directions, depths = scene_rays(model, scene, n_rays, g)
+        add(f"scene V={V} R={n_rays} S={cfg.samples}",
+            renderer_inputs(scene, origins, directions, depths), k)
+    return probes
+
+
 # -- running and comparing ----------------------------------------------------------------------
 def max_abs_error(got: np.ndarray, want: np.ndarray) -> float:
     """Max abs difference; ``inf`` on a shape mismatch or a non-finite value on either side."""
@@ -383,7 +429,8 @@ def time_graph(sess: ort.InferenceSession, torch_fn: Callable, inputs: dict[str,
 
 def validate(model: IrisModel, files: dict[str, str | Path], *, quick: bool = False,
              threads: int | None = None, progress: Callable[[str], None] | None = None) -> dict:
-    """Validate ``files`` (``{"encoder": path, "renderer": path[, "renderer_int8": path]}``)
+    """Validate ``files`` (``{"encoder": path, "renderer": path[, "renderer_int8": path]
+    [, "renderer_views": path]}``)
     exported from ``model``; return the report for the manifest, or raise ``ValidationError``.
 
     ``threads``: intra-op threads of ONNX Runtime and torch while validating (default: each
@@ -412,20 +459,25 @@ def _validate(model, files, *, quick, threads, progress) -> dict:
                           "is_reference": torch.ones(4, dtype=torch.bool)},
               "renderer": random_renderer_inputs(model, 4, 64 if quick else 1024, cfg.samples,
                                                  torch.Generator().manual_seed(PROBE_SEED))}
-    torch_fns = {"encoder": EncoderGraph(model).eval(), "renderer": RendererGraph(model).eval()}
+    timing["renderer_views"] = selected_view_inputs(
+        timing["renderer"], 2, torch.Generator().manual_seed(PROBE_SEED))[0]
+    torch_fns = {"encoder": EncoderGraph(model).eval(), "renderer": RendererGraph(model).eval(),
+                 "renderer_views": SelectedViewsRendererGraph(model).eval()}
     report = {"quick": quick, "probe_seed": PROBE_SEED, "torch_threads": torch.get_num_threads(),
               "onnxruntime_threads": threads or "default"}
     probes: dict[str, list[Probe]] = {}
     for graph in files:
-        base = "renderer" if graph.startswith("renderer") else "encoder"
+        base = graph if graph in ("encoder", "renderer_views") else "renderer"
         spec = io_spec.spec_for(base, cfg.explicit_rgb)
         start = time.perf_counter()
         check_graph_file(files[graph], graph)
         sess = session(files[graph], graph, threads)
         check_io(sess, spec, dims, graph)
         if base not in probes:
-            probes[base] = (encoder_probes(model) if base == "encoder"
-                            else renderer_probes(model, n_rays=n_rays))
+            probes[base] = {"encoder": encoder_probes,
+                             "renderer": renderer_probes,
+                             "renderer_views": renderer_views_probes}[base](
+                model, **({} if base == "encoder" else {"n_rays": n_rays}))
         enforce = graph == base
         entry = summarise(graph, run_probes(sess, probes[base]), spec["tolerance"], enforce)
         if base == "encoder":
@@ -443,6 +495,7 @@ def _validate(model, files, *, quick, threads, progress) -> dict:
 
 
 __all__ = ["validate", "ValidationError", "Probe", "scene_images", "renderer_inputs",
-           "random_renderer_inputs", "scene_rays", "encoder_probes", "renderer_probes",
+           "random_renderer_inputs", "selected_view_inputs", "scene_rays", "encoder_probes", "renderer_probes",
+           "renderer_views_probes",
            "isolation_errors", "QUERY_COUNTS",
            "max_abs_error", "check_graph_file", "check_io", "session", "median_time", "VIEW_COUNTS"]

@@ -92,7 +92,38 @@ EXPLICIT_RGB_INPUTS = {
 }
 EXPLICIT_RGB_AXES = {"colours": {0: "V", 1: "R", 2: "S"}}
 
+#: The renderer on per-point pre-selected views (optional: iris-export writes it with the "fast"
+#: renderer graphs; the runtime renders per-point top-k with it). The caller passes the (view,
+#: point) pairs it keeps, view-major and compacted to M per view (``grid``, ``cues``, ``colours``
+#: at ``[v, m]``; unused padding entries: any finite value), and per point K view slots: slot k of
+#: point (r, s) is pair ``pairs[k, r, s]`` (flat index v * M + m) where ``mask[k, r, s]``. The
+#: result equals ``RENDERER`` fed every view with the pairs not kept masked, so the sampling
+#: shrinks to the kept pairs and the field's view axis to K. A point's slots must hold distinct
+#: views (a view held twice would count twice). Built by ``raymarch.select_point_views``.
+RENDERER_VIEWS = {
+    "file": "renderer_views.onnx",
+    "inputs": {
+        "field_maps": {"dtype": "float32", "shape": ["V", "C'", "h", "w"]},
+        "grid": {"dtype": "float32", "shape": ["V", "M", 2]},
+        "cues": {"dtype": "float32", "shape": ["V", "M", 4]},
+        "pairs": {"dtype": "int64", "shape": ["K", "R", "S"]},             # in [0, V * M)
+        "mask": {"dtype": "bool", "shape": ["K", "R", "S"]},               # slot filled
+        "positions": {"dtype": "float32", "shape": ["R", "S", 3]},
+        "directions": {"dtype": "float32", "shape": ["R", 3]},
+    },
+    "outputs": RENDERER["outputs"],
+    "dynamic_axes": {
+        "field_maps": {0: "V"}, "grid": {0: "V", 1: "M"}, "cues": {0: "V", 1: "M"},
+        "pairs": {0: "K", 1: "R", 2: "S"}, "mask": {0: "K", 1: "R", 2: "S"},
+        "positions": {0: "R", 1: "S"}, "directions": {0: "R"},
+        "rgb": {0: "R"}, "weights": {0: "R", 1: "S"},
+    },
+    "tolerance": RENDERER["tolerance"],
+}
+
 GRAPHS = {"encoder": ENCODER, "renderer": RENDERER}
+#: Graphs a model may have besides ``GRAPHS`` (read and checked when the manifest lists them).
+OPTIONAL_GRAPHS = {"renderer_views": RENDERER_VIEWS}
 
 
 def spec_for(graph: str, explicit_rgb: bool = False) -> dict:
@@ -101,11 +132,15 @@ def spec_for(graph: str, explicit_rgb: bool = False) -> dict:
     Without it: ``GRAPHS[graph]`` itself. With it, the renderer's spec gains ``colours`` as its
     last input; the other entries (``tolerance`` included) are the same objects as ``RENDERER``'s,
     so a change to ``RENDERER["tolerance"]`` applies to both."""
-    spec = GRAPHS[graph]
-    if graph != "renderer" or not explicit_rgb:
+    spec = {**GRAPHS, **OPTIONAL_GRAPHS}[graph]
+    if graph == "encoder" or not explicit_rgb:
         return spec
-    return {**spec, "inputs": {**spec["inputs"], **EXPLICIT_RGB_INPUTS},
-            "dynamic_axes": {**spec["dynamic_axes"], **EXPLICIT_RGB_AXES}}
+    if graph == "renderer_views":            # colours per kept pair, like grid and cues
+        shape, axes = ["V", "M", 3], {0: "V", 1: "M"}
+    else:
+        shape, axes = EXPLICIT_RGB_INPUTS["colours"]["shape"], EXPLICIT_RGB_AXES["colours"]
+    return {**spec, "inputs": {**spec["inputs"], "colours": {"dtype": "float32", "shape": shape}},
+            "dynamic_axes": {**spec["dynamic_axes"], "colours": axes}}
 
 
 def required_dtypes(graph: str, explicit_rgb: bool = False) -> dict[str, dict[str, str]]:
@@ -117,5 +152,6 @@ def required_dtypes(graph: str, explicit_rgb: bool = False) -> dict[str, dict[st
 
 
 __all__ = ["MANIFEST_NAME", "FORMAT_NAME", "FORMAT_VERSION", "IO_SPEC_VERSION", "IO_SPEC_COMPATIBLE",
-           "ENCODER", "RENDERER", "EXPLICIT_RGB_INPUTS", "EXPLICIT_RGB_AXES", "GRAPHS", "spec_for",
+           "ENCODER", "RENDERER", "RENDERER_VIEWS", "EXPLICIT_RGB_INPUTS", "EXPLICIT_RGB_AXES",
+           "GRAPHS", "OPTIONAL_GRAPHS", "spec_for",
            "required_dtypes"]

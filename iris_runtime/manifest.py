@@ -41,7 +41,7 @@ from typing import Any, Mapping
 from .errors import ManifestError, ModelFileError, ModelFormatError, ModelIntegrityError
 from .fileio import read_json, sha256_bytes
 from .io_spec import (EXPLICIT_RGB_INPUTS, FORMAT_NAME, FORMAT_VERSION, GRAPHS, IO_SPEC_COMPATIBLE,
-                      IO_SPEC_VERSION, MANIFEST_NAME, required_dtypes)
+                      IO_SPEC_VERSION, MANIFEST_NAME, OPTIONAL_GRAPHS, required_dtypes)
 
 
 def required_io_for(explicit_rgb: bool) -> dict[str, dict[str, dict[str, str]]]:
@@ -307,6 +307,15 @@ def read_manifest(model_dir: str | os.PathLike, *, verify_hashes: bool = True) -
             raise ManifestError(f"{path}: graphs.{name} missing (expected an object with 'file', "
                                 f"'sha256', 'inputs', 'outputs')")
         graphs[name] = _graph_entry(path, root, name, entry, required)
+    # Optional graphs (io_spec.OPTIONAL_GRAPHS, e.g. "renderer_views"): checked when listed.
+    for name in OPTIONAL_GRAPHS:
+        entry = graphs_doc.get(name)
+        if entry is not None:
+            if not isinstance(entry, dict):
+                raise ManifestError(f"{path}: graphs.{name} must be an object with 'file', "
+                                    f"'sha256', 'inputs', 'outputs'")
+            graphs[name] = _graph_entry(path, root, name, entry,
+                                        required_dtypes(name, explicit_rgb))
     # Variants of a graph (e.g. "renderer_int8", written by iris-export --quantize int8) have the
     # I/O of the graph they stand in for.
     for name, entry in graphs_doc.items():

@@ -118,6 +118,7 @@ class MarchPlan:
     pixel_index: np.ndarray | None = None
     sample_window: np.ndarray | None = None
     mode_radius: float | None = None
+    select_views: bool = False
 
     @classmethod
     def build(cls, scene: Scene, world_from_cam: np.ndarray, K: np.ndarray, height: int,
@@ -125,11 +126,13 @@ class MarchPlan:
               top_k_by: str, chunk_rays: int, cull: bool, empty_rgb: np.ndarray | None,
               photos: np.ndarray | None, pixel_index: np.ndarray | None = None,
               sample_window: np.ndarray | None = None,
-              mode_radius: float | None = None) -> "MarchPlan":
+              mode_radius: float | None = None, select_views: bool = False) -> "MarchPlan":
         """The plan of rendering ``scene`` from ``world_from_cam`` (checked, float64 4x4) with
         intrinsics ``K`` (pixels of the ``height`` x ``width`` render); ``pixel_index``,
         ``sample_window``, ``mode_radius``: see the class (built by ``iris_runtime.adaptive``,
-        which owns their contract)."""
+        which owns their contract). ``select_views``: feed the renderer on per-point
+        pre-selected views (``io_spec.RENDERER_VIEWS``, ``select_point_views``) with per-point
+        ``top_k``."""
         V = scene.num_views
         by_ray = top_k is not None and top_k_by == "ray" and top_k < V
         return cls(height=int(height), width=int(width),
@@ -147,7 +150,9 @@ class MarchPlan:
                        np.asarray(pixel_index, np.int64)),
                    sample_window=None if sample_window is None else _frozen(
                        np.asarray(sample_window, np.int64)),
-                   mode_radius=None if mode_radius is None else float(mode_radius))
+                   mode_radius=None if mode_radius is None else float(mode_radius),
+                   select_views=bool(select_views) and top_k is not None and top_k < V
+                   and not by_ray)
 
     @property
     def pixels(self) -> int:
@@ -415,7 +420,40 @@ def call_feed(plan: MarchPlan, block: Block, call: Call,
             "directions": block.directions[call.rays]}
     if plan.photos is not None:        # explicit colour: the photos at the same grid
         feed["colours"] = G.sample_bilinear_views(plan.photos[block.views[call.views]], grid)
-    return feed, z
+    return (select_point_views(feed) if plan.select_views else feed), z
+
+
+def select_point_views(feed: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """The feed of the renderer on per-point pre-selected views (``io_spec.RENDERER_VIEWS``) from
+    a view-major ``feed`` whose ``mask [v, r, s]`` marks the (view, point) pairs to keep: the
+    kept pairs compacted per view (M: the most any view keeps), and per point its kept views, in
+    view order, in slots 0 .. K - 1 (K: the most any point keeps; the rest masked). Same result
+    as ``feed``: the renderer pools and attends over the valid views of each point."""
+    mask = feed["mask"]
+    v = mask.shape[0]
+    flat = mask.reshape(v, -1)                                               # [v, r*s]
+    counts = flat.sum(axis=1)
+    M, K = max(1, int(counts.max())), max(1, int(flat.sum(axis=0).max()))
+    view, point = np.nonzero(flat)                                           # view-major
+    rank = np.arange(len(view)) - np.repeat(np.cumsum(counts) - counts, counts)
+    slot = (np.cumsum(flat, axis=0) - 1)[view, point]                        # k of the pair
+
+    def compact(x):
+        out = np.zeros((v, M, x.shape[-1]), x.dtype)
+        out[view, rank] = x.reshape(v, -1, x.shape[-1])[view, point]
+        return out
+
+    pairs = np.zeros((K, flat.shape[1]), np.int64)
+    pairs[slot, point] = view * M + rank
+    slots = np.zeros((K, flat.shape[1]), bool)
+    slots[slot, point] = True
+    out = {"field_maps": feed["field_maps"], "grid": compact(feed["grid"]),
+           "cues": compact(feed["cues"]), "pairs": pairs.reshape(K, *mask.shape[1:]),
+           "mask": slots.reshape(K, *mask.shape[1:]), "positions": feed["positions"],
+           "directions": feed["directions"]}
+    if "colours" in feed:
+        out["colours"] = compact(feed["colours"])
+    return out
 
 
 def empty_ray_rgb(session, field_maps_shape: tuple[int, ...], explicit_rgb: bool) -> np.ndarray:

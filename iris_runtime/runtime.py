@@ -447,7 +447,11 @@ class IrisRuntime:
             h = max(1, int(round(height * settings.scale)))
             w = max(1, int(round(width * settings.scale)))
             K = G.scale_intrinsics(K, (height, width), (h, w))
-        session = self._session(graph)
+        # Per-point top-k on the renderer that takes each point's own views (float32 only).
+        select_views = (settings.top_k is not None and settings.top_k < V
+                        and settings.top_k_by == "point" and graph == "renderer"
+                        and "renderer_views" in self.manifest.graphs)
+        session = self._session("renderer_views" if select_views else graph)
         empty_rgb = self._empty_ray_rgb(scene, graph) if self.cull else None
 
         def march_at(mh: int, mw: int, progress=None, **subset) -> raymarch.MarchResult:
@@ -458,7 +462,7 @@ class IrisRuntime:
                 K if (mh, mw) == (h, w) else G.scale_intrinsics(K, (h, w), (mh, mw)), mh, mw,
                 samples=S, near=self.near, far=self.far, top_k=settings.top_k,
                 top_k_by=settings.top_k_by, chunk_rays=chunk_rays, cull=self.cull,
-                photos=photos, empty_rgb=empty_rgb, **subset)
+                photos=photos, empty_rgb=empty_rgb, select_views=select_views, **subset)
             return raymarch.march(plan, session, workers=self.workers, progress=progress)
 
         if settings.refine is None and settings.depth_window is None:

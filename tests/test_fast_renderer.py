@@ -34,11 +34,12 @@ from iris_train.model import build_model                                    # no
 
 from export import io_spec                                                  # noqa: E402
 from export.errors import ExportArgumentError                               # noqa: E402
-from export.fast_renderer import (FastRendererGraph, export_fast_renderer,  # noqa: E402
-                                  op_histogram, renderer_wrapper)
+from export.fast_renderer import (FastRendererGraph, SelectedViewsRendererGraph,  # noqa: E402
+                                  export_fast_renderer, op_histogram, renderer_wrapper)
 from export.graphs import RendererGraph                                     # noqa: E402
+from export.graphs import export_graph                                      # noqa: E402
 from export.validate import (random_renderer_inputs, renderer_inputs,      # noqa: E402
-                             scene_images, scene_rays)
+                             scene_images, scene_rays, selected_view_inputs)
 
 from .conftest import random_model                                          # noqa: E402
 
@@ -158,6 +159,36 @@ def test_other_configs(shape, explicit_rgb):
     inputs = random_renderer_inputs(model, 3, 6, 19, torch.Generator().manual_seed(7))
     for contrib in (False, True):
         _check(model, inputs, contrib)
+
+
+@pytest.mark.parametrize("V,R,S,k", [(5, 7, 11, 2), (8, 4, 6, 3), (4, 3, 9, 4), (1, 2, 3, 1)])
+@torch.no_grad()
+def test_selected_views_match_the_masked_renderer(model, V, R, S, k):
+    """SelectedViewsRendererGraph on per-point kept views = the torch model fed every view with
+    the views not kept masked (points with no view and rays with no sample included)."""
+    inputs = random_renderer_inputs(model, V, R, S, torch.Generator().manual_seed(V * 100 + k))
+    selected, masked = selected_view_inputs(inputs, k, torch.Generator().manual_seed(k))
+    assert selected["mask"].shape[0] <= k and selected["pairs"].shape == selected["mask"].shape
+    want = RendererGraph(model)(**masked)
+    got = SelectedViewsRendererGraph(model)(**selected)
+    assert max(_errors(got, want)) <= TOL
+
+
+def test_selected_views_graph_in_onnx_runtime(model, tmp_path):
+    """The exported selected-views graph: I/O of io_spec.RENDERER_VIEWS, ONNX Runtime within TOL of
+    torch through its dynamic axes (V, M, K, R, S)."""
+    path = tmp_path / "renderer_views.onnx"
+    export_graph(model, "renderer_views", path, wrapper=SelectedViewsRendererGraph(model))
+    sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    spec = io_spec.spec_for("renderer_views", model.cfg.explicit_rgb)
+    assert [i.name for i in sess.get_inputs()] == list(spec["inputs"])
+    g = torch.Generator().manual_seed(5)
+    for V, R, S, k in [(5, 7, 11, 2), (3, 2, 64, 3), (1, 1, 1, 1)]:
+        selected, masked = selected_view_inputs(random_renderer_inputs(model, V, R, S, g), k, g)
+        got = sess.run(None, {n: x.numpy() for n, x in selected.items()})
+        with torch.no_grad():
+            want = RendererGraph(model)(**masked)
+        assert max(_errors(got, want)) <= TOL
 
 
 @torch.no_grad()

@@ -181,6 +181,58 @@ def test_dropping_views_under_top_k_is_exact(model_dir, rt, scene, by):
         assert a.work["point_views"] <= 2 * a.work["points"]
 
 
+def test_select_point_views_keeps_exactly_the_masked_pairs():
+    """raymarch.select_point_views: every kept (view, point) pair is compacted once, each point's
+    kept views fill its first slots in view order, and nothing else is referenced."""
+    from iris_runtime.raymarch import select_point_views
+    rng = np.random.default_rng(3)
+    v, r, s = 5, 4, 7
+    mask = rng.random((v, r, s)) < 0.5
+    mask[:, 0, 0] = False                                       # a point with no view
+    feed = {"field_maps": np.zeros((v, 2, 2, 2), np.float32),
+            "grid": rng.random((v, r, s, 2)).astype(np.float32),
+            "cues": rng.random((v, r, s, 4)).astype(np.float32), "mask": mask,
+            "positions": np.zeros((r, s, 3), np.float32), "directions": np.ones((r, 3), np.float32),
+            "colours": rng.random((v, r, s, 3)).astype(np.float32)}
+    out = select_point_views(feed)
+    K, M = out["pairs"].shape[0], out["grid"].shape[1]
+    assert K == mask.sum(0).max() and M == mask.reshape(v, -1).sum(1).max()
+    assert out["pairs"].dtype == np.int64 and out["mask"].shape == (K, r, s)
+    np.testing.assert_array_equal(out["mask"].sum(0), mask.sum(0))
+    for i in range(r):
+        for j in range(s):
+            views = np.flatnonzero(mask[:, i, j])
+            held = out["pairs"][:len(views), i, j]
+            np.testing.assert_array_equal(held // M, views)     # its views, in view order
+            assert not out["mask"][len(views):, i, j].any()
+            for name in ("grid", "cues", "colours"):
+                got = out[name].reshape(v * M, -1)[held]
+                np.testing.assert_array_equal(got, feed[name][views, i, j])
+
+
+def test_point_top_k_on_selected_views_equals_masking(model_dir, rt, scene, tmp_path):
+    """Per-point top-k renders on the renderer that takes each point's own views
+    (``renderer_views``): the same image as the view-major renderer with the other views masked
+    (a copy of the model without that graph), with fewer (point, view) pairs fed."""
+    import json
+    import shutil
+    if "renderer_views" not in rt.manifest.graphs:
+        pytest.skip("this export has no renderer_views graph")
+    plain = tmp_path / "plain"
+    shutil.copytree(model_dir, plain)
+    doc = json.loads((plain / "iris.json").read_text())
+    (plain / doc["graphs"].pop("renderer_views")["file"]).unlink()
+    (plain / "iris.json").write_text(json.dumps(doc))
+    masked = IrisRuntime(plain, threads=1)
+    for k in (1, 2):
+        a = rt.render(scene, _pose(scene), height=16, width=16, depth=True, top_k=k,
+                      top_k_by="point")
+        b = masked.render(scene, _pose(scene), height=16, width=16, depth=True, top_k=k,
+                          top_k_by="point")
+        assert _err(a, b) <= 1e-5
+        assert a.work["point_views"] <= k * a.work["points"] < b.work["point_views"]
+
+
 # ----------------------------------------------------------------------------------------------
 # Lossy knobs
 # ----------------------------------------------------------------------------------------------
