@@ -9,6 +9,10 @@ derived from them at construction (see the class). Same values as torch up to fl
 (tests/test_fast_renderer.py: <= 1e-5 on rgb and weights for both renderer kinds, measured
 <= 3e-7 in torch and in ONNX Runtime).
 
+``SelectedViewsRendererGraph(model)`` is the same renderer on per-point pre-selected views
+(``iris_runtime.io_spec.RENDERER_VIEWS``: the kept (view, point) pairs, compacted per view, and
+K view slots per point), which the runtime uses for per-point top-k.
+
 What differs from the reference graph, and why (the reference graph's profile,
 benchmarks/results/error_vs_time.md: ``Where`` 14% and ``Transpose`` 14% of node time):
 
@@ -31,13 +35,24 @@ benchmarks/results/error_vs_time.md: ``Where`` 14% and ``Transpose`` 14% of node
   over views is written out (ReduceMax, Sub, Exp, ReduceSum) because ONNX ``Softmax`` on a
   non-last axis transposes internally.
 * One sampling matmul per field-map slot, with the per-view affine work folded into it. The dense
-  bilinear weights ``[V', N, h*w]`` are concatenated with the cues (and, explicit colour, the
-  sampled RGB): ``A = [tent | cues | colours] [V', N, h*w + 4 (+ 3)]``; each slot (u, and every
-  view block's keys and values) is ``A @ B_slot`` with ``B_slot = [maps_slot ; cue_to_kv_slot ;
-  rgb_to_maps_slot]``, built per call from the field maps (``[V', K, W]``, small). So the cue's
-  4 -> 2W map, the colour's 3 -> C' map and their Adds over ``[V', N, C']`` disappear into the
-  matmul's K dimension, and separate u/k/v products replace one product + Slices (copies). The
-  constant of ``rgb_to_maps(colours - 0.5)`` is added to the maps (bilinear weights sum to one).
+  bilinear weights ``[V', N, h*w]`` are extended by the cues, (explicit colour) the sampled RGB
+  and the mask bias: ``A = [tent | cues | colours | bias] [V', N, h*w + 5 (+ 3)]``; each slot (u,
+  and every view block's keys and values) is ``A @ B_slot`` with ``B_slot = [maps_slot ;
+  cue_to_kv_slot ; rgb_to_maps_slot ; 1 for u, 0 for k and v]``, built per call from the field
+  maps (``[V', K, W]``, small). So the cue's 4 -> 2W map, the colour's 3 -> C' map, the masked
+  max-pool's bias and their Adds over ``[V', N, C']`` disappear into the matmul's K dimension,
+  and separate u/k/v products replace one product + Slices (copies). The constant of
+  ``rgb_to_maps(colours - 0.5)`` is added to the maps (bilinear weights sum to one). ``A`` itself
+  is ``([wy | extras] @ select_rows) * (wx @ select_cols)``: 0/1 matmuls copy the per-axis tent
+  weights to their cells (the outer product bit for bit; the extras times sum_x wx = 1 within one
+  rounding), because ONNX Runtime runs the broadcast outer product ``wy[..., :, None] *
+  wx[..., None, :]`` (spans of 8) and the wide Concat at a fraction of its same-shape speed.
+* Reductions over views as matmuls: ONNX Runtime's ``ReduceSum`` over a leading axis ran ~8x
+  slower than ``ones [1, V] @ x [V, -1]`` (``benchmarks/ort_reductions.py``), so every sum over
+  views is that matmul (``_sum_views``); the per-head sums and broadcasts of the view attention
+  are 0/1 matmuls (``select_head_sum [W, H]``, ``select_head_expand [H, W]``). The max-pool stays a
+  ``ReduceMax`` (no matmul form). Node time per call of the shipped model, 5 views x 102 rays x
+  64 samples, 2 threads: 67.7 ms before these two changes, 60.7 ms after (docs/PERFORMANCE.md).
 * Separate q/k/v weights in the ray attention, per head: ``y [R, 1, S, W] @ Wq [H, W, Dh]`` gives
   ``[R, H, S, Dh]`` directly (a broadcast batched MatMul instead of a Gemm + Reshape + Transpose
   + Split). The key bias is dropped (it adds ``q . b_k`` to every logit of a row: softmax-invariant)
@@ -102,6 +117,10 @@ from .errors import ExportArgumentError
 #: (the model's render_samples traced as is), "fast" (the default) this module's graph
 #: in standard ONNX ops, "fast-contrib" the same with ONNX Runtime's com.microsoft fused ops.
 RENDERER_KINDS = ("reference", "fast", "fast-contrib")
+#: Buffers of the graph whose names start with this are 0/1 selection matrices (copies, sums and
+#: broadcasts written as matmuls); ``export.graphs.quantize_int8`` leaves their MatMuls in float
+#: (quantising them would quantise the tent weights and the attention weights they carry).
+SELECTION_PREFIX = "select_"
 SAMPLERS = ("auto", *MODEL_SAMPLERS)
 
 
@@ -161,7 +180,7 @@ class FastRendererGraph(nn.Module):
             # The mask bias column: added to u (the masked max-pool's input), not to k or v.
             rows = torch.cat([rows, torch.full_like(rows[:, :1], 1.0 if i == 0 else 0.0)], -1)
             self._keep(f"slot{i}_rows", rows)
-        # The design matrix A = [tent | extras] as (row part @ expand_rows) * (wx @ expand_cols):
+        # The design matrix A = [tent | extras] as (row part @ select_rows) * (wx @ select_cols):
         # the 0/1 matmuls copy wy[y] and wx[x] to cell (y, x), so the tent columns are its outer
         # product bit for bit, and the extras' columns are the extra times sum_x wx = 1 (the
         # tent weights of a clamped coordinate sum to one, within one rounding). This replaces a
@@ -169,19 +188,19 @@ class FastRendererGraph(nn.Module):
         # docs/PERFORMANCE.md) with two thin matmuls and one same-shape Mul.
         h, w = cfg.feature_grid
         E = rows.shape[-1]
-        expand_rows = torch.zeros(h + E, h * w + E, dtype=ref.dtype)
-        expand_rows[:h, :h * w] = torch.eye(h, dtype=ref.dtype).repeat_interleave(w, dim=1)
-        expand_rows[h:, h * w:] = torch.eye(E, dtype=ref.dtype)
-        expand_cols = torch.ones(w, h * w + E, dtype=ref.dtype)
-        expand_cols[:, :h * w] = torch.eye(w, dtype=ref.dtype).repeat(1, h)
-        self._keep("expand_rows", expand_rows)                  # wy[y] -> (y, .), extras -> self
-        self._keep("expand_cols", expand_cols)                  # wx[x] -> (., x), sum -> extras
+        select_rows = torch.zeros(h + E, h * w + E, dtype=ref.dtype)
+        select_rows[:h, :h * w] = torch.eye(h, dtype=ref.dtype).repeat_interleave(w, dim=1)
+        select_rows[h:, h * w:] = torch.eye(E, dtype=ref.dtype)
+        select_cols = torch.ones(w, h * w + E, dtype=ref.dtype)
+        select_cols[:, :h * w] = torch.eye(w, dtype=ref.dtype).repeat(1, h)
+        self._keep("select_rows", select_rows)                  # wy[y] -> (y, .), extras -> self
+        self._keep("select_cols", select_cols)                  # wx[x] -> (., x), sum -> extras
         # Per-head sums and broadcasts in the view attention as 0/1 matmuls (a ReduceSum over
         # the last axis and a broadcast Mul over heads in the layout ONNX Runtime runs slowly).
         H = cfg.field_heads
         head_of = torch.arange(W) // (W // H)
-        self._keep("head_sum", (head_of[:, None] == torch.arange(H)).to(ref.dtype))  # [W, H]
-        self._keep("head_expand", self.head_sum.t())                                  # [H, W]
+        self._keep("select_head_sum", (head_of[:, None] == torch.arange(H)).to(ref.dtype))
+        self._keep("select_head_expand", self.select_head_sum.t())                    # [H, W]
         # View blocks: the attention scale folded into the query projection.
         for i, block in enumerate(field.view_transformer.blocks):
             scale = (W // block.heads) ** -0.5
@@ -229,7 +248,7 @@ class FastRendererGraph(nn.Module):
         out = []
         if self.sampler == "dense":
             wy, wx = tent_axes(grid.reshape(V, N, 2), h, w)                          # [V, N, h|w]
-            A = (torch.cat([wy, *extras], dim=-1) @ self.expand_rows) * (wx @ self.expand_cols)
+            A = (torch.cat([wy, *extras], dim=-1) @ self.select_rows) * (wx @ self.select_cols)
             maps = field_maps.reshape(V, C, h * w)
             for ch, r, const in zip(self.slots, rows, consts):
                 m = maps[:, ch]                                                       # [V, W, hw]
@@ -284,11 +303,11 @@ class FastRendererGraph(nn.Module):
         for i, block in enumerate(blocks):
             k, v = slots[1 + 2 * i], slots[2 + 2 * i]
             qh = F.linear(normed, getattr(self, f"view{i}_wq"), getattr(self, f"view{i}_bq"))
-            logits = (k * qh) @ self.head_sum + bias[..., None]                       # [V, N, H]
+            logits = (k * qh) @ self.select_head_sum + bias[..., None]                # [V, N, H]
             e = torch.exp(logits - logits.amax(0, keepdim=True))
             # Normaliser times any_view: all-zero weights for a point seen by no view.
             weights = e * (any_view[:, None] / _sum_views(e))                               # [V, N, H]
-            out = _sum_views((weights @ self.head_expand) * v)                         # [N, W]
+            out = _sum_views((weights @ self.select_head_expand) * v)                  # [N, W]
             normed, q = self._add_norm(q, *self._linear(out, block.proj), block.norm_mlp)
             delta, b = self._mlp(block.mlp, normed)
             if i + 1 < len(blocks):
@@ -389,34 +408,38 @@ class FastRendererGraph(nn.Module):
 class SelectedViewsRendererGraph(FastRendererGraph):
     """The renderer on per-point pre-selected views (``iris_runtime.io_spec.RENDERER_VIEWS``).
 
-    The inputs are the (view, point) pairs the caller keeps, view-major and compacted: pair m of
-    view v has its ``grid``, ``cues`` (and ``colours``) at ``[v, m]``; each point has K view
-    slots, slot k of point (r, s) holding pair ``pairs[k, r, s]`` (a flat index v * M + m) where
-    ``mask[k, r, s]``. The maps are sampled at the pairs only (the parent's dense tent matmul,
-    per view, on M pairs instead of every point of the call), then each slot's features are
-    gathered, and the field runs on K slots. Same values as ``FastRendererGraph`` fed every view
-    of the call with the pairs that are not kept masked (the field pools and attends over the
-    valid views of each point, in any order): per-point top-k shrinks the sampling to the kept
-    pairs and the field's view axis to K, instead of masking them.
+    The inputs are the (view, point) pairs the caller keeps, in groups of G pairs of one view
+    each (``groups [P]`` names the view of each group; pair g of group p has its ``grid``,
+    ``cues`` and ``colours`` at ``[p, g]``); each point has K view slots, slot k of point (r, s)
+    holding pair ``pairs[k, r, s]`` (a flat index p * G + g) where ``mask[k, r, s]``. The maps
+    are sampled at the kept pairs only (the parent's dense tent matmul, one batch per group, on
+    its view's maps), each slot's features are gathered, and the field runs on K slots. Same
+    values as ``FastRendererGraph`` fed every view of the call with the pairs not kept masked
+    (the field pools and attends over the valid views of each point, in any order): per-point
+    top-k shrinks the sampling to the kept pairs and the field's view axis to K, instead of
+    masking them. Groups of a fixed size, not one padded row per view: the views a top-k keeps
+    are uneven (the best-aligned view is kept by most points), and padding every view to the
+    busiest one would sample as much as the full renderer.
     """
 
     def __init__(self, model: IrisModel, contrib: bool = False):
         super().__init__(model, contrib=contrib)
 
-    def forward(self, field_maps: torch.Tensor, grid: torch.Tensor, cues: torch.Tensor,
-                pairs: torch.Tensor, mask: torch.Tensor, positions: torch.Tensor,
-                directions: torch.Tensor, colours: torch.Tensor | None = None):
+    def forward(self, field_maps: torch.Tensor, groups: torch.Tensor, grid: torch.Tensor,
+                cues: torch.Tensor, pairs: torch.Tensor, mask: torch.Tensor,
+                positions: torch.Tensor, directions: torch.Tensor,
+                colours: torch.Tensor | None = None):
         colours = self._check_colours(colours)
-        V, M = grid.shape[:2]
+        P, G = grid.shape[:2]
         K, R, S = pairs.shape
         index = pairs.reshape(K * R * S)
 
-        def gather(x):                                    # [V, M, C] -> [K, R * S, C]
-            return x.reshape(V * M, x.shape[-1])[index].reshape(K, R * S, x.shape[-1])
+        def gather(x):                                    # [P, G, C] -> [K, R * S, C]
+            return x.reshape(P * G, x.shape[-1])[index].reshape(K, R * S, x.shape[-1])
 
         def slots(bias):
             # The mask bias belongs to the slots, not to the pairs: added after the gather.
-            per_pair = self._sample_slots(field_maps, grid[:, :, None], cues[:, :, None],
+            per_pair = self._sample_slots(field_maps[groups], grid[:, :, None], cues[:, :, None],
                                           None if colours is None else colours[:, :, None],
                                           torch.zeros_like(cues[..., 0]))
             out = [gather(p) for p in per_pair]
@@ -480,5 +503,5 @@ def op_histogram(path: str | Path, optimized: bool = False) -> collections.Count
                                 else n.op_type) for n in proto.graph.node)
 
 
-__all__ = ["FastRendererGraph", "RENDERER_KINDS", "renderer_wrapper", "export_fast_renderer",
-           "op_histogram"]
+__all__ = ["FastRendererGraph", "SelectedViewsRendererGraph", "RENDERER_KINDS", "renderer_wrapper",
+           "export_fast_renderer", "op_histogram"]

@@ -149,13 +149,14 @@ def example_inputs(cfg: ModelConfig, graph: str, generator: torch.Generator | No
     H, W, h, w, C = (fixed_dims(cfg)[k] for k in ("H", "W", "h", "w", "C'"))
     if graph == "encoder":      # two references and a query: the mask's both kinds of rows
         return (torch.rand(V, 3, H, W, generator=g), torch.arange(V) < V - 1)
-    if graph == "renderer_views":        # M = 9 pairs per view, K = 7 view slots per point
-        M, K = 9, 7
-        args = (torch.randn(V, C, h, w, generator=g), torch.rand(V, M, 2, generator=g) * 2 - 1,
-                torch.randn(V, M, 4, generator=g), torch.randint(0, V * M, (K, R, S), generator=g),
+    if graph == "renderer_views":        # P = 9 groups of G = 11 pairs, K = 7 slots per point
+        P, Gp, K = 9, 11, 7
+        args = (torch.randn(V, C, h, w, generator=g), torch.randint(0, V, (P,), generator=g),
+                torch.rand(P, Gp, 2, generator=g) * 2 - 1, torch.randn(P, Gp, 4, generator=g),
+                torch.randint(0, P * Gp, (K, R, S), generator=g),
                 torch.rand(K, R, S, generator=g) > 0.3, torch.randn(R, S, 3, generator=g),
                 torch.randn(R, 3, generator=g))
-        return args + ((torch.rand(V, M, 3, generator=g),) if cfg.explicit_rgb else ())
+        return args + ((torch.rand(P, Gp, 3, generator=g),) if cfg.explicit_rgb else ())
     mask = torch.rand(V, R, S, generator=g) > 0.3
     args = (torch.randn(V, C, h, w, generator=g), torch.rand(V, R, S, 2, generator=g) * 2 - 1,
             torch.randn(V, R, S, 4, generator=g), mask, torch.randn(R, S, 3, generator=g),
@@ -297,7 +298,13 @@ def quantize_int8(src: str | Path, dst: str | Path) -> GraphFile:
             # pairs of products in int16 and saturate with 8-bit weights: on an AVX2-only EPYC
             # the shipped model's int8 renderer was 8.9e-2 off in rgb (tests/test_export.py
             # bounds it at 5e-2; 7.4e-3 with 7-bit weights, export validation in iris.json).
+            # The fast graphs' 0/1 selection matmuls stay float: they carry the bilinear and
+            # attention weights, which 8 bits would round (rgb 0.16 off when they were quantised).
+            from .fast_renderer import SELECTION_PREFIX
+            exclude = [n.name for n in proto.graph.node
+                       if any(i.startswith(SELECTION_PREFIX) for i in n.input)]
             quantize_dynamic(proto, str(dst), weight_type=QuantType.QInt8, reduce_range=True,
+                             nodes_to_exclude=exclude,
                              extra_options={"DefaultTensorType": onnx.TensorProto.FLOAT})
     finally:
         quant_logger.setLevel(level)

@@ -94,28 +94,30 @@ EXPLICIT_RGB_AXES = {"colours": {0: "V", 1: "R", 2: "S"}}
 
 #: The renderer on per-point pre-selected views (optional: iris-export writes it with the "fast"
 #: renderer graphs; the runtime renders per-point top-k with it). The caller passes the (view,
-#: point) pairs it keeps, view-major and compacted to M per view (``grid``, ``cues``, ``colours``
-#: at ``[v, m]``; unused padding entries: any finite value), and per point K view slots: slot k of
-#: point (r, s) is pair ``pairs[k, r, s]`` (flat index v * M + m) where ``mask[k, r, s]``. The
-#: result equals ``RENDERER`` fed every view with the pairs not kept masked, so the sampling
-#: shrinks to the kept pairs and the field's view axis to K. A point's slots must hold distinct
-#: views (a view held twice would count twice). Built by ``raymarch.select_point_views``.
+#: point) pairs it keeps in P groups of G pairs, each group of one view (``groups``: its index
+#: into ``field_maps``; ``grid``, ``cues``, ``colours`` at ``[p, g]``; unused padding entries:
+#: any finite value), and per point K view slots: slot k of point (r, s) is pair
+#: ``pairs[k, r, s]`` (flat index p * G + g) where ``mask[k, r, s]``. The result equals
+#: ``RENDERER`` fed every view with the pairs not kept masked, so the sampling shrinks to the
+#: kept pairs and the field's view axis to K. A point's slots must hold distinct views (a view
+#: held twice would count twice). Built by ``raymarch.select_point_views``.
 RENDERER_VIEWS = {
     "file": "renderer_views.onnx",
     "inputs": {
         "field_maps": {"dtype": "float32", "shape": ["V", "C'", "h", "w"]},
-        "grid": {"dtype": "float32", "shape": ["V", "M", 2]},
-        "cues": {"dtype": "float32", "shape": ["V", "M", 4]},
-        "pairs": {"dtype": "int64", "shape": ["K", "R", "S"]},             # in [0, V * M)
+        "groups": {"dtype": "int64", "shape": ["P"]},                      # in [0, V)
+        "grid": {"dtype": "float32", "shape": ["P", "G", 2]},
+        "cues": {"dtype": "float32", "shape": ["P", "G", 4]},
+        "pairs": {"dtype": "int64", "shape": ["K", "R", "S"]},             # in [0, P * G)
         "mask": {"dtype": "bool", "shape": ["K", "R", "S"]},               # slot filled
         "positions": {"dtype": "float32", "shape": ["R", "S", 3]},
         "directions": {"dtype": "float32", "shape": ["R", 3]},
     },
     "outputs": RENDERER["outputs"],
     "dynamic_axes": {
-        "field_maps": {0: "V"}, "grid": {0: "V", 1: "M"}, "cues": {0: "V", 1: "M"},
-        "pairs": {0: "K", 1: "R", 2: "S"}, "mask": {0: "K", 1: "R", 2: "S"},
-        "positions": {0: "R", 1: "S"}, "directions": {0: "R"},
+        "field_maps": {0: "V"}, "groups": {0: "P"}, "grid": {0: "P", 1: "G"},
+        "cues": {0: "P", 1: "G"}, "pairs": {0: "K", 1: "R", 2: "S"},
+        "mask": {0: "K", 1: "R", 2: "S"}, "positions": {0: "R", 1: "S"}, "directions": {0: "R"},
         "rgb": {0: "R"}, "weights": {0: "R", 1: "S"},
     },
     "tolerance": RENDERER["tolerance"],
@@ -136,7 +138,7 @@ def spec_for(graph: str, explicit_rgb: bool = False) -> dict:
     if graph == "encoder" or not explicit_rgb:
         return spec
     if graph == "renderer_views":            # colours per kept pair, like grid and cues
-        shape, axes = ["V", "M", 3], {0: "V", 1: "M"}
+        shape, axes = ["P", "G", 3], {0: "P", 1: "G"}
     else:
         shape, axes = EXPLICIT_RGB_INPUTS["colours"]["shape"], EXPLICIT_RGB_AXES["colours"]
     return {**spec, "inputs": {**spec["inputs"], "colours": {"dtype": "float32", "shape": shape}},

@@ -10,9 +10,10 @@ Lossy knobs, opt-in (``RenderSettings`` fields, also accepted as ``render`` keyw
 
 - ``top_k``: keep, per sample point, only the ``top_k`` valid reference views whose direction
   from the point is closest to the target ray's (largest cue dot t.s), masking the others.
-  ``top_k_by="point"`` is that rule literally; the renderer graph feeds one field map per view
-  slot to all points of a call, so a per-point choice cannot shrink the graph's view axis below
-  the union of the chunk's choices. ``top_k_by="ray"`` keeps, per ray, the ``top_k`` views most
+  ``top_k_by="point"`` is that rule literally; with a model exported with ``renderer_views``
+  (``io_spec.RENDERER_VIEWS``, the default "fast" graphs) the renderer is fed only the kept
+  (view, point) pairs and runs its field on ``top_k`` view slots per point (same values as
+  masking; older exports mask the other views). ``top_k_by="ray"`` keeps, per ray, the ``top_k`` views most
   often chosen by its points (ties: larger summed t.s) and groups rays with the same views into
   one renderer call, so every call sees at most ``top_k`` views whatever the scene's count.
 - ``samples``: samples per ray (bin centres of ``samples`` equal bins in [near, far]; the model

@@ -423,34 +423,45 @@ def call_feed(plan: MarchPlan, block: Block, call: Call,
     return (select_point_views(feed) if plan.select_views else feed), z
 
 
-def select_point_views(feed: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+#: Pairs per group of the selected-views renderer feed (``select_point_views``): each view's
+#: kept pairs are padded to a multiple of this, not to the busiest view's count.
+PAIR_GROUP = 128
+
+
+def select_point_views(feed: dict[str, np.ndarray], group: int = PAIR_GROUP
+                       ) -> dict[str, np.ndarray]:
     """The feed of the renderer on per-point pre-selected views (``io_spec.RENDERER_VIEWS``) from
-    a view-major ``feed`` whose ``mask [v, r, s]`` marks the (view, point) pairs to keep: the
-    kept pairs compacted per view (M: the most any view keeps), and per point its kept views, in
-    view order, in slots 0 .. K - 1 (K: the most any point keeps; the rest masked). Same result
-    as ``feed``: the renderer pools and attends over the valid views of each point."""
+    a view-major ``feed`` whose ``mask [v, r, s]`` marks the (view, point) pairs to keep: each
+    view's kept pairs in groups of ``group`` (the last one padded), and per point its kept views,
+    in view order, in slots 0 .. K - 1 (K: the most any point keeps; the rest masked). Same
+    result as ``feed``: the renderer pools and attends over the valid views of each point."""
     mask = feed["mask"]
     v = mask.shape[0]
     flat = mask.reshape(v, -1)                                               # [v, r*s]
     counts = flat.sum(axis=1)
-    M, K = max(1, int(counts.max())), max(1, int(flat.sum(axis=0).max()))
+    K = max(1, int(flat.sum(axis=0).max()))
+    n_groups = -(-counts // group)                                           # per view
+    groups = np.repeat(np.arange(v), n_groups)
+    if groups.size == 0:                                                     # nothing kept
+        groups = np.zeros(1, np.int64)
     view, point = np.nonzero(flat)                                           # view-major
     rank = np.arange(len(view)) - np.repeat(np.cumsum(counts) - counts, counts)
+    row = (np.cumsum(n_groups) - n_groups)[view] * group + rank              # in [0, P * G)
     slot = (np.cumsum(flat, axis=0) - 1)[view, point]                        # k of the pair
 
     def compact(x):
-        out = np.zeros((v, M, x.shape[-1]), x.dtype)
-        out[view, rank] = x.reshape(v, -1, x.shape[-1])[view, point]
-        return out
+        out = np.zeros((len(groups) * group, x.shape[-1]), x.dtype)
+        out[row] = x.reshape(v, -1, x.shape[-1])[view, point]
+        return out.reshape(len(groups), group, x.shape[-1])
 
     pairs = np.zeros((K, flat.shape[1]), np.int64)
-    pairs[slot, point] = view * M + rank
+    pairs[slot, point] = row
     slots = np.zeros((K, flat.shape[1]), bool)
     slots[slot, point] = True
-    out = {"field_maps": feed["field_maps"], "grid": compact(feed["grid"]),
-           "cues": compact(feed["cues"]), "pairs": pairs.reshape(K, *mask.shape[1:]),
-           "mask": slots.reshape(K, *mask.shape[1:]), "positions": feed["positions"],
-           "directions": feed["directions"]}
+    out = {"field_maps": feed["field_maps"], "groups": groups.astype(np.int64),
+           "grid": compact(feed["grid"]), "cues": compact(feed["cues"]),
+           "pairs": pairs.reshape(K, *mask.shape[1:]), "mask": slots.reshape(K, *mask.shape[1:]),
+           "positions": feed["positions"], "directions": feed["directions"]}
     if "colours" in feed:
         out["colours"] = compact(feed["colours"])
     return out

@@ -437,9 +437,16 @@ class IrisRuntime:
         K = self._check_intrinsics(intrinsics, scene, height, width)
         S = settings.samples or self.samples
         V = scene.num_views
+        # Per-point top-k on the renderer that takes each point's own views (float32 only).
+        select_views = (settings.top_k is not None and settings.top_k < V
+                        and settings.top_k_by == "point" and graph == "renderer"
+                        and "renderer_views" in self.manifest.graphs)
         if chunk_rays is None:
+            # A call's work and memory grow with the views it feeds per point: top_k of them when
+            # the calls shrink to them (by ray, or per point on renderer_views).
             by_ray = settings.top_k is not None and settings.top_k_by == "ray"
-            chunk_rays = self.default_chunk_rays(min(V, settings.top_k) if by_ray else V, S)
+            chunk_rays = self.default_chunk_rays(
+                min(V, settings.top_k) if by_ray or select_views else V, S)
         else:
             chunk_rays = L.check_chunk_rays(chunk_rays, height * width, S, V)
         h, w = height, width
@@ -447,10 +454,6 @@ class IrisRuntime:
             h = max(1, int(round(height * settings.scale)))
             w = max(1, int(round(width * settings.scale)))
             K = G.scale_intrinsics(K, (height, width), (h, w))
-        # Per-point top-k on the renderer that takes each point's own views (float32 only).
-        select_views = (settings.top_k is not None and settings.top_k < V
-                        and settings.top_k_by == "point" and graph == "renderer"
-                        and "renderer_views" in self.manifest.graphs)
         session = self._session("renderer_views" if select_views else graph)
         empty_rgb = self._empty_ray_rgb(scene, graph) if self.cull else None
 

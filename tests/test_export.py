@@ -91,7 +91,7 @@ def checkpoint(model, tmp_path_factory):
 def _copy_graphs_from(src_dir: Path):
     """An ``export_graph`` stand-in that copies already exported graphs (same weights)."""
     def fake_export_graph(model, graph, path, opset=io_spec.DEFAULT_OPSET, wrapper=None):
-        src = Path(src_dir) / io_spec.GRAPHS[graph]["file"]
+        src = Path(src_dir) / io_spec.spec_for(graph)["file"]
         shutil.copyfile(src, path)
         return GraphFile(graph, Path(path), len(onnx.load(str(src)).graph.node), 0.0)
     return fake_export_graph
@@ -153,10 +153,11 @@ def _siblings(path: Path) -> list[str]:
 # -- files and manifest --------------------------------------------------------------------------
 def test_output_files_are_exactly_the_graphs_and_manifest(exported, torch_export):
     assert sorted(p.name for p in exported.iterdir()) == \
-        ["encoder.onnx", "iris.json", "renderer.int8.onnx", "renderer.onnx"]
+        ["encoder.onnx", "iris.json", "renderer.int8.onnx", "renderer.onnx", "renderer_views.onnx"]
     assert _siblings(exported) == ["model"]           # no temporary directory left behind
     plain = torch_export[0]                           # the real export_model(model) output
-    assert sorted(p.name for p in plain.iterdir()) == ["encoder.onnx", "iris.json", "renderer.onnx"]
+    assert sorted(p.name for p in plain.iterdir()) == ["encoder.onnx", "iris.json", "renderer.onnx",
+                                                       "renderer_views.onnx"]
     assert not list(exported.rglob("*.data")) and not list(plain.rglob("*.data"))
     assert read_manifest(plain)["source"] == {"checkpoint": None}
 
@@ -202,7 +203,7 @@ def test_manifest_content(exported, model, checkpoint):
 
 def test_sha256_in_manifest_matches_files(exported):
     m = read_manifest(exported / MANIFEST_NAME)
-    assert len(m["graphs"]) == 3
+    assert sorted(m["graphs"]) == ["encoder", "renderer", "renderer_int8", "renderer_views"]
     for entry in m["graphs"].values():
         path = exported / entry["file"]
         assert entry["sha256"] == sha256_file(path) and entry["bytes"] == path.stat().st_size
@@ -210,7 +211,7 @@ def test_sha256_in_manifest_matches_files(exported):
 
 def test_graph_files_are_self_contained_and_valid(exported):
     max_ir = onnx.helper.find_min_ir_version_for([onnx.helper.make_opsetid("", io_spec.DEFAULT_OPSET)])
-    for name in ("encoder.onnx", "renderer.onnx", "renderer.int8.onnx"):
+    for name in ("encoder.onnx", "renderer.onnx", "renderer.int8.onnx", "renderer_views.onnx"):
         proto = onnx.load(str(exported / name), load_external_data=False)
         assert all(t.data_location != onnx.TensorProto.EXTERNAL for t in proto.graph.initializer)
         assert proto.ir_version <= max_ir
@@ -460,7 +461,8 @@ def test_force_replaces_existing_out_dir(checkpoint, tmp_path, copy_graphs):
     out.mkdir()
     (out / "stale.txt").write_text("old")
     export_model(checkpoint, out, force=True, progress=False, quick=True, threads=1)
-    assert sorted(p.name for p in out.iterdir()) == ["encoder.onnx", "iris.json", "renderer.onnx"]
+    assert sorted(p.name for p in out.iterdir()) == ["encoder.onnx", "iris.json", "renderer.onnx",
+                                                     "renderer_views.onnx"]
     assert _siblings(out) == ["out"]
 
 

@@ -182,8 +182,9 @@ def test_dropping_views_under_top_k_is_exact(model_dir, rt, scene, by):
 
 
 def test_select_point_views_keeps_exactly_the_masked_pairs():
-    """raymarch.select_point_views: every kept (view, point) pair is compacted once, each point's
-    kept views fill its first slots in view order, and nothing else is referenced."""
+    """raymarch.select_point_views: every kept (view, point) pair sits once in a group of its
+    view, each point's kept views fill its first slots in view order, and nothing else is
+    referenced."""
     from iris_runtime.raymarch import select_point_views
     rng = np.random.default_rng(3)
     v, r, s = 5, 4, 7
@@ -194,19 +195,21 @@ def test_select_point_views_keeps_exactly_the_masked_pairs():
             "cues": rng.random((v, r, s, 4)).astype(np.float32), "mask": mask,
             "positions": np.zeros((r, s, 3), np.float32), "directions": np.ones((r, 3), np.float32),
             "colours": rng.random((v, r, s, 3)).astype(np.float32)}
-    out = select_point_views(feed)
-    K, M = out["pairs"].shape[0], out["grid"].shape[1]
-    assert K == mask.sum(0).max() and M == mask.reshape(v, -1).sum(1).max()
+    out = select_point_views(feed, group=4)
+    K, P, G = out["pairs"].shape[0], *out["grid"].shape[:2]
+    counts = mask.reshape(v, -1).sum(1)
+    assert K == mask.sum(0).max() and G == 4
+    np.testing.assert_array_equal(out["groups"], np.repeat(np.arange(v), -(-counts // 4)))
     assert out["pairs"].dtype == np.int64 and out["mask"].shape == (K, r, s)
     np.testing.assert_array_equal(out["mask"].sum(0), mask.sum(0))
     for i in range(r):
         for j in range(s):
             views = np.flatnonzero(mask[:, i, j])
             held = out["pairs"][:len(views), i, j]
-            np.testing.assert_array_equal(held // M, views)     # its views, in view order
+            np.testing.assert_array_equal(out["groups"][held // G], views)   # in view order
             assert not out["mask"][len(views):, i, j].any()
             for name in ("grid", "cues", "colours"):
-                got = out[name].reshape(v * M, -1)[held]
+                got = out[name].reshape(P * G, -1)[held]
                 np.testing.assert_array_equal(got, feed[name][views, i, j])
 
 
