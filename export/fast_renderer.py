@@ -83,8 +83,8 @@ optimiser fuses none of these in this layout (after ``ORT_ENABLE_ALL``: no SkipL
 no BiasGelu; the reference graph gets 1 and 2). Which of the two is faster is a measurement for a
 quiet machine (benchmarks/renderer_profile.py).
 
-Graph sizes (random tiny / tiny-rgb models, opset 20, nodes as exported -> after ONNX Runtime's
-``ORT_ENABLE_ALL`` optimisations; counts, not times): reference 217 -> 206 / 249 -> 239 with 5
+Graph sizes before the 2026-12-03 selection-matmul changes (random tiny / tiny-rgb models, opset
+20, nodes as exported -> after ONNX Runtime's ``ORT_ENABLE_ALL`` optimisations; counts, not times): reference 217 -> 206 / 249 -> 239 with 5
 ``Where`` and 14 / 16 ``Transpose`` left; fast 186 -> 179 / 210 -> 204 with no ``Where`` and 2
 ``Transpose`` (the head merges of the two ray blocks); fast-contrib 177 -> 171 / 196 -> 192 with 1 /
 0 ``Transpose``.
