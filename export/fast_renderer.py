@@ -10,8 +10,8 @@ derived from them at construction (see the class). Same values as torch up to fl
 <= 3e-7 in torch and in ONNX Runtime).
 
 ``SelectedViewsRendererGraph(model)`` is the same renderer on per-point pre-selected views
-(``iris_runtime.io_spec.RENDERER_VIEWS``: the kept (view, point) pairs, compacted per view, and
-K view slots per point), which the runtime uses for per-point top-k.
+(``iris_runtime.io_spec.RENDERER_VIEWS``: the kept (view, point) pairs in groups of one view,
+and K view slots per point), which the runtime uses for per-point top-k.
 
 What differs from the reference graph, and why (the reference graph's profile,
 benchmarks/results/error_vs_time.md: ``Where`` 14% and ``Transpose`` 14% of node time):
@@ -51,8 +51,9 @@ benchmarks/results/error_vs_time.md: ``Where`` 14% and ``Transpose`` 14% of node
   slower than ``ones [1, V] @ x [V, -1]`` (``benchmarks/ort_reductions.py``), so every sum over
   views is that matmul (``_sum_views``); the per-head sums and broadcasts of the view attention
   are 0/1 matmuls (``select_head_sum [W, H]``, ``select_head_expand [H, W]``). The max-pool stays a
-  ``ReduceMax`` (no matmul form). Node time per call of the shipped model, 5 views x 102 rays x
-  64 samples, 2 threads: 67.7 ms before these two changes, 60.7 ms after (docs/PERFORMANCE.md).
+  ``ReduceMax`` (no matmul form). ``benchmarks/renderer_profile.py`` of the shipped model
+  before / after these two changes (5 views x 102 rays x 64 samples, 2 threads, one run): node
+  time per call 51.6 / 50.1 ms, median call 0.955x (docs/PERFORMANCE.md).
 * Separate q/k/v weights in the ray attention, per head: ``y [R, 1, S, W] @ Wq [H, W, Dh]`` gives
   ``[R, H, S, Dh]`` directly (a broadcast batched MatMul instead of a Gemm + Reshape + Transpose
   + Split). The key bias is dropped (it adds ``q . b_k`` to every logit of a row: softmax-invariant)
@@ -84,8 +85,8 @@ no BiasGelu; the reference graph gets 1 and 2). Which of the two is faster is a 
 quiet machine (benchmarks/renderer_profile.py).
 
 Graph sizes before the 2026-12-03 selection-matmul changes (random tiny / tiny-rgb models, opset
-20, nodes as exported -> after ONNX Runtime's ``ORT_ENABLE_ALL`` optimisations; counts, not times): reference 217 -> 206 / 249 -> 239 with 5
-``Where`` and 14 / 16 ``Transpose`` left; fast 186 -> 179 / 210 -> 204 with no ``Where`` and 2
+20, nodes as exported -> after ONNX Runtime's ``ORT_ENABLE_ALL`` optimisations; counts, not
+times): reference 217 -> 206 / 249 -> 239 with 5 ``Where`` and 14 / 16 ``Transpose`` left; fast 186 -> 179 / 210 -> 204 with no ``Where`` and 2
 ``Transpose`` (the head merges of the two ray blocks); fast-contrib 177 -> 171 / 196 -> 192 with 1 /
 0 ``Transpose``.
 
@@ -184,8 +185,8 @@ class FastRendererGraph(nn.Module):
         # the 0/1 matmuls copy wy[y] and wx[x] to cell (y, x), so the tent columns are its outer
         # product bit for bit, and the extras' columns are the extra times sum_x wx = 1 (the
         # tent weights of a clamped coordinate sum to one, within one rounding). This replaces a
-        # short-span broadcast Mul and a Concat over [V, N, hw + E] (9 % of a call; profile in
-        # docs/PERFORMANCE.md) with two thin matmuls and one same-shape Mul.
+        # short-span broadcast Mul and a Concat over [V, N, hw + E] (docs/PERFORMANCE.md) with
+        # two thin matmuls and one same-shape Mul.
         h, w = cfg.feature_grid
         E = rows.shape[-1]
         select_rows = torch.zeros(h + E, h * w + E, dtype=ref.dtype)
@@ -234,11 +235,13 @@ class FastRendererGraph(nn.Module):
             self._keep(f"inject{i}_wdir", inject.weight[:, P:])
 
     # -- the latent field, view-major --------------------------------------------------------
-    def _sample_slots(self, field_maps, grid, cues, colours, bias):
+    def _sample_slots(self, field_maps, grid, cues, colours, bias, groups=None):
         """Every slot's ``[V, N, W]``: sampled maps + cue term (+ colour term); the first slot
-        (u) also + the mask ``bias``."""
-        V, C, h, w = field_maps.shape
-        N = grid.shape[1] * grid.shape[2]
+        (u) also + the mask ``bias``. ``groups [P]``: the per-view inputs are P groups of
+        points, group p on view ``groups[p]`` (the per-view matrices are built once per view and
+        then indexed), and the slots ``[P, N, W]``."""
+        C, h, w = field_maps.shape[1:]
+        V, N = grid.shape[0], grid.shape[1] * grid.shape[2]
         extras = [cues.reshape(V, N, 4)]
         if colours is not None:
             extras.append(colours.reshape(V, N, 3))
@@ -249,16 +252,17 @@ class FastRendererGraph(nn.Module):
         if self.sampler == "dense":
             wy, wx = tent_axes(grid.reshape(V, N, 2), h, w)                          # [V, N, h|w]
             A = (torch.cat([wy, *extras], dim=-1) @ self.select_rows) * (wx @ self.select_cols)
-            maps = field_maps.reshape(V, C, h * w)
+            maps = field_maps.reshape(-1, C, h * w)
             for ch, r, const in zip(self.slots, rows, consts):
                 m = maps[:, ch]                                                       # [V, W, hw]
                 if const is not None:
                     m = m + const[:, None]
-                Bt = torch.cat([m, r.expand(V, -1, -1)], dim=-1)                      # [V, W, K]
-                out.append(A @ Bt.transpose(1, 2))                                   # [V, N, W]
+                Bt = torch.cat([m, r.expand(m.shape[0], -1, -1)], dim=-1)             # [V, W, K]
+                out.append(A @ (Bt if groups is None else Bt[groups]).transpose(1, 2))
             return out
         # Large feature grids: ONNX GridSample (the model's sampler), then the extras' matmul.
-        sampled = MODEL_SAMPLERS[self.sampler](field_maps, grid).reshape(V, N, C)
+        maps = field_maps if groups is None else field_maps[groups]
+        sampled = MODEL_SAMPLERS[self.sampler](maps, grid).reshape(V, N, C)
         X = torch.cat(extras, dim=-1)
         for ch, r, const in zip(self.slots, rows, consts):
             s = sampled[..., ch] + X @ r.t()
@@ -306,7 +310,7 @@ class FastRendererGraph(nn.Module):
             logits = (k * qh) @ self.select_head_sum + bias[..., None]                # [V, N, H]
             e = torch.exp(logits - logits.amax(0, keepdim=True))
             # Normaliser times any_view: all-zero weights for a point seen by no view.
-            weights = e * (any_view[:, None] / _sum_views(e))                               # [V, N, H]
+            weights = e * (any_view[:, None] / _sum_views(e))                          # [V, N, H]
             out = _sum_views((weights @ self.select_head_expand) * v)                  # [N, W]
             normed, q = self._add_norm(q, *self._linear(out, block.proj), block.norm_mlp)
             delta, b = self._mlp(block.mlp, normed)
@@ -422,9 +426,6 @@ class SelectedViewsRendererGraph(FastRendererGraph):
     busiest one would sample as much as the full renderer.
     """
 
-    def __init__(self, model: IrisModel, contrib: bool = False):
-        super().__init__(model, contrib=contrib)
-
     def forward(self, field_maps: torch.Tensor, groups: torch.Tensor, grid: torch.Tensor,
                 cues: torch.Tensor, pairs: torch.Tensor, mask: torch.Tensor,
                 positions: torch.Tensor, directions: torch.Tensor,
@@ -439,9 +440,9 @@ class SelectedViewsRendererGraph(FastRendererGraph):
 
         def slots(bias):
             # The mask bias belongs to the slots, not to the pairs: added after the gather.
-            per_pair = self._sample_slots(field_maps[groups], grid[:, :, None], cues[:, :, None],
+            per_pair = self._sample_slots(field_maps, grid[:, :, None], cues[:, :, None],
                                           None if colours is None else colours[:, :, None],
-                                          torch.zeros_like(cues[..., 0]))
+                                          torch.zeros_like(cues[..., 0]), groups)
             out = [gather(p) for p in per_pair]
             return [out[0] + bias[..., None], *out[1:]]
 

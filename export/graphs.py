@@ -239,7 +239,8 @@ def _check_self_contained(proto: onnx.ModelProto, name: str) -> None:
 
 def export_graph(model: IrisModel, graph: str, path: str | Path, opset: int = DEFAULT_OPSET,
                  wrapper: nn.Module | None = None) -> GraphFile:
-    """Export ``graph`` ("encoder", "renderer" or "renderer_views") of ``model`` to one self-contained file ``path``.
+    """Export ``graph`` ("encoder", "renderer" or "renderer_views") of ``model`` to one
+    self-contained file ``path``.
 
     ``wrapper``: the module to export instead of ``WRAPPERS[graph](model)``, with the same I/O
     (e.g. ``export.fast_renderer.FastRendererGraph``); its ``custom_translation_table``

@@ -474,10 +474,9 @@ def _validate(model, files, *, quick, threads, progress) -> dict:
         sess = session(files[graph], graph, threads)
         check_io(sess, spec, dims, graph)
         if base not in probes:
-            probes[base] = {"encoder": encoder_probes,
-                             "renderer": renderer_probes,
-                             "renderer_views": renderer_views_probes}[base](
-                model, **({} if base == "encoder" else {"n_rays": n_rays}))
+            probes[base] = (encoder_probes(model) if base == "encoder" else
+                            (renderer_views_probes if base == "renderer_views"
+                             else renderer_probes)(model, n_rays=n_rays))
         enforce = graph == base
         entry = summarise(graph, run_probes(sess, probes[base]), spec["tolerance"], enforce)
         if base == "encoder":

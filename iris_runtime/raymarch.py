@@ -151,8 +151,7 @@ class MarchPlan:
                    sample_window=None if sample_window is None else _frozen(
                        np.asarray(sample_window, np.int64)),
                    mode_radius=None if mode_radius is None else float(mode_radius),
-                   select_views=bool(select_views) and top_k is not None and top_k < V
-                   and not by_ray)
+                   select_views=bool(select_views))
 
     @property
     def pixels(self) -> int:
