@@ -1,6 +1,12 @@
-"""Reductions over the leading (view) axis in ONNX Runtime: ``ReduceSum`` / ``ReduceMax`` against
-``MatMul`` with a ones row, on the renderer's shape (the facts behind
-``export.fast_renderer._sum_views``).
+"""Op layouts in ONNX Runtime on the renderer's shapes, each against the form the fast renderer
+graph uses instead (the facts behind ``export.fast_renderer``):
+
+* reductions over the leading (view) axis: ``ReduceSum`` against ``MatMul`` with a ones row
+  (``_sum_views``), ``ReduceMax`` against a ``Scan`` of ``Max`` (``views_max_as_scan``);
+* broadcasts over a trailing axis of 1 (``x [V, N, 1] * y [V, N, 3]``, the tent's
+  ``g [V, N, 1] - centres [8]``, the position encoding's ``p [N, 3, 1] * freqs [F]``) against a
+  matmul that makes the same values (``_expand``, ``_tent_axes``, ``select_pos_freqs``);
+* the ray attention's per-head projections 16 wide against 17 wide (why the key mask stays an Add).
 
     python benchmarks/ort_reductions.py [--shape 5,6528,64 --threads 2 --runs 50]
 
@@ -20,9 +26,9 @@ import onnxruntime as ort
 from onnx import TensorProto, helper, numpy_helper
 
 
-def session(nodes, initializers, threads: int) -> ort.InferenceSession:
-    graph = helper.make_graph(nodes, "g", [helper.make_tensor_value_info("x", TensorProto.FLOAT,
-                                                                         None)],
+def session(nodes, initializers, threads: int, inputs=("x",)) -> ort.InferenceSession:
+    graph = helper.make_graph(nodes, "g", [helper.make_tensor_value_info(n, TensorProto.FLOAT,
+                                                                         None) for n in inputs],
                               [helper.make_tensor_value_info("y", TensorProto.FLOAT, None)],
                               initializer=initializers)
     model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 20)])
@@ -46,28 +52,77 @@ def main(argv=None) -> int:
     axis0 = numpy_helper.from_array(np.array([0], np.int64), "axis0")
     flat = numpy_helper.from_array(np.array([V, -1], np.int64), "flat")
     ones = numpy_helper.from_array(np.ones((1, V), np.float32), "ones")
-    graphs = {
-        "ReduceSum(axis 0)": ([helper.make_node("ReduceSum", ["x", "axis0"], ["y"], keepdims=0)],
-                              [axis0], x.sum(0)),
-        "MatMul(ones[1,V], x[V,-1])": ([helper.make_node("Reshape", ["x", "flat"], ["x2"]),
+    rng = np.random.default_rng(0)
+    c = lambda a, name: numpy_helper.from_array(np.asarray(a), name)           # noqa: E731
+    zero = c(np.array(0, np.int64), "zero")
+    scan_body = helper.make_graph(
+        [helper.make_node("Max", ["acc", "xi"], ["acc_out"])], "body",
+        [helper.make_tensor_value_info(n, TensorProto.FLOAT, ["n", "c"]) for n in ("acc", "xi")],
+        [helper.make_tensor_value_info("acc_out", TensorProto.FLOAT, ["n", "c"])])
+    # (name, nodes, initializers, feed, expected)
+    cases = [
+        ("ReduceSum(axis 0)", [helper.make_node("ReduceSum", ["x", "axis0"], ["y"], keepdims=0)],
+         [axis0], {"x": x}, x.sum(0)),
+        ("MatMul(ones[1,V], x[V,-1])", [helper.make_node("Reshape", ["x", "flat"], ["x2"]),
                                         helper.make_node("MatMul", ["ones", "x2"], ["y"])],
-                                       [flat, ones], x.sum(0)),
-        "ReduceMax(axis 0)": ([helper.make_node("ReduceMax", ["x", "axis0"], ["y"], keepdims=0)],
-                              [axis0], x.max(0)),
-        "Add(x, x) (one same-shape pass)": ([helper.make_node("Add", ["x", "x"], ["y"])], [],
-                                            x + x),
-    }
+         [flat, ones], {"x": x}, x.sum(0)),
+        ("ReduceMax(axis 0)", [helper.make_node("ReduceMax", ["x", "axis0"], ["y"], keepdims=0)],
+         [axis0], {"x": x}, x.max(0)),
+        ("Scan(Max) over axis 0", [helper.make_node("Gather", ["x", "zero"], ["x0"], axis=0),
+                                   helper.make_node("Scan", ["x0", "x"], ["y"],
+                                                    num_scan_inputs=1, body=scan_body)],
+         [zero], {"x": x}, x.max(0)),
+        ("Add(x, x) (one same-shape pass)", [helper.make_node("Add", ["x", "x"], ["y"])], [],
+         {"x": x}, x + x),
+    ]
+    col = rng.random((V, N, 3), dtype=np.float32)
+    m = (rng.random((V, N, 1)) < 0.9).astype(np.float32)
+    cases += [
+        ("Mul(c[V,N,3], m[V,N,1])", [helper.make_node("Mul", ["c", "m"], ["y"])], [],
+         {"c": col, "m": m}, col * m),
+        ("Mul(c, MatMul(m, ones[1,3]))", [helper.make_node("MatMul", ["m", "ones3"], ["m3"]),
+                                          helper.make_node("Mul", ["c", "m3"], ["y"])],
+         [c(np.ones((1, 3), np.float32), "ones3")], {"c": col, "m": m}, col * m)]
+    g = rng.uniform(0, 7, (V * N, 1)).astype(np.float32)
+    centres = np.arange(8, dtype=np.float32)
+    cases += [
+        ("Sub(g[VN,1], centres[8])", [helper.make_node("Sub", ["g", "centres"], ["y"])],
+         [c(centres, "centres")], {"g": g}, g - centres),
+        ("Gemm(g[VN,1], ones[1,8], -centres)", [helper.make_node("Gemm", ["g", "ones8", "negc"],
+                                                                 ["y"])],
+         [c(np.ones((1, 8), np.float32), "ones8"), c(-centres, "negc")], {"g": g}, g - centres)]
+    p = rng.standard_normal((N, 3)).astype(np.float32)
+    freqs = (2.0 ** np.arange(6, dtype=np.float32)) * np.float32(np.pi)
+    block = np.zeros((3, 18), np.float32)
+    for i in range(3):
+        block[i, 6 * i:6 * i + 6] = freqs
+    want = (p[:, :, None] * freqs).reshape(N, 18)
+    cases += [
+        ("Mul(p[N,3,1], freqs[6])", [helper.make_node("Mul", ["p", "freqs"], ["y3"]),
+                                     helper.make_node("Reshape", ["y3", "shape18"], ["y"])],
+         [c(freqs, "freqs"), c(np.array([N, 18], np.int64), "shape18")],
+         {"p": p[:, :, None]}, want),
+        ("MatMul(p[N,3], block-diagonal freqs)", [helper.make_node("MatMul", ["p", "block"],
+                                                                   ["y"])],
+         [c(block, "block")], {"p": p}, want)]
+    R, S = max(1, N // 64), 64
+    for K, D in ((64, 16), (65, 16), (66, 17)):
+        y = rng.standard_normal((R, 1, S, K)).astype(np.float32)
+        wgt = rng.standard_normal((4, K, D)).astype(np.float32)
+        cases.append((f"MatMul([{R},1,{S},{K}], [4,{K},{D}])",
+                      [helper.make_node("MatMul", ["yr", "w"], ["y"])], [c(wgt, "w")],
+                      {"yr": y}, y @ wgt))
     print(f"x [{V}, {N}, {C}] float32, {args.threads} threads, median (min) of {args.runs} calls")
-    for name, (nodes, inits, want) in graphs.items():
-        sess = session(nodes, inits, args.threads)
-        got = sess.run(None, {"x": x})[0].reshape(want.shape)
+    for name, nodes, inits, feed, want in cases:
+        sess = session(nodes, inits, args.threads, tuple(feed))
+        got = sess.run(None, feed)[0].reshape(want.shape)
         err = float(np.abs(got - want).max())
         times = []
         for _ in range(args.runs):
             t = time.perf_counter()
-            sess.run(None, {"x": x})
+            sess.run(None, feed)
             times.append(time.perf_counter() - t)
-        print(f"  {name:34s} {statistics.median(times) * 1e3:7.3f} ms ({min(times) * 1e3:.3f})"
+        print(f"  {name:38s} {statistics.median(times) * 1e3:7.3f} ms ({min(times) * 1e3:.3f})"
               f"   max |error| {err:.1e}")
     return 0
 

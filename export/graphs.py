@@ -244,7 +244,8 @@ def export_graph(model: IrisModel, graph: str, path: str | Path, opset: int = DE
 
     ``wrapper``: the module to export instead of ``WRAPPERS[graph](model)``, with the same I/O
     (e.g. ``export.fast_renderer.FastRendererGraph``); its ``custom_translation_table``
-    attribute, if any, goes to ``torch.onnx.export``."""
+    attribute, if any, goes to ``torch.onnx.export``; its ``rewrite_onnx(proto)``, if any, is
+    applied to the exported graph."""
     spec = io_spec.spec_for(graph, model.cfg.explicit_rgb)
     check_opset(opset)
     wrapper = (WRAPPERS[graph](model) if wrapper is None else wrapper).eval()
@@ -266,6 +267,8 @@ def export_graph(model: IrisModel, graph: str, path: str | Path, opset: int = DE
             input_names=names, output_names=list(spec["outputs"]),
             dynamic_shapes=dynamic_shapes, optimize=True, **extra)
     proto = program.model_proto
+    if getattr(wrapper, "rewrite_onnx", None) is not None:
+        wrapper.rewrite_onnx(proto)
     _name_axes(proto, spec, fixed_dims(model.cfg))
     set_min_ir_version(proto)
     _check_self_contained(proto, graph)

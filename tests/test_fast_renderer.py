@@ -286,6 +286,66 @@ def test_onnx_graph_has_no_where_and_no_per_sample_transpose(model, exported):
     assert mha == blocks - manual["fast-contrib"]
 
 
+def test_onnx_graph_reduces_over_views_with_scan_and_no_trailing_one_broadcasts(model, exported):
+    """No ``ReduceMax`` over the leading (view) axis is left (``views_max_as_scan``), and no
+    element-wise op broadcasts an operand over a trailing axis of 1 against a wider one (the
+    layouts ONNX Runtime runs several times slower, benchmarks/ort_reductions.py), in the graph
+    ONNX Runtime runs."""
+    from onnx import shape_inference
+    for kind in ("fast", "fast-contrib"):
+        proto = onnx.load_model(str(exported[kind]))
+        leading = [n for n in proto.graph.node if n.op_type == "ReduceMax"
+                   and onnx.numpy_helper.to_array(next(t for t in proto.graph.initializer
+                                                       if t.name == n.input[1])).tolist() == [0]]
+        assert not leading and op_histogram(exported[kind])["Scan"] >= 2
+        inferred = shape_inference.infer_shapes(proto)
+        shapes = {v.name: [d.dim_value if d.HasField("dim_value") else d.dim_param
+                           for d in v.type.tensor_type.shape.dim]
+                  for v in [*inferred.graph.value_info, *inferred.graph.input]}
+        for n in inferred.graph.node:
+            if n.op_type not in ("Add", "Sub", "Mul", "Div") or len(n.input) != 2:
+                continue
+            a, b = (shapes.get(i) for i in n.input)
+            if not a or not b or (a[-1] == 1) == (b[-1] == 1):
+                continue
+            wide = a if b[-1] == 1 else b
+            # per-sample tensors with a channel axis (a dim of the samples, "S" or "S*R", and a
+            # fixed last dim); per-ray and per-view-map ones are small.
+            per_sample = isinstance(wide[-1], int) and any("S" in str(d) for d in wide[:-1])
+            assert not per_sample, (kind, n.name, a, b)
+
+
+@pytest.mark.parametrize("keepdims", [0, 1])
+def test_views_max_as_scan_keeps_values(keepdims):
+    """The rewrite on a one-node graph: the same values as ``ReduceMax`` over axis 0 (and numpy)
+    for 1 to 7 views; a ``ReduceMax`` over another axis is left alone."""
+    import onnxruntime as ort
+    from onnx import TensorProto, helper, numpy_helper
+
+    from export.fast_renderer import views_max_as_scan
+    graph = helper.make_graph(
+        [helper.make_node("ReduceMax", ["x", "axis0"], ["y"], keepdims=keepdims),
+         helper.make_node("ReduceMax", ["x", "axis1"], ["z"], keepdims=keepdims)], "g",
+        [helper.make_tensor_value_info("x", TensorProto.FLOAT, ["V", "N", 4])],
+        [helper.make_tensor_value_info("y", TensorProto.FLOAT, [1, "N", 4][1 - keepdims:]),
+         helper.make_tensor_value_info("z", TensorProto.FLOAT, ["V", 1, 4] if keepdims
+                                       else ["V", 4])],
+        initializer=[numpy_helper.from_array(np.array([0], np.int64), "axis0"),
+                     numpy_helper.from_array(np.array([1], np.int64), "axis1")])
+    proto = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 20)])
+    proto.ir_version = 9
+    assert views_max_as_scan(proto) == 1
+    assert [n.op_type for n in proto.graph.node].count("ReduceMax") == 1
+    onnx.checker.check_model(proto)
+    sess = ort.InferenceSession(proto.SerializeToString(), providers=["CPUExecutionProvider"])
+    rng = np.random.default_rng(0)
+    for V in range(1, 8):
+        x = rng.standard_normal((V, 33, 4)).astype(np.float32)
+        y, z = sess.run(None, {"x": x})
+        assert np.array_equal(y, x.max(0, keepdims=bool(keepdims)))
+        assert np.array_equal(z, x.max(1, keepdims=bool(keepdims)))
+
+
 # -- export option ---------------------------------------------------------------------------------
 def test_export_model_refuses_unknown_renderer(tmp_path):
     from export.pipeline import export_model
