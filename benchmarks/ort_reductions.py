@@ -6,7 +6,9 @@ graph uses instead (the facts behind ``export.fast_renderer``):
 * broadcasts over a trailing axis of 1 (``x [V, N, 1] * y [V, N, 3]``, the tent's
   ``g [V, N, 1] - centres [8]``, the position encoding's ``p [N, 3, 1] * freqs [F]``) against a
   matmul that makes the same values (``_expand``, ``_tent_axes``, ``select_pos_freqs``);
-* the ray attention's per-head projections 16 wide against 17 wide (why the key mask stays an Add).
+* the ray attention's per-head projections 16 wide against 17 wide (why the key mask stays an Add);
+* exact GELU (ONNX, contrib, written with Erf) and Add + LayerNormalization against the contrib
+  SkipLayerNormalization (the kernels most of the non-matmul time is in).
 
     python benchmarks/ort_reductions.py [--shape 5,6528,64 --threads 2 --runs 50]
 
@@ -31,7 +33,8 @@ def session(nodes, initializers, threads: int, inputs=("x",)) -> ort.InferenceSe
                                                                          None) for n in inputs],
                               [helper.make_tensor_value_info("y", TensorProto.FLOAT, None)],
                               initializer=initializers)
-    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 20)])
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 20),
+                                                    helper.make_opsetid("com.microsoft", 1)])
     model.ir_version = 9
     opts = ort.SessionOptions()
     opts.intra_op_num_threads = threads
@@ -112,6 +115,37 @@ def main(argv=None) -> int:
         cases.append((f"MatMul([{R},1,{S},{K}], [4,{K},{D}])",
                       [helper.make_node("MatMul", ["yr", "w"], ["y"])], [c(wgt, "w")],
                       {"yr": y}, y @ wgt))
+    # The kernels that are most of the rest: exact GELU three ways, the residual Add + LayerNorm
+    # against the contrib SkipLayerNormalization.
+    hid = rng.standard_normal((N, 4 * C)).astype(np.float32)
+    from math import erf, sqrt
+    gelu = (0.5 * hid * (1 + np.vectorize(erf)(hid.astype(np.float64) / sqrt(2)))).astype(np.float32)
+    r2 = c(np.array(2 ** -0.5, np.float32), "r2")
+    half = c(np.array(0.5, np.float32), "half")
+    one = c(np.array(1.0, np.float32), "one")
+    cases += [
+        ("Gelu", [helper.make_node("Gelu", ["h"], ["y"])], [], {"h": hid}, gelu),
+        ("com.microsoft Gelu", [helper.make_node("Gelu", ["h"], ["y"], domain="com.microsoft")],
+         [], {"h": hid}, gelu),
+        ("0.5 h (1 + Erf(h / sqrt 2))", [helper.make_node("Mul", ["h", "r2"], ["a"]),
+                                         helper.make_node("Erf", ["a"], ["e"]),
+                                         helper.make_node("Add", ["e", "one"], ["e1"]),
+                                         helper.make_node("Mul", ["h", "half"], ["hh"]),
+                                         helper.make_node("Mul", ["hh", "e1"], ["y"])],
+         [r2, half, one], {"h": hid}, gelu)]
+    a_, b_ = (rng.standard_normal((N, C)).astype(np.float32) for _ in range(2))
+    s_ = a_ + b_
+    ln = (s_ - s_.mean(-1, keepdims=True)) / np.sqrt(s_.var(-1, keepdims=True) + 1e-5)
+    gamma, beta = c(np.ones(C, np.float32), "gamma"), c(np.zeros(C, np.float32), "beta")
+    cases += [
+        ("Add + LayerNormalization", [helper.make_node("Add", ["a", "b"], ["s"]),
+                                      helper.make_node("LayerNormalization", ["s", "gamma", "beta"],
+                                                       ["y"], axis=-1, epsilon=1e-5)],
+         [gamma, beta], {"a": a_, "b": b_}, ln),
+        ("com.microsoft SkipLayerNormalization",
+         [helper.make_node("SkipLayerNormalization", ["a", "b", "gamma", "beta"], ["y"],
+                           domain="com.microsoft", epsilon=1e-5)],
+         [gamma, beta], {"a": a_, "b": b_}, ln)]
     print(f"x [{V}, {N}, {C}] float32, {args.threads} threads, median (min) of {args.runs} calls")
     for name, nodes, inits, feed, want in cases:
         sess = session(nodes, inits, args.threads, tuple(feed))
