@@ -120,7 +120,6 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from iris_train.geometry import tent_axes
 from iris_train.layers import MASK_FILL, sinusoidal_encoding
 from iris_train.model import SAMPLERS as MODEL_SAMPLERS
 from iris_train.model import IrisModel, sampler_for
@@ -359,7 +358,8 @@ class FastRendererGraph(nn.Module):
         # Masked max-pool over views (the bias is in slots[0]); 0 for a point seen by no view
         # (layers.masked_max).
         W = cfg.field_width
-        ones_w, ones_h = getattr(self, f"select_ones{W}"), getattr(self, f"select_ones{cfg.field_heads}")
+        ones_w = getattr(self, f"select_ones{W}")
+        ones_h = getattr(self, f"select_ones{cfg.field_heads}")
         q = slots[0].amax(0) * self._expand(any_view[:, None], ones_w)                  # [N, W]
         normed = blocks[0].norm_q(q)
         bias_h = self._expand(bias[..., None], ones_h)                                 # [V, N, H]
@@ -465,7 +465,7 @@ class FastRendererGraph(nn.Module):
         if cfg.explicit_rgb:
             logits = renderer.sample_logit(normed).reshape(R, S) + key_bias             # [R, S]
             w = torch.softmax(logits, dim=-1) * sample_mask
-            mv = self._expand(m.reshape(V, R, S, 1), self.select_ones3)                  # [V, R, S, 3]
+            mv = self._expand(m.reshape(V, R, S, 1), self.select_ones3)              # [V, R, S, 3]
             mean_colour = _sum_views(colours * mv) / _sum_views(mv).clamp_min(1.0)      # [R, S, 3]
             blend = (w[:, None, :] @ mean_colour)[:, 0].clamp(BLEND_EPS, 1 - BLEND_EPS)
             rgb = torch.sigmoid(torch.log(blend) - torch.log1p(-blend) + renderer.rgb_head(h))
