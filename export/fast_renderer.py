@@ -152,8 +152,9 @@ class FastRendererGraph(nn.Module):
     model as it is to be exported (``export_fast_renderer`` does).
     """
 
-    #: Read by ``export.graphs.export_graph``: applied to the exported ONNX graph in place.
-    rewrite_onnx = staticmethod(lambda proto: views_max_as_scan(proto))
+    def rewrite_onnx(self, proto) -> None:
+        """Called by ``export.graphs.export_graph`` on the exported ONNX graph (in place)."""
+        views_max_as_scan(proto)
 
     def __init__(self, model: IrisModel, sampler: str = "auto", contrib: bool = False):
         super().__init__()
@@ -198,16 +199,14 @@ class FastRendererGraph(nn.Module):
             # The mask bias column: added to u (the masked max-pool's input), not to k or v.
             rows = torch.cat([rows, torch.full_like(rows[:, :1], 1.0 if i == 0 else 0.0)], -1)
             self._keep(f"slot{i}_rows", rows)
-        # The per-axis tent weights as Gemms: pixel coordinates [N, 2] (x, y) -> the differences
-        # to every row (column) centre [N, h] ([N, w]), a copy and one subtraction each, so bit
-        # for bit ``tent_axes``' (gy - ys) without its broadcast Sub over a trailing axis of 1
+        # The per-axis tent weights as Gemms: a pixel coordinate [N, 1] -> its differences to
+        # every row (column) centre [N, h] ([N, w]), a copy and one subtraction, so bit for bit
+        # ``tent_axes``' (gy - ys) without its broadcast Sub over a trailing axis of 1
         # (docs/PERFORMANCE.md).
         h, w = cfg.feature_grid
-        self._keep("select_tent_y", torch.tensor([[0.0, 1.0]], dtype=ref.dtype).repeat(h, 1))
-        self._keep("select_tent_x", torch.tensor([[1.0, 0.0]], dtype=ref.dtype).repeat(w, 1))
-        self._keep("tent_rows", -torch.arange(h, dtype=ref.dtype))
-        self._keep("tent_cols", -torch.arange(w, dtype=ref.dtype))
-        self.grid_size = (w, h)
+        for axis, n in (("y", h), ("x", w)):
+            self._keep(f"select_tent_{axis}", torch.ones(n, 1, dtype=ref.dtype))
+            self._keep(f"tent_{axis}_centres", -torch.arange(n, dtype=ref.dtype))
         # The design matrix A = [tent | extras] as (row part @ select_rows) * (wx @ select_cols):
         # the 0/1 matmuls copy wy[y] and wx[x] to cell (y, x), so the tent columns are its outer
         # product bit for bit, and the extras' columns are the extra times sum_x wx = 1 (the
@@ -310,14 +309,14 @@ class FastRendererGraph(nn.Module):
 
     def _tent_axes(self, grid):
         """``tent_axes(grid [N, 2])``: ``(wy [N, h], wx [N, w])``, bit for bit."""
-        w, h = self.grid_size
-        size = torch.tensor([float(w), float(h)], dtype=grid.dtype) if w != h else float(w)
-        pix = ((grid + 1.0) * size - 1.0) / 2.0                                      # [N, 2]
-        pix = pix.clamp_min(0.0)
-        pix = pix.clamp_max(w - 1.0) if w == h else torch.minimum(pix, size - 1.0)
-        dy = F.linear(pix, self.select_tent_y, self.tent_rows)                       # Gemm
-        dx = F.linear(pix, self.select_tent_x, self.tent_cols)
-        return (1.0 - dy.abs()).clamp_min(0.0), (1.0 - dx.abs()).clamp_min(0.0)
+        def axis(g, n: int, name: str):
+            pix = (((g + 1.0) * n - 1.0) / 2.0).clamp(0.0, n - 1.0)[:, None]          # [N, 1]
+            d = F.linear(pix, getattr(self, f"select_tent_{name}"),
+                         getattr(self, f"tent_{name}_centres"))                       # Gemm
+            return (1.0 - d.abs()).clamp_min(0.0)
+
+        h, w = self.model.cfg.feature_grid
+        return axis(grid[:, 1], h, "y"), axis(grid[:, 0], w, "x")
 
     @staticmethod
     def _expand(x, ones):
@@ -532,24 +531,24 @@ def views_max_as_scan(proto) -> int:
     whose body is one element-wise ``Max``, seeded with the first slice; -> the number rewritten.
 
     Same values (max is exact, in any order). ONNX Runtime 1.32's ``ReduceMax`` over a leading
-    axis ran 4.1 ms on [5, 6528, 64] on one thread, the ``Scan`` 0.77 ms: it walks the slices
-    in place and runs a vectorised same-shape ``Max`` on each (docs/PERFORMANCE.md). The view
-    count is a dynamic axis, so a fixed-arity ``Max`` of slices cannot express it."""
+    axis ran 1.93 ms on [5, 6528, 64] on one thread, the ``Scan`` 0.66 ms
+    (``benchmarks/ort_reductions.py``): it runs a vectorised same-shape ``Max`` per slice. The
+    view count is a dynamic axis, so a fixed-arity ``Max`` of slices cannot express it."""
     import onnx
     from onnx import helper, numpy_helper
 
     g = proto.graph
-    consts = {t.name: numpy_helper.to_array(t) for t in g.initializer}
-    for n in g.node:
-        if n.op_type == "Constant" and n.attribute and n.attribute[0].name == "value":
-            consts[n.output[0]] = numpy_helper.to_array(n.attribute[0].t)
+    consts = {t.name: t for t in g.initializer}            # the axes: initializers or Constants
+    consts.update((n.output[0], n.attribute[0].t) for n in g.node
+                  if n.op_type == "Constant" and n.attribute and n.attribute[0].name == "value")
     # ONNX Runtime's Scan needs the rank of its body's tensors: the input's, from the graph.
     rank = {v.name: len(v.type.tensor_type.shape.dim) for v in
             [*g.input, *g.value_info, *g.output] if v.type.tensor_type.HasField("shape")}
     nodes, count = [], 0
     for n in g.node:
         axes = consts.get(n.input[1]) if n.op_type == "ReduceMax" and len(n.input) > 1 else None
-        if (axes is None or axes.size != 1 or int(axes.reshape(-1)[0]) != 0
+        axes = None if axes is None else numpy_helper.to_array(axes).reshape(-1)
+        if (axes is None or axes.tolist() != [0]
                 or rank.get(n.input[0], 0) < 2):
             nodes.append(n)
             continue

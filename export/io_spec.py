@@ -16,6 +16,15 @@ DEFAULT_OPSET = 20
 #: The dynamo exporter silently raises lower opsets to 18, so export refuses them instead.
 MIN_OPSET = 18
 
-__all__ = ["IO_SPEC_VERSION", "DEFAULT_OPSET", "MIN_OPSET", "ENCODER", "RENDERER",
+
+
+def base_graph(name: str) -> str:
+    """The graph whose I/O spec the exported graph ``name`` has: ``name`` itself for a graph of
+    ``GRAPHS`` or ``OPTIONAL_GRAPHS``, else the graph it is a variant of (the int8 renderer,
+    "renderer_int8" -> "renderer")."""
+    return name if name in GRAPHS or name in OPTIONAL_GRAPHS else "renderer"
+
+
+__all__ = ["base_graph", "IO_SPEC_VERSION", "DEFAULT_OPSET", "MIN_OPSET", "ENCODER", "RENDERER",
            "RENDERER_VIEWS", "EXPLICIT_RGB_INPUTS", "EXPLICIT_RGB_AXES", "GRAPHS", "OPTIONAL_GRAPHS",
            "spec_for"]

@@ -150,7 +150,7 @@ def export_model(model_or_ckpt: IrisModel | str | os.PathLike, out_dir: str | os
         report = validate(model, files, quick=quick, threads=threads, progress=say)
         graphs = {}
         for name, path in files.items():
-            base = name if name in ("encoder", "renderer_views") else "renderer"
+            base = io_spec.base_graph(name)
             extra = {"variant_of": base, "precision": "int8",
                      "quantization": "onnxruntime.quantization.quantize_dynamic(weight_type=QInt8)"} \
                 if name != base else {"precision": "float32"}

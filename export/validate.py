@@ -459,15 +459,16 @@ def _validate(model, files, *, quick, threads, progress) -> dict:
                           "is_reference": torch.ones(4, dtype=torch.bool)},
               "renderer": random_renderer_inputs(model, 4, 64 if quick else 1024, cfg.samples,
                                                  torch.Generator().manual_seed(PROBE_SEED))}
-    timing["renderer_views"] = selected_view_inputs(
-        timing["renderer"], 2, torch.Generator().manual_seed(PROBE_SEED))[0]
-    torch_fns = {"encoder": EncoderGraph(model).eval(), "renderer": RendererGraph(model).eval(),
-                 "renderer_views": SelectedViewsRendererGraph(model).eval()}
+    torch_fns = {"encoder": EncoderGraph(model).eval(), "renderer": RendererGraph(model).eval()}
+    if "renderer_views" in files:
+        timing["renderer_views"] = selected_view_inputs(
+            timing["renderer"], 2, torch.Generator().manual_seed(PROBE_SEED))[0]
+        torch_fns["renderer_views"] = SelectedViewsRendererGraph(model).eval()
     report = {"quick": quick, "probe_seed": PROBE_SEED, "torch_threads": torch.get_num_threads(),
               "onnxruntime_threads": threads or "default"}
     probes: dict[str, list[Probe]] = {}
     for graph in files:
-        base = graph if graph in ("encoder", "renderer_views") else "renderer"
+        base = io_spec.base_graph(graph)
         spec = io_spec.spec_for(base, cfg.explicit_rgb)
         start = time.perf_counter()
         check_graph_file(files[graph], graph)
@@ -494,7 +495,7 @@ def _validate(model, files, *, quick, threads, progress) -> dict:
 
 
 __all__ = ["validate", "ValidationError", "Probe", "scene_images", "renderer_inputs",
-           "random_renderer_inputs", "selected_view_inputs", "scene_rays", "encoder_probes", "renderer_probes",
-           "renderer_views_probes",
+           "random_renderer_inputs", "selected_view_inputs", "scene_rays", "encoder_probes",
+           "renderer_probes", "renderer_views_probes",
            "isolation_errors", "QUERY_COUNTS",
            "max_abs_error", "check_graph_file", "check_io", "session", "median_time", "VIEW_COUNTS"]

@@ -215,8 +215,8 @@ def cue_from_vectors(t: np.ndarray, s: np.ndarray, s_norm: np.ndarray,
 
 def _dot3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """``(a * b).sum(-1, keepdims=True)`` over a last axis of 3, summed in the same order
-    (bit for bit) without numpy's slow reduction over a short strided axis (the cue took
-    ~1.6x as long with it, docs/PERFORMANCE.md)."""
+    (bit for bit) without numpy's slow reduction over a short axis (the cue and the view
+    alignment of a renderer call: ``benchmarks/cue_numpy.py``, docs/PERFORMANCE.md)."""
     return a[..., 0:1] * b[..., 0:1] + a[..., 1:2] * b[..., 1:2] + a[..., 2:3] * b[..., 2:3]
 
 
@@ -232,7 +232,7 @@ def cue_alignment(t: np.ndarray, s: np.ndarray, s_norm: np.ndarray) -> np.ndarra
     entry is ``t . (s / |s|)``. The two differ in the last bit for about half of the points, which
     flips the per-point choice between nearly tied views; the selection keeps its own rounding so
     that ``top_k`` renders stay bit for bit what they were."""
-    return (s * t[..., None, :]).sum(-1) / s_norm[..., 0]
+    return _dot3(s, t[..., None, :])[..., 0] / s_norm[..., 0]
 
 
 def is_rigid(T: np.ndarray, atol: float = RIGID_ATOL) -> bool:
