@@ -23,11 +23,13 @@ depth's mode) and the weight within ``mode_radius`` of it (how concentrated the 
 The renderer graph samples the field maps itself at ``grid`` (bilinear, align_corners=False,
 border-clamped; how is the exporter's choice: a dense bilinear matmul for small feature grids,
 ``GridSample`` above, see export/graphs.py). Explicit-colour models (``config.explicit_rgb``) also
-get ``colours`` [V', R, S, 3]: each call's views' reference photos (``plan.photos``, at the
-model's full resolution whatever the output size, scale or sample count) sampled in numpy at the
-same ``grid`` (``geometry.sample_bilinear_views``). Masked (view, sample) pairs carry colours too
-(ignored by the graph), so every culling, top_k, samples, scale, int8 and workers path feeds the
-graph exactly what it feeds without explicit colour, plus the colours of the same samples.
+get ``colours`` [V', R, S, 3]: each call's views' reference photos (at the model's full
+resolution whatever the output size, scale or sample count) sampled in numpy at the same ``grid``
+(``geometry.sample_taps`` of the photos' ``bilinear_taps``, ``plan.photo_taps``, built once per
+plan: the same values as ``geometry.sample_bilinear_views``). Masked (view, sample) pairs carry
+colours too (ignored by the graph), so every culling, top_k, samples, scale, int8 and workers path
+feeds the graph exactly what it feeds without explicit colour, plus the colours of the same
+samples.
 
 Culling (``plan.cull``, exact): samples that project validly into no reference view, views into
 which no sample of the block projects, and rays without any valid sample carry no information —
@@ -76,7 +78,8 @@ class MarchPlan:
       cam_from_world: float32 [V, 4, 4]    inverted in float64, then rounded
       centres:        float32 [V, 3]       camera centres in world
       field_maps:     float32 [V, C', h, w]
-      photos:         float32 [V, 3, H, W] each view's reference photo (explicit colour), or None
+      photo_taps:     float32 [V, 4, 3, H*W] or None: each view's reference photo (explicit
+                                           colour) as ``geometry.bilinear_taps``
     View sets:
       top_k:          int or None          views kept per sample point (None: every valid view)
       by_ray:         bool                 top_k chosen per ray (calls then shrink to top_k views)
@@ -108,7 +111,7 @@ class MarchPlan:
     cam_from_world: np.ndarray
     centres: np.ndarray
     field_maps: np.ndarray
-    photos: np.ndarray | None
+    photo_taps: np.ndarray | None
     top_k: int | None
     by_ray: bool
     cull: bool
@@ -141,7 +144,8 @@ class MarchPlan:
                    image_size=tuple(scene.image_size), ref_K=_frozen(scene.K.astype(f32)),
                    cam_from_world=_frozen(G.invert_pose(scene.world_from_cam).astype(f32)),
                    centres=_frozen(scene.world_from_cam[:, :3, 3].astype(f32)),
-                   field_maps=scene.field_maps, photos=photos,
+                   field_maps=scene.field_maps,
+                   photo_taps=None if photos is None else _frozen(G.bilinear_taps(photos)),
                    top_k=top_k if top_k is not None and top_k < V else None, by_ray=by_ray,
                    cull=bool(cull), empty_rgb=empty_rgb if cull else None,
                    chunk_rays=int(chunk_rays),
@@ -417,8 +421,9 @@ def call_feed(plan: MarchPlan, block: Block, call: Call,
     feed = {"field_maps": field_maps, "grid": grid, "cues": np.ascontiguousarray(cue),
             "mask": np.ascontiguousarray(mask), "positions": points,
             "directions": block.directions[call.rays]}
-    if plan.photos is not None:        # explicit colour: the photos at the same grid
-        feed["colours"] = G.sample_bilinear_views(plan.photos[block.views[call.views]], grid)
+    if plan.photo_taps is not None:    # explicit colour: the photos at the same grid
+        feed["colours"] = G.sample_taps(plan.photo_taps, plan.image_size, grid,
+                                        block.views[call.views])
     return (select_point_views(feed) if plan.select_views else feed), z
 
 
