@@ -179,11 +179,16 @@ def markdown(results: dict) -> str:
         L += ["## Renderer throughput against the matmul peak", "",
               f"numpy float32 matmul {p['matmul']['n']}^3: {p['matmul']['gflops']:.1f} GFLOP/s "
               f"(median of {len(p['matmul']['seconds'])}).", "",
-              "| path | renderer GFLOP/frame | seconds/frame | basis | GFLOP/s | % of peak |",
-              "|---|---|---|---|---|---|"]
+              "Graph: FLOPs over the renderer graph's own time (the ORT calls); frame: over the "
+              "whole frame's wall time (numpy geometry and Python included).", "",
+              "| path | renderer GFLOP/frame | graph s/frame | basis | graph GFLOP/s | graph % of "
+              "peak | frame s | frame GFLOP/s | frame % of peak |",
+              "|---|---|---|---|---|---|---|---|---|"]
         for r in p["rows"]:
+            wall = ((f"{r['wall_seconds']:.3f} | {r['wall_gflops']:.1f} | "
+                     f"{100 * r['wall_fraction']:.0f}%") if "wall_fraction" in r else "- | - | -")
             L.append(f"| {r['name']} | {r['gflop']:.2f} | {r['seconds']:.3f} | {r['basis']} | "
-                     f"{r['gflops']:.1f} | {100 * r['fraction']:.0f}% |")
+                     f"{r['gflops']:.1f} | {100 * r['fraction']:.0f}% | {wall} |")
         if p.get("profile"):
             L += ["", f"ORT per-op profile of the exact path ({p['profile']['note']}):", "",
                   "| op type | share of node time |", "|---|---|"]

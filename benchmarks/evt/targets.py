@@ -22,8 +22,10 @@ BALANCED_MAX_PSNR_DROP_DB = 0.1
 #: the full render's ground-truth PSNR.
 ADAPTIVE_SPEEDUP = 4.0
 ADAPTIVE_MAX_PSNR_DROP_DB = 0.1
-#: Renderer graph FLOP rate against the float32 matmul peak.
+#: Renderer graph FLOP rate against the float32 matmul peak (this benchmark's own target, and
+#: issue 12's bar), on the graph's own time (``measure.peak_rows``).
 PEAK_FRACTION = 0.5
+PEAK_FRACTION_ISSUE = 0.4
 #: Peak RSS of one render from 16 reference views.
 PEAK_RSS_MB = 1536
 
@@ -165,12 +167,16 @@ def evaluate_targets(results: dict) -> list[dict]:
         name = ex["name"] if ex else R.EXACT
         r = next((r for r in results["peak"]["rows"] if r["name"] == name), None)
         if r is not None:                   # None: the knobs part did not run
-            out.append({"target": f"renderer graph >= {100 * PEAK_FRACTION:.0f}% of float32 "
-                                  "matmul peak",
-                        "met": r["fraction"] >= PEAK_FRACTION,
-                        "measured": f"{100 * r['fraction']:.0f}% ({r['gflops']:.1f} of "
-                                    f"{results['peak']['matmul']['gflops']:.1f} GFLOP/s)",
-                        "why": limits})
+            peak = results["peak"]["matmul"]["gflops"]
+            measured = (f"{100 * r['fraction']:.1f}% ({name}: {r['gflops']:.1f} of {peak:.1f} "
+                        f"GFLOP/s, {r['basis']})")
+            if "wall_fraction" in r:
+                measured += (f"; over the whole frame's wall time {100 * r['wall_fraction']:.1f}% "
+                             f"({r['wall_gflops']:.1f} GFLOP/s)")
+            for frac in (PEAK_FRACTION_ISSUE, PEAK_FRACTION):
+                out.append({"target": f"renderer graph >= {100 * frac:.0f}% of float32 matmul "
+                                      "peak", "met": r["fraction"] >= frac, "measured": measured,
+                            "why": limits})
     for r in results.get("memory", []):
         out.append({"target": f"peak RSS {r['size'][0]}x{r['size'][1]} from 16 views <= "
                               f"{PEAK_RSS_MB / 1024:g} GB ({r['quality']})",
