@@ -16,16 +16,18 @@ and K view slots per point), which the runtime uses for per-point top-k.
 What differs from the reference graph, and why (the reference graph's profile,
 benchmarks/results/error_vs_time.md: ``Where`` 14% and ``Transpose`` 14% of node time):
 
-* Masks are additive biases. ``mask`` becomes ``bias = (1 - m) * MASK_FILL`` once per call
-  (``[V', R*S]``; ``MASK_FILL = -1e30``, finite); the masked max-pool over views is
-  ``ReduceMax(u + bias) * any_view`` and the masked softmaxes are ``Softmax(logits + bias)``. For
-  every row with at least one valid entry this is exactly the masked fill (``x + (-1e30)`` rounds to
-  ``-1e30`` and ``exp(-1e30 - max)`` is exactly 0). Rows with no valid entry are where the
+* Masks are additive biases. The validity weights ``mask`` become ``bias = FADE_GAIN * (m - 1) +
+  (m <= 0) * MASK_FILL`` once per call (``[V', R*S]``; ``MASK_FILL = -1e30``, finite): the values
+  of ``layers.validity_bias`` (0 at weight 1, -1e30 at 0) without a ``Where``. The masked max-pool
+  over views is ``ReduceMax(u + bias) * any_view`` and the masked softmaxes are ``Softmax(logits +
+  bias)``; the sample weights (each point's best view's) give the ray attention's key bias the
+  same way. For every row with at least one valid entry this is exactly the masked fill
+  (``x + (-1e30)`` rounds to ``-1e30`` and ``exp(-1e30 - max)`` is exactly 0). Rows with no valid entry are where the
   semantics could differ, and they are kept: a point seen by no view gets ``q0 = 0`` and zero
   view-attention weights (the attention's normaliser is multiplied by ``any_view``), exactly as in
   ``layers.masked_max`` / ``masked_softmax``; a ray with no valid sample gets uniform (finite)
   ray-attention rows, which the reference's masked softmax would make 0 -- but those rows belong
-  to rays whose samples are all pooled away (``m = 0`` in the mean pool and in the depth weights,
+  to rays whose samples are all pooled away (weight 0 in the mean pool and in the depth weights,
   which are therefore exactly 0), so rgb = head(0) and weights = 0 as before (the reference's own
   non-final ray blocks already work this way).
 * View-major throughout the latent field: no Transpose. The field is computed on ``[V', R*S, .]``
@@ -87,21 +89,19 @@ benchmarks/results/error_vs_time.md: ``Where`` 14% and ``Transpose`` 14% of node
 
 Fused ``com.microsoft`` contrib operators (``contrib=True``, ``export.ort_contrib``): every residual
 Add + LayerNormalization becomes ``SkipLayerNormalization`` (the pending bias of the preceding
-linear layer as its bias), every MLP's first layer MatMul + ``BiasGelu``, and every ray attention
-whose weights are not needed ``MultiHeadAttention`` (q/k/v as three [W, W] matmuls, the packed
-bias as the op's bias, ``key_padding_mask`` with ``mask_filter_value = MASK_FILL``: the same
-uniform rows for rays with no valid sample). The paper renderer's last ray block keeps the
-explicit attention (its weights are the depth weights; MultiHeadAttention does not return them).
-Checked: loads in onnxruntime 1.32 CPU, <= 3e-7 from torch. Without ``contrib``, ONNX Runtime's own
+linear layer as its bias) and every MLP's first layer MatMul + ``BiasGelu``. (The ray attentions
+were ``MultiHeadAttention`` while masks were 0 / 1; its ``key_padding_mask`` cannot carry the
+fractional validity weights, so they keep the explicit attention.) Checked: loads in onnxruntime 1.32 CPU, <= 3e-7 from torch. Without ``contrib``, ONNX Runtime's own
 optimiser fuses none of these in this layout (after ``ORT_ENABLE_ALL``: no SkipLayerNormalization,
 no BiasGelu; the reference graph gets 1 and 2). Which of the two is faster is a measurement for a
 quiet machine (benchmarks/renderer_profile.py).
 
 Graph sizes before the 2026-12-03 selection-matmul changes (random tiny / tiny-rgb models, opset
 20, nodes as exported -> after ONNX Runtime's ``ORT_ENABLE_ALL`` optimisations; counts, not
-times): reference 217 -> 206 / 249 -> 239 with 5 ``Where`` and 14 / 16 ``Transpose`` left; fast 186 -> 179 / 210 -> 204 with no ``Where`` and 2
-``Transpose`` (the head merges of the two ray blocks); fast-contrib 177 -> 171 / 196 -> 192 with 1 /
-0 ``Transpose``.
+times): reference 217 -> 206 / 249 -> 239 with 5 ``Where`` and 14 / 16 ``Transpose`` left;
+fast 186 -> 179 / 210 -> 204 with no ``Where`` and 2 ``Transpose`` (the head merges of the two ray
+blocks); fast-contrib (with MultiHeadAttention then) 177 -> 171 / 196 -> 192 with 1 / 0
+``Transpose``.
 
 ``export_fast_renderer`` writes the graph with ``export_graph`` (same exporter, axis names, IR
 version and checks); ``export_model(..., renderer="fast" | "fast-contrib")`` /
@@ -120,7 +120,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from iris_train.layers import MASK_FILL, sinusoidal_encoding
+from iris_train.layers import FADE_GAIN, MASK_FILL, sinusoidal_encoding
 from iris_train.model import SAMPLERS as MODEL_SAMPLERS
 from iris_train.model import IrisModel, sampler_for
 from iris_train.ray_renderer import BLEND_EPS
@@ -259,9 +259,6 @@ class FastRendererGraph(nn.Module):
             self._keep(f"ray{i}_wk", per_head(wk))
             self._keep(f"ray{i}_wv", per_head(wv))
             self._keep(f"ray{i}_bproj", block.proj.bias + block.proj.weight @ bv)
-            if self.contrib:                           # MultiHeadAttention takes [W, W] q/k/v
-                for name, weight in zip("qkv", (wq, wk, wv)):
-                    self._keep(f"ray{i}_w{name}_full", weight)
             # psi^(l) split into its per-sample (position) and per-ray (direction) parts.
             self._keep(f"inject{i}_wpos", inject.weight[:, :P])
             self._keep(f"inject{i}_wdir", inject.weight[:, P:])
@@ -378,20 +375,13 @@ class FastRendererGraph(nn.Module):
         return self._add_norm(q, delta + next_delta, b, next_norm)
 
     # -- the ray transformer ------------------------------------------------------------------
-    def _ray_attention(self, i: int, normed, R: int, S: int, ones, key_bias, key_valid,
-                       keep_attn: bool):
+    def _ray_attention(self, i: int, normed, R: int, S: int, ones, key_bias, keep_attn: bool):
         """Masked self-attention of ray block ``i`` on ``normed [R*S, W]`` -> its output
         ``[R*S, W]`` before the output projection, the attention ``[R, H, S, S]`` if
         ``keep_attn`` (else None) and the output projection's bias to use with it.
-        ``ones [R*S, 1]``, ``key_bias [R, 1, 1, S]`` (0 / MASK_FILL)."""
-        block = self.model.renderer.ray_transformer.blocks[i]
+        ``ones [R*S, 1]``, ``key_bias [R, 1, 1, S]`` (the validity bias of the sample
+        weights)."""
         W = normed.shape[-1]
-        if self.contrib and not keep_attn:
-            q, k, v = (F.linear(normed, getattr(self, f"ray{i}_w{name}_full")).reshape(R, S, W)
-                       for name in "qkv")
-            out = self._ops.multi_head_attention(q, k, v, block.qkv.bias, key_valid, block.heads,
-                                                 MASK_FILL)
-            return out.reshape(R * S, W), None, block.proj.bias
         y = normed.reshape(R, 1, S, W)                                              # [R, 1, S, W]
         y1 = torch.cat([normed, ones], -1).reshape(R, 1, S, W + 1)
         q = y1 @ getattr(self, f"ray{i}_wq")                                       # [R, H, S, Dh]
@@ -422,16 +412,16 @@ class FastRendererGraph(nn.Module):
         V, R, S = mask.shape
         N = R * S
         W = cfg.field_width
-        m = mask.to(dtype).reshape(V, N)                                               # [V, N]
-        bias = (1.0 - m) * MASK_FILL                                                   # 0 / -1e30
-        any_view = m.amax(0)                                                           # [N] 0 / 1
+        m = mask.to(dtype).reshape(V, N)                                     # [V, N] weights
+        bias = _validity_bias(m)                                             # 0 / -1e30 at 1 / 0
+        s = m.amax(0)                                                        # [N] sample weights
+        any_view = (s > 0).to(dtype)                                         # [N] 0 / 1
 
         renderer = self.model.renderer
         rt = renderer.ray_transformer
-        sample_mask = any_view.reshape(R, S)
-        key_bias = (1.0 - sample_mask) * MASK_FILL                                     # [R, S]
+        sample_mask = s.reshape(R, S)
+        key_bias = _validity_bias(sample_mask)                                         # [R, S]
         ones = torch.ones_like(key_bias).reshape(N, 1)
-        key_valid = sample_mask.to(torch.int32) if self.contrib else None
         unit_dir = directions / directions.norm(dim=-1, keepdim=True).clamp_min(1e-12)
         p = positions.reshape(N, 3)
         pf = p @ self.select_pos_freqs                                                 # [N, 3F]
@@ -450,7 +440,6 @@ class FastRendererGraph(nn.Module):
         last = len(rt.blocks) - 1
         for i, block in enumerate(rt.blocks):
             out, attn, bproj = self._ray_attention(i, normed, R, S, ones, key_bias[:, None, None],
-                                                   key_valid,
                                                    keep_attn=i == last and not cfg.explicit_rgb)
             normed, x = self._add_norm(x, *self._linear(out, block.proj, bias=bproj), block.norm2)
             delta, b = self._mlp(block.mlp, normed)
@@ -463,7 +452,8 @@ class FastRendererGraph(nn.Module):
         h = (pool[:, None, :] @ normed.reshape(R, S, W))[:, 0]                         # [R, W]
         if cfg.explicit_rgb:
             logits = renderer.sample_logit(normed).reshape(R, S) + key_bias             # [R, S]
-            w = torch.softmax(logits, dim=-1) * sample_mask
+            # Times the ray's largest sample weight (rows of no valid sample: uniform times 0).
+            w = torch.softmax(logits, dim=-1) * sample_mask.amax(-1, keepdim=True)
             mv = self._expand(m.reshape(V, R, S, 1), self.select_ones3)              # [V, R, S, 3]
             mean_colour = _sum_views(colours * mv) / _sum_views(mv).clamp_min(1.0)      # [R, S, 3]
             blend = (w[:, None, :] @ mean_colour)[:, 0].clamp(BLEND_EPS, 1 - BLEND_EPS)
@@ -514,6 +504,12 @@ class SelectedViewsRendererGraph(FastRendererGraph):
 
         slot_colours = None if colours is None else gather(colours).reshape(K, R, S, 3)
         return self._render(slots, field_maps.dtype, mask, positions, directions, slot_colours)
+
+
+def _validity_bias(w: torch.Tensor) -> torch.Tensor:
+    """``layers.validity_bias(w)``, the same values, as ``FADE_GAIN * (w - 1) + (w <= 0) *
+    MASK_FILL`` (no ``Where``: -100 - 1e30 rounds to -1e30 in float32)."""
+    return FADE_GAIN * (w - 1.0) + (w <= 0).to(w.dtype) * MASK_FILL
 
 
 def _sum_views(x: torch.Tensor) -> torch.Tensor:

@@ -14,7 +14,7 @@ itself carries no ONNX special case. Given the same numbers, they compute exactl
   queries = ``IrisModel.encode`` of the references plus ``IrisModel.locate`` of the queries. View 0
   must be a reference (the runtime never feeds anything else; the graph does not check it).
 * ``RendererGraph(field_maps [V', C', h, w], grid [V', R, S, 2], cues [V', R, S, 4],
-  mask bool [V', R, S], positions [R, S, 3], directions [R, 3])`` -> ``rgb [R, 3]``,
+  mask [V', R, S], positions [R, S, 3], directions [R, 3])`` -> ``rgb [R, 3]``,
   ``weights [R, S]``: ``IrisModel.render_samples``; an explicit-colour model
   (``ModelConfig.explicit_rgb``) also takes ``colours [V', R, S, 3]`` after ``directions`` (the
   reference RGB sampled by the caller at the samples' projections). Feature sampling happens in
@@ -30,8 +30,9 @@ functions and one MatMul (``geometry.sample_bilinear_dense``), because ONNX ``Gr
 the largest single cost of the renderer graph; same values as ``grid_sample`` up to rounding.
 ``RendererGraph(model, sampler="grid_sample")`` keeps the ``GridSample`` graph.
 
-Masking. ``layers.masked_softmax`` / ``masked_max`` fill with the finite ``MASK_FILL = -1e30`` and
-multiply by the mask afterwards, and the non-final ray blocks use an additive ``-1e30`` bias in
+Masking. ``mask`` holds validity weights in [0, 1] (``geometry.validity``). ``layers.masked_softmax``
+/ ``masked_max`` add ``layers.validity_bias`` (0 at weight 1, the finite ``MASK_FILL = -1e30`` at 0)
+and multiply by ``mask > 0`` afterwards, and the non-final ray blocks use the same additive bias in
 ``scaled_dot_product_attention``; ONNX ``Softmax`` subtracts the row max, so an all-masked row
 becomes a uniform softmax times a zero mask = 0, never NaN. Checked in validation and tests on
 points masked in every view and rays with every sample masked.
@@ -103,8 +104,8 @@ class RendererGraph(nn.Module):
     """Feature sampling + latent field + ray renderer for one chunk of rays, for ONNX export only.
 
     ``IrisModel.render_samples`` with ``need_weights=True``: ``render_rays`` after its projection
-    step, on the view-major inputs of ``io_spec.RENDERER`` (``mask`` is True where the sample
-    projects validly into the view). An explicit-colour model (``ModelConfig.explicit_rgb``) also
+    step, on the view-major inputs of ``io_spec.RENDERER`` (``mask``: each sample's validity
+    weight in each view). An explicit-colour model (``ModelConfig.explicit_rgb``) also
     takes ``colours [V', R, S, 3]`` (last; the reference RGB at each sample's projection,
     ``io_spec.EXPLICIT_RGB_INPUTS``); other models have no such input.
 
@@ -154,16 +155,22 @@ def example_inputs(cfg: ModelConfig, graph: str, generator: torch.Generator | No
         args = (torch.randn(V, C, h, w, generator=g), torch.randint(0, V, (P,), generator=g),
                 torch.rand(P, Gp, 2, generator=g) * 2 - 1, torch.randn(P, Gp, 4, generator=g),
                 torch.randint(0, P * Gp, (K, R, S), generator=g),
-                torch.rand(K, R, S, generator=g) > 0.3, torch.randn(R, S, 3, generator=g),
+                _example_weights((K, R, S), g), torch.randn(R, S, 3, generator=g),
                 torch.randn(R, 3, generator=g))
         return args + ((torch.rand(P, Gp, 3, generator=g),) if cfg.explicit_rgb else ())
-    mask = torch.rand(V, R, S, generator=g) > 0.3
+    mask = _example_weights((V, R, S), g)
     args = (torch.randn(V, C, h, w, generator=g), torch.rand(V, R, S, 2, generator=g) * 2 - 1,
             torch.randn(V, R, S, 4, generator=g), mask, torch.randn(R, S, 3, generator=g),
             torch.randn(R, 3, generator=g))
     if cfg.explicit_rgb:
         args += (torch.rand(V, R, S, 3, generator=g),)
     return args
+
+
+def _example_weights(shape, g: torch.Generator) -> torch.Tensor:
+    """Validity weights: 0 (30 %), fractional, and 1 (the rest)."""
+    w = torch.rand(shape, generator=g)
+    return torch.where(w < 0.3, 0.0, torch.where(w < 0.5, (w - 0.3) * 5.0, 1.0))
 
 
 @dataclass

@@ -12,13 +12,10 @@ each schema used here is registered with ``onnx.defs.register_schema`` on first 
   ``s = x + skip + bias``: ``SkipLayerNormalization`` (outputs: output, mean, inv_std_var,
   input_skip_bias_sum; the middle two unused). CPU kernel: 2-D and 3-D inputs.
 * ``bias_gelu(x, bias)`` -> ``gelu(x + bias)`` (erf form): ``BiasGelu``.
-* ``multi_head_attention(q, k, v, bias, key_valid, num_heads, mask_filter_value)``: q, k, v
-  ``[B, S, H*Dh]`` (bias ``[3 H*Dh]`` added first), keys with ``key_valid == 0`` get
-  ``mask_filter_value`` added to their logits (``key_padding_mask`` int32 ``[B, S]``), scale
-  ``1/sqrt(Dh)``; a row whose keys are all masked is a uniform softmax (as ONNX Runtime computes
-  it with a finite fill), not 0. ``MultiHeadAttention``.
+(``MultiHeadAttention`` was here while validity masks were 0 / 1: its ``key_padding_mask`` cannot
+carry fractional weights.)
 
-Measured on the installed onnxruntime (1.32.0, CPU): each of the three loads and matches numpy
+Measured on the installed onnxruntime (1.32.0, CPU): each of the two loads and matches numpy
 within 5e-7 on random inputs, fully masked rows included (tests/test_fast_renderer.py checks the
 exported renderer within 1e-5).
 """
@@ -55,25 +52,6 @@ def _(x, bias):
     return torch.empty_like(x)
 
 
-@torch.library.custom_op("iris_fast::multi_head_attention", mutates_args=())
-def multi_head_attention(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, bias: torch.Tensor,
-                         key_valid: torch.Tensor, num_heads: int,
-                         mask_filter_value: float) -> torch.Tensor:
-    B, S, D = q.shape
-    H, Dh = num_heads, D // num_heads
-    bq, bk, bv = bias.split(D)
-    qh, kh, vh = ((t + b).reshape(B, S, H, Dh).transpose(1, 2)
-                  for t, b in ((q, bq), (k, bk), (v, bv)))
-    mask_bias = ((1.0 - key_valid.to(q.dtype)) * mask_filter_value)[:, None, None, :]
-    attn = torch.softmax((qh @ kh.transpose(-1, -2)) * Dh ** -0.5 + mask_bias, dim=-1)
-    return (attn @ vh).transpose(1, 2).reshape(B, S, D)
-
-
-@multi_head_attention.register_fake
-def _(q, k, v, bias, key_valid, num_heads, mask_filter_value):
-    return torch.empty_like(q)
-
-
 # -- ONNX side ----------------------------------------------------------------------------------
 def _schemas() -> list:
     from onnx.defs import OpSchema
@@ -95,14 +73,6 @@ def _schemas() -> list:
         OpSchema("BiasGelu", DOMAIN, 1, doc="ONNX Runtime contrib op.",
                  inputs=[FP("A", "T"), FP("B", "T")], outputs=[FP("C", "T")],
                  type_constraints=T),
-        OpSchema("MultiHeadAttention", DOMAIN, 1, doc="ONNX Runtime contrib op (subset).",
-                 inputs=[FP("query", "T"), FP("key", "T", param_option=opt),
-                         FP("value", "T", param_option=opt), FP("bias", "T", param_option=opt),
-                         FP("key_padding_mask", "M", param_option=opt)],
-                 outputs=[FP("output", "T")],
-                 type_constraints=T + [("M", ["tensor(int32)"], "int32")],
-                 attributes=[attr("num_heads", OpSchema.AttrType.INT, required=True),
-                             attr("mask_filter_value", OpSchema.AttrType.FLOAT)]),
     ]
 
 
@@ -130,16 +100,9 @@ def translation_table() -> dict:
     def bias_gelu_onnx(x, bias):
         return ms.BiasGelu(x, bias)
 
-    def multi_head_attention_onnx(q, k, v, bias, key_valid, num_heads: int,
-                                  mask_filter_value: float):
-        return ms.MultiHeadAttention(q, k, v, bias, key_valid, num_heads=num_heads,
-                                     mask_filter_value=mask_filter_value)
-
     ops = torch.ops.iris_fast
     return {ops.skip_layer_norm.default: skip_layer_norm_onnx,
-            ops.bias_gelu.default: bias_gelu_onnx,
-            ops.multi_head_attention.default: multi_head_attention_onnx}
+            ops.bias_gelu.default: bias_gelu_onnx}
 
 
-__all__ = ["DOMAIN", "skip_layer_norm", "bias_gelu", "multi_head_attention", "register_schemas",
-           "translation_table"]
+__all__ = ["DOMAIN", "skip_layer_norm", "bias_gelu", "register_schemas", "translation_table"]

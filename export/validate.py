@@ -16,9 +16,9 @@
      alone (their rows) and ``IrisModel.locate`` (the queries' poses), so the error covers parity
      and isolation at once. Plus one probe with the queries interleaved among the references
      (``is_reference = [T, F, T, T, F]``) against ``IrisModel.encode_batch``.
-   * renderer, random: random field maps, grid (partly outside the image), unit cues and a random
-     mask in which the first sample of every ray is masked in every view and (R > 1) the last ray
-     has every sample masked; V' in {1, 3, 8}, R in {1, n} and an odd S; the reference is
+   * renderer, random: random field maps, grid (partly outside the image), unit cues and random
+     validity weights (0, fractional and 1) in which the first sample of every ray is masked in
+     every view and (R > 1) the last ray has every sample masked; V' in {1, 3, 8}, R in {1, n} and an odd S; the reference is
      ``RendererGraph`` in torch.
    * renderer, scene: the scene encoded by torch, rays through random pixels of a novel pose near
      the last view (plus rays pointing backwards, whose samples lie behind the cameras), inputs
@@ -119,10 +119,12 @@ def random_renderer_inputs(model: IrisModel, n_views: int, n_rays: int, n_sample
     V, R, S = n_views, n_rays, n_samples
     unit = torch.randn(V, R, S, 3, generator=g)
     unit = unit / unit.norm(dim=-1, keepdim=True).clamp_min(1e-6)
-    mask = torch.rand(V, R, S, generator=g) > 0.35
-    mask[:, :, 0] = False                 # a point masked in every view, on every ray
+    u = torch.rand(V, R, S, generator=g)
+    # Validity weights: 0 (35 %), fractional (a sample at an image edge, 20 %) and 1.
+    mask = torch.where(u < 0.35, 0.0, torch.where(u < 0.55, (u - 0.35) * 5.0, 1.0))
+    mask[:, :, 0] = 0.0                   # a point masked in every view, on every ray
     if R > 1:
-        mask[:, -1] = False               # a ray with every sample masked
+        mask[:, -1] = 0.0                 # a ray with every sample masked
     inputs = {
         "field_maps": torch.randn(V, dims["C'"], dims["h"], dims["w"], generator=g),
         "grid": torch.rand(V, R, S, 2, generator=g) * 2.6 - 1.3,
@@ -149,7 +151,7 @@ def selected_view_inputs(inputs: dict[str, torch.Tensor], k: int, generator: tor
     V, R, S = inputs["mask"].shape
     order = torch.rand(V, R, S, generator=generator).argsort(0)[:k]                # [k, R, S]
     chosen = torch.zeros(V, R, S, dtype=torch.bool).scatter_(0, order, True)
-    masked = {**inputs, "mask": inputs["mask"] & chosen}
+    masked = {**inputs, "mask": inputs["mask"] * chosen}
     selected = select_point_views({n: x.detach().numpy() for n, x in masked.items()})
     return {n: torch.from_numpy(x) for n, x in selected.items()}, masked
 
@@ -185,7 +187,7 @@ def _numpy(x: torch.Tensor) -> np.ndarray:
 def _mask_info(mask: torch.Tensor) -> dict:
     """Shape and edge-case counts of a view-major mask ``[V, R, S]``."""
     V, R, S = mask.shape
-    any_view = mask.any(0)
+    any_view = (mask > 0).any(0)
     return {"V": V, "R": R, "S": S, "points_masked_in_every_view": int((~any_view).sum()),
             "rays_with_every_sample_masked": int((~any_view.any(-1)).sum())}
 

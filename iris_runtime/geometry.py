@@ -19,6 +19,12 @@ from .validation import RIGID_ATOL, rigidity_error
 #: A point is valid in a view only when its camera depth exceeds this (model units). Keeps
 #: ``u = x / z`` finite and excludes points on or behind the camera plane.
 DEPTH_EPS = 1e-6
+#: A sample's validity in a view fades from 1 at the image's edge to 0 at this many pixels outside
+#: it (``validity``), so that the render is continuous in the cameras: a hard edge moved one
+#: pixel's colour by ~3e-4 when float32 cameras differing in the last bits put a sample on either
+#: side of it (STABILITY.md). One pixel, outside the image: samples of the image keep weight 1
+#: exactly, and a pose moved by float32 rounding moves the render by ~4e-6 (docs/PERFORMANCE.md).
+EDGE_FADE = 1.0
 #: Normalised grid coordinates are clipped to this range so that masked points never carry inf
 #: or NaN into the feature sampler; any |g| > 1 is outside the image and masked anyway.
 GRID_CLIP = 2.0
@@ -122,6 +128,18 @@ def project_points(points: np.ndarray, K: np.ndarray, cam_from_world: np.ndarray
     shape = (V,) + points.shape[:-1]
     uv = np.stack([u, v], axis=-1).reshape(shape + (2,))
     return uv, z.reshape(shape), valid.reshape(shape)
+
+
+def validity(uv: np.ndarray, z: np.ndarray, height: int, width: int) -> np.ndarray:
+    """Validity weights ``[V, ...]`` in [0, 1] of ``project_points``' ``uv [V, ..., 2]`` and
+    ``z [V, ...]``: 0 at or behind the camera plane (z <= DEPTH_EPS), else
+    ``clip(1 - d / EDGE_FADE, 0, 1)`` with d the distance in pixels outside the image
+    [0, W] x [0, H] (0 inside): 1 wherever ``project_points``' ``valid`` is True. The renderer's
+    ``mask`` input (io_spec)."""
+    u, v = uv[..., 0], uv[..., 1]
+    d = np.maximum(np.maximum(np.maximum(-u, u - width), np.maximum(-v, v - height)), 0.0)
+    w = np.clip(1.0 - d / uv.dtype.type(EDGE_FADE), 0.0, 1.0).astype(uv.dtype)
+    return np.where(z > DEPTH_EPS, w, uv.dtype.type(0.0))
 
 
 def pixels_to_grid(uv: np.ndarray, height: int, width: int) -> np.ndarray:

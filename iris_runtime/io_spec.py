@@ -21,11 +21,14 @@ FORMAT_VERSION = 2
 
 #: Version of the graphs' I/O names and layouts. Shipped: 1 (format 1's encoder), 2 (format 2:
 #: ``is_reference``), 3 (the renderer of an explicit-colour model, ``config.explicit_rgb``, also
-#: takes ``colours``; for every other model the two graphs are those of 2).
-IO_SPEC_VERSION = 3
-#: Older I/O spec versions read as ``IO_SPEC_VERSION`` for models without explicit colour (their
-#: graphs are identical): 2 differs from 3 only by explicit colour, which it could not express.
-IO_SPEC_COMPATIBLE = (2,)
+#: takes ``colours``; for every other model the two graphs are those of 2), 4 (the renderers'
+#: ``mask`` is float32 validity weights, ``geometry.validity``, not bool).
+IO_SPEC_VERSION = 4
+#: Older I/O spec versions this runtime reads as ``IO_SPEC_VERSION``: none (2 and 3 take a bool
+#: mask; the manifest check refuses them with a re-export hint).
+IO_SPEC_COMPATIBLE: tuple[int, ...] = ()
+#: I/O spec versions whose renderers take a bool ``mask`` (refused: re-export).
+IO_SPEC_BOOL_MASK = (2, 3)
 
 ENCODER = {
     "file": "encoder.onnx",
@@ -59,7 +62,9 @@ RENDERER = {
         # Normalised sample positions in each view, grid_sample convention (align_corners=False).
         "grid": {"dtype": "float32", "shape": ["V", "R", "S", 2]},
         "cues": {"dtype": "float32", "shape": ["V", "R", "S", 4]},         # geometric cue Δ
-        "mask": {"dtype": "bool", "shape": ["V", "R", "S"]},               # valid projection
+        # Validity weight of each sample in each view, in [0, 1] (geometry.validity: 1 in the
+        # image, fading to 0 within EDGE_FADE pixels outside it; 0 masks the pair out).
+        "mask": {"dtype": "float32", "shape": ["V", "R", "S"]},
         "positions": {"dtype": "float32", "shape": ["R", "S", 3]},
         "directions": {"dtype": "float32", "shape": ["R", 3]},
     },
@@ -79,7 +84,7 @@ RENDERER = {
 #: in their spec only (``spec_for``): the reference photos' RGB in [0, 1] at each sample's
 #: projection into each view, bilinear on the full-resolution image with the same normalised
 #: ``grid`` as the field maps (align_corners=False, border-clamped), sampled by the caller in
-#: numpy (``iris_runtime.geometry.sample_bilinear_views``). Masked (view, sample) entries are
+#: numpy (``iris_runtime.geometry.sample_taps``). Masked (view, sample) entries are
 #: ignored by the graph (any finite value). The graph adds ``rgb_to_maps(colours - 0.5)`` to the
 #: sampled field maps, takes each sample's mean colour over its valid views and blends it along
 #: the ray; ``weights`` are then the blend weights.
@@ -97,9 +102,9 @@ EXPLICIT_RGB_AXES = {"colours": {0: "V", 1: "R", 2: "S"}}
 #: point) pairs it keeps in P groups of G pairs, each group of one view (``groups``: its index
 #: into ``field_maps``; ``grid``, ``cues``, ``colours`` at ``[p, g]``; unused padding entries:
 #: any finite value), and per point K view slots: slot k of point (r, s) is pair
-#: ``pairs[k, r, s]`` (flat index p * G + g) where ``mask[k, r, s]``. The result equals
-#: ``RENDERER`` fed every view with the pairs not kept masked, so the sampling shrinks to the
-#: kept pairs and the field's view axis to K. A point's slots must hold distinct views (a view
+#: ``pairs[k, r, s]`` (flat index p * G + g) with validity weight ``mask[k, r, s]`` (0: no pair).
+#: The result equals ``RENDERER`` fed every view with the pairs not kept masked, so the sampling
+#: shrinks to the kept pairs and the field's view axis to K. A point's slots must hold distinct views (a view
 #: held twice would count twice). Built by ``raymarch.select_point_views``.
 RENDERER_VIEWS = {
     "file": "renderer_views.onnx",
@@ -109,7 +114,7 @@ RENDERER_VIEWS = {
         "grid": {"dtype": "float32", "shape": ["P", "G", 2]},
         "cues": {"dtype": "float32", "shape": ["P", "G", 4]},
         "pairs": {"dtype": "int64", "shape": ["K", "R", "S"]},             # in [0, P * G)
-        "mask": {"dtype": "bool", "shape": ["K", "R", "S"]},               # slot filled
+        "mask": {"dtype": "float32", "shape": ["K", "R", "S"]},        # slot's weight, 0: empty
         "positions": {"dtype": "float32", "shape": ["R", "S", 3]},
         "directions": {"dtype": "float32", "shape": ["R", 3]},
     },
@@ -154,6 +159,7 @@ def required_dtypes(graph: str, explicit_rgb: bool = False) -> dict[str, dict[st
 
 
 __all__ = ["MANIFEST_NAME", "FORMAT_NAME", "FORMAT_VERSION", "IO_SPEC_VERSION", "IO_SPEC_COMPATIBLE",
+           "IO_SPEC_BOOL_MASK",
            "ENCODER", "RENDERER", "RENDERER_VIEWS", "EXPLICIT_RGB_INPUTS", "EXPLICIT_RGB_AXES",
            "GRAPHS", "OPTIONAL_GRAPHS", "spec_for",
            "required_dtypes"]

@@ -40,8 +40,9 @@ from typing import Any, Mapping
 
 from .errors import ManifestError, ModelFileError, ModelFormatError, ModelIntegrityError
 from .fileio import read_json, sha256_bytes
-from .io_spec import (EXPLICIT_RGB_INPUTS, FORMAT_NAME, FORMAT_VERSION, GRAPHS, IO_SPEC_COMPATIBLE,
-                      IO_SPEC_VERSION, MANIFEST_NAME, OPTIONAL_GRAPHS, required_dtypes)
+from .io_spec import (EXPLICIT_RGB_INPUTS, FORMAT_NAME, FORMAT_VERSION, GRAPHS, IO_SPEC_BOOL_MASK,
+                      IO_SPEC_COMPATIBLE, IO_SPEC_VERSION, MANIFEST_NAME, OPTIONAL_GRAPHS,
+                      required_dtypes)
 
 
 def required_io_for(explicit_rgb: bool) -> dict[str, dict[str, dict[str, str]]]:
@@ -256,6 +257,11 @@ def read_manifest(model_dir: str | os.PathLike, *, verify_hashes: bool = True) -
                                f"iris_runtime)")
 
     io_version = doc.get("io_spec_version")
+    if io_version in IO_SPEC_BOOL_MASK and not isinstance(io_version, bool):
+        raise ModelFormatError(f"{path}: I/O spec version {io_version}, written before validity "
+                               f"weights (its renderer takes a bool mask); this runtime feeds "
+                               f"I/O spec version {IO_SPEC_VERSION}: re-export with iris-export "
+                               f"(the checkpoint still loads: iris-export CKPT OUT)")
     if isinstance(io_version, bool) or io_version not in (IO_SPEC_VERSION, *IO_SPEC_COMPATIBLE):
         raise ModelFormatError(f"{path}: I/O spec version {io_version!r}; this runtime feeds I/O "
                                f"spec version {IO_SPEC_VERSION} (re-export with iris-export, or "

@@ -188,7 +188,9 @@ class Block:
     views:      int64   [V'']            the scene's views that see the block
     uv:         float32 [V'', R, S', 2]  pixel positions of the samples in those views
     valid:      bool    [V'', R, S']     sample projects validly (and is kept by its ray's window
-                                         and by ``top_k``)
+                                         and by ``top_k``): ``weight > 0``
+    weight:     float32 [V'', R, S']     its validity weight (``geometry.validity``; 0 where not
+                                         ``valid``): the renderer's ``mask``
     cue:        float32 [V'', R, S', 4]  geometric cue of each sample in each view (view-major)
     ray_views:  bool    [V'', R] or None the views each ray keeps (``top_k`` by ray, else None)
     """
@@ -199,6 +201,7 @@ class Block:
     views: np.ndarray
     uv: np.ndarray
     valid: np.ndarray
+    weight: np.ndarray
     cue: np.ndarray
     ray_views: np.ndarray | None
 
@@ -358,13 +361,15 @@ def trace_block(plan: MarchPlan, start: int) -> Block:
         inside = index < hi[:, None]                                            # [R, S']
         z = plan.z_bins[np.minimum(index, plan.samples - 1)]
     points = origins[:, None, :] + z[:, :, None] * directions[:, None, :]
-    uv_ref, _, valid = G.project_points(points, plan.ref_K, plan.cam_from_world, H, W)
+    uv_ref, z_ref, _ = G.project_points(points, plan.ref_K, plan.cam_from_world, H, W)
+    weight = G.validity(uv_ref, z_ref, H, W)                                   # [V, R, S']
+    valid = weight > 0
     if inside is not None:
         valid = valid & inside[None]
     views = np.arange(V)                                                        # [V, R, S'] above
     if plan.cull:
         views = np.flatnonzero(valid.reshape(V, -1).any(axis=1))                # views seeing it
-        uv_ref, valid = uv_ref[views], valid[views]
+        uv_ref, valid, weight = uv_ref[views], valid[views], weight[views]
     t, s, s_norm = G.cue_vectors(points, origins[:, None, :], plan.centres[views])
     cue = np.moveaxis(G.cue_from_vectors(t, s, s_norm), 2, 0)                   # [V'', R, S, 4]
     ray_views = None
@@ -376,7 +381,8 @@ def trace_block(plan: MarchPlan, start: int) -> Block:
             valid = valid & ray_views[:, :, None]
         else:
             valid = valid & Q.top_k_mask(valid, score, plan.top_k)
-    return Block(rows, directions, z, points, views, uv_ref, valid, cue, ray_views)
+    weight = np.where(valid, weight, f32(0))              # the windows' and top_k's drops too
+    return Block(rows, directions, z, points, views, uv_ref, valid, weight, cue, ray_views)
 
 
 def plan_calls(plan: MarchPlan, block: Block) -> list[Call]:
@@ -402,13 +408,13 @@ def call_feed(plan: MarchPlan, block: Block, call: Call,
     valid samples first, in depth order, cut to the call's longest ray."""
     H, W = plan.image_size
     ix = np.ix_(call.views, call.rays)
-    mask = block.valid[ix]                                                   # [v, r, S']
+    mask = block.weight[ix]                                                  # [v, r, S']
     uv = block.uv[ix]                                                        # [v, r, S', 2]
     cue = block.cue[ix]                                                      # [v, r, S', 4]
     points = block.points[call.rays]                                         # [r, S', 3]
     z = block.z[call.rays]                                                   # [r, S']
     if plan.cull:
-        sample_valid = mask.any(axis=0)                                      # [r, S']
+        sample_valid = (mask > 0).any(axis=0)                                # [r, S']
         s_max = int(sample_valid.sum(axis=1).max())
         if s_max < points.shape[1]:
             order = np.argsort(~sample_valid, axis=1, kind="stable")[:, :s_max]   # stable
@@ -435,13 +441,15 @@ PAIR_GROUP = 128
 def select_point_views(feed: dict[str, np.ndarray], group: int = PAIR_GROUP
                        ) -> dict[str, np.ndarray]:
     """The feed of the renderer on per-point pre-selected views (``io_spec.RENDERER_VIEWS``) from
-    a view-major ``feed`` whose ``mask [v, r, s]`` marks the (view, point) pairs to keep: each
-    view's kept pairs in groups of ``group`` (the last one padded), and per point its kept views,
-    in view order, in slots 0 .. K - 1 (K: the most any point keeps; the rest masked). Same
-    result as ``feed``: the renderer pools and attends over the valid views of each point."""
+    a view-major ``feed`` whose validity weights ``mask [v, r, s]`` mark the (view, point) pairs
+    to keep (weight > 0): each view's kept pairs in groups of ``group`` (the last one padded), and
+    per point its kept views, in view order, in slots 0 .. K - 1 with their weights (K: the most
+    any point keeps; the rest weight 0). Same result as ``feed``: the renderer pools and attends
+    over the valid views of each point."""
     mask = feed["mask"]
     v = mask.shape[0]
-    flat = mask.reshape(v, -1)                                               # [v, r*s]
+    weights = mask.reshape(v, -1)                                            # [v, r*s]
+    flat = weights > 0
     counts = flat.sum(axis=1)
     K = max(1, int(flat.sum(axis=0).max()))
     n_groups = -(-counts // group)                                           # per view
@@ -460,8 +468,8 @@ def select_point_views(feed: dict[str, np.ndarray], group: int = PAIR_GROUP
 
     pairs = np.zeros((K, flat.shape[1]), np.int64)
     pairs[slot, point] = row
-    slots = np.zeros((K, flat.shape[1]), bool)
-    slots[slot, point] = True
+    slots = np.zeros((K, flat.shape[1]), weights.dtype)
+    slots[slot, point] = weights[view, point]
     out = {"field_maps": feed["field_maps"], "groups": groups.astype(np.int64),
            "grid": compact(feed["grid"]), "cues": compact(feed["cues"]),
            "pairs": pairs.reshape(K, *mask.shape[1:]), "mask": slots.reshape(K, *mask.shape[1:]),
@@ -478,7 +486,7 @@ def empty_ray_rgb(session, field_maps_shape: tuple[int, ...], explicit_rgb: bool
     feed = {"field_maps": np.zeros((1, C, h, w), f32),
             "grid": np.zeros((1, 1, 1, 2), f32),
             "cues": np.zeros((1, 1, 1, 4), f32),
-            "mask": np.zeros((1, 1, 1), bool),
+            "mask": np.zeros((1, 1, 1), f32),
             "positions": np.zeros((1, 1, 3), f32),
             "directions": np.array([[0, 0, 1]], f32)}
     if explicit_rgb:                   # masked: the blend of nothing, whatever colour

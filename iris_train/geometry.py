@@ -10,12 +10,12 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-from iris_runtime.geometry import CUE_EPS, DEPTH_EPS, GRID_CLIP, NORM_EPS
+from iris_runtime.geometry import CUE_EPS, DEPTH_EPS, EDGE_FADE, GRID_CLIP, NORM_EPS
 
 __all__ = [
-    "CUE_EPS", "DEPTH_EPS", "GRID_CLIP", "NORM_EPS", "pixel_centres", "intrinsics_from_focal",
-    "scale_intrinsics", "invert_pose", "compose", "rotation_from_6d", "rays_from_pixels",
-    "sample_depths", "project_points", "pixels_to_grid", "sample_bilinear", "sample_bilinear_dense",
+    "CUE_EPS", "DEPTH_EPS", "EDGE_FADE", "GRID_CLIP", "NORM_EPS", "pixel_centres",
+    "intrinsics_from_focal", "scale_intrinsics", "invert_pose", "compose", "rotation_from_6d", "rays_from_pixels",
+    "sample_depths", "project_points", "validity", "pixels_to_grid", "sample_bilinear", "sample_bilinear_dense",
     "tent_axes",
     "geometric_cue",
 ]
@@ -139,6 +139,15 @@ def project_points(points: torch.Tensor, K: torch.Tensor, cam_from_world: torch.
     v = torch.nan_to_num(v, nan=0.0).clamp(-GRID_CLIP * height, GRID_CLIP * height)
     shape = (V,) + tuple(points.shape[:-1])
     return torch.stack([u, v], dim=-1).reshape(shape + (2,)), z.reshape(shape), valid.reshape(shape)
+
+
+def validity(uv: torch.Tensor, z: torch.Tensor, height: int, width: int) -> torch.Tensor:
+    """Validity weights ``[V, ...]`` in [0, 1]: 0 at or behind the camera plane, else 1 in the
+    image fading to 0 at ``EDGE_FADE`` pixels outside it (``iris_runtime.geometry.validity``)."""
+    u, v = uv[..., 0], uv[..., 1]
+    d = torch.maximum(torch.maximum(-u, u - width), torch.maximum(-v, v - height)).clamp_min(0.0)
+    w = (1.0 - d / EDGE_FADE).clamp(0.0, 1.0)
+    return torch.where(z > DEPTH_EPS, w, torch.zeros_like(w))
 
 
 def pixels_to_grid(uv: torch.Tensor, height: int, width: int) -> torch.Tensor:

@@ -5,6 +5,12 @@ Masking has one meaning everywhere, in torch and in the exported ONNX graphs: ma
 filled with the finite ``MASK_FILL`` before the softmax (never -inf, which turns into NaN when a
 whole row is masked), and the normalised weights are multiplied by the mask afterwards. A row with
 no valid entry therefore gets all-zero weights, and a masked max-pool over no valid entry gives 0.
+
+Masks are validity weights ``w`` in [0, 1] (a bool mask is the weights 0 / 1): an entry with
+``w > 0`` enters the softmax or max-pool with the additive bias ``FADE_GAIN * (w - 1)``
+(``validity_bias``), 0 for a fully valid entry, so 0 / 1 weights give exactly the hard mask, and an
+entry fading out (a sample crossing a view's image edge, ``geometry.validity``) leaves the
+softmax and the max-pool continuously instead of at once.
 """
 from __future__ import annotations
 
@@ -16,18 +22,37 @@ import torch.nn.functional as F
 
 #: Finite stand-in for -inf in masked softmax and max-pool (exp underflows to exactly 0 in float32).
 MASK_FILL = -1e30
+#: Slope of the bias of a fractional validity weight (``validity_bias``): an entry at weight w
+#: has its logit (max-pool input) lowered by FADE_GAIN * (1 - w). It must exceed the largest gap
+#: between one view's max-pool input and the next view's, or that view would still lead the pool
+#: at w -> 0, where its bias jumps from -FADE_GAIN to MASK_FILL: the shipped model's gaps are at
+#: most 2.4 on held-out scenes (inputs within +-3), and a gain of 2 showed that jump (a pose moved
+#: by float32 rounding moved a pixel by 5.5e-5). The render's slope in the pose grows with
+#: FADE_GAIN / EDGE_FADE: 10 over one pixel moved it by 3.7e-6, 100 over half a pixel by 5.4e-5
+#: (docs/PERFORMANCE.md, "Continuous validity").
+FADE_GAIN = 10.0
+
+
+def validity_bias(weight: torch.Tensor) -> torch.Tensor:
+    """The additive bias of validity weights ``weight`` (float in [0, 1]): ``FADE_GAIN * (w -
+    1)`` where ``w > 0`` (exactly 0 at w = 1), ``MASK_FILL`` where ``w = 0``."""
+    return torch.where(weight > 0, FADE_GAIN * (weight - 1.0), torch.full_like(weight, MASK_FILL))
 
 
 def masked_softmax(logits: torch.Tensor, mask: torch.Tensor, dim: int = -1) -> torch.Tensor:
-    """Softmax over ``dim`` restricted to ``mask`` (bool, broadcastable); all-masked rows give 0."""
-    filled = torch.where(mask, logits, torch.full_like(logits, MASK_FILL))
-    return torch.softmax(filled, dim=dim) * mask.to(logits.dtype)
+    """Softmax over ``dim`` restricted to ``mask`` (validity weights in [0, 1] or bool,
+    broadcastable; ``validity_bias``); all-masked rows give 0."""
+    w = mask.to(logits.dtype)
+    filled = torch.where(w > 0, logits + validity_bias(w), torch.full_like(logits, MASK_FILL))
+    return torch.softmax(filled, dim=dim) * (w > 0).to(logits.dtype)
 
 
 def masked_max(x: torch.Tensor, mask: torch.Tensor, dim: int) -> torch.Tensor:
-    """Max over ``dim`` of ``x`` where ``mask`` (bool, same shape as x up to broadcasting); 0 if none."""
-    filled = torch.where(mask, x, torch.full_like(x, MASK_FILL))
-    any_valid = mask.any(dim=dim)
+    """Max over ``dim`` of ``x + validity_bias(mask)`` where ``mask > 0`` (validity weights in
+    [0, 1] or bool, same shape as x up to broadcasting); 0 if none."""
+    w = mask.to(x.dtype)
+    filled = torch.where(w > 0, x + validity_bias(w), torch.full_like(x, MASK_FILL))
+    any_valid = (w > 0).any(dim=dim)
     return torch.where(any_valid, filled.amax(dim=dim), torch.zeros((), dtype=x.dtype))
 
 

@@ -98,7 +98,8 @@ class Scene:
         H, W = self.image_size
         points = origins[:, None, :] + depths[..., None] * directions[:, None, :]      # [R, S, 3]
         cam_from_world = G.invert_pose(self.world_from_cam)
-        uv, _, valid = G.project_points(points, self.intrinsics(), cam_from_world, H, W)  # [V, R, S, .]
+        uv, z, _ = G.project_points(points, self.intrinsics(), cam_from_world, H, W)    # [V, R, S, .]
+        weight = G.validity(uv, z, H, W)                                                 # [V, R, S]
         grid = G.pixels_to_grid(uv, H, W)
         cues = G.geometric_cue(points, origins[:, None, :], self.world_from_cam[:, :3, 3])  # [R, S, V, 4]
         if colours is None:
@@ -106,19 +107,21 @@ class Scene:
         if colours and self.images is None:
             raise ValueError("scene.images: this model (explicit_rgb) needs the reference photos")
         rgb = G.sample_bilinear(self.images, grid) if colours else None                 # [V, R, S, 3]
-        return RaySamples(self.field_maps, grid, cues.permute(2, 0, 1, 3), valid, points, directions, rgb)
+        return RaySamples(self.field_maps, grid, cues.permute(2, 0, 1, 3), weight, points, directions,
+                          rgb)
 
 
 @dataclass(frozen=True)
 class RaySamples:
     """Ray samples projected into a scene's V reference views, view-major: exactly the inputs of
     the exported renderer graph, in its order (``iris_runtime.io_spec.RENDERER``; the runtime
-    builds the same in numpy). ``mask`` is True where the sample projects validly into the view;
+    builds the same in numpy). ``mask`` is the sample's validity weight in the view
+    (``geometry.validity``: 1 in the image, fading to 0 just outside it, 0 behind the camera);
     ``colours`` (explicit-colour models only) is each view's RGB at the sample's projection."""
     field_maps: torch.Tensor            # [V, C', h, w]
     grid: torch.Tensor                  # [V, R, S, 2] grid_sample coordinates
     cues: torch.Tensor                  # [V, R, S, 4] geometric cue
-    mask: torch.Tensor                  # [V, R, S] bool
+    mask: torch.Tensor                  # [V, R, S] validity weights in [0, 1]
     positions: torch.Tensor             # [R, S, 3]
     directions: torch.Tensor            # [R, 3]
     colours: torch.Tensor | None = None  # [V, R, S, 3] or None
@@ -190,13 +193,14 @@ class IrisModel(nn.Module):
         graph's inputs, view-major) -> ``rgb [R, 3]``, ``weights [R, S]``."""
         f, mean_colour = self.field_from_samples(field_maps, grid, cues, mask, colours,
                                                  sampler=sampler)
-        return self.renderer(f, positions, directions, mask.any(0), need_weights, mean_colour)
+        # A sample's weight: its best view's (0: seen by no view, masked out of the ray).
+        return self.renderer(f, positions, directions, mask.amax(0), need_weights, mean_colour)
 
     def field_at(self, scene: Scene, origins: torch.Tensor, directions: torch.Tensor,
                  depths: torch.Tensor):
         """The latent field at the ray samples (Algorithm 1): ``origins, directions [R, 3]``,
         ``depths [R, S]`` -> point features ``f [R, S, W]``, ``points [R, S, 3]``, validity
-        ``mask [R, S, V]`` (sample seen by reference view k) and, with ``explicit_rgb``, each
+        ``mask [R, S, V]`` (the sample's validity weight in reference view k) and, with ``explicit_rgb``, each
         sample's mean reference colour over the views that see it ``[R, S, 3]`` (else None)."""
         s = scene.project_samples(origins, directions, depths, colours=self.cfg.explicit_rgb)
         f, mean_colour = self.field_from_samples(s.field_maps, s.grid, s.cues, s.mask, s.colours)

@@ -6,11 +6,15 @@ a mean pool over samples and a bounded rgb head give the colour. The per-sample 
 ray attention, averaged over heads and query samples, form a distribution over samples (they sum to
 one) that gives the soft depth D = Σ w_m z_m.
 
-Samples that project validly into no reference view carry no information: they are masked out of
-the ray attention (as keys), of the pool and of the depth weights. The renderer is therefore
-exactly invariant to dropping them (and to the order of samples: there is no sample-index
-embedding, position enters only through γ_pos(x)), which the runtime uses to skip them. A ray
-with no valid sample gets rgb = head(0) and all-zero weights.
+Each sample has a weight s in [0, 1], its best view's validity (``geometry.validity``: 1 for a
+sample seen in some reference image, fading to 0 just outside the images). Samples of weight 0
+project validly into no reference view and carry no information: they are masked out of the ray
+attention (as keys), of the pool and of the depth weights. The renderer is therefore exactly
+invariant to dropping them (and to the order of samples: there is no sample-index embedding,
+position enters only through γ_pos(x)), which the runtime uses to skip them. A ray with no valid
+sample gets rgb = head(0) and all-zero weights. A fractional weight enters the attention through
+``layers.validity_bias`` and the pool and the colour blend linearly, so a sample leaving the
+views leaves the render continuously.
 """
 from __future__ import annotations
 
@@ -19,7 +23,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from .config import ModelConfig
-from .layers import MASK_FILL, MLP, masked_softmax, sinusoidal_encoding
+from .layers import MLP, masked_softmax, sinusoidal_encoding, validity_bias
 
 #: The blend is clamped to [BLEND_EPS, 1 - BLEND_EPS] before its logit: finite at black and white.
 BLEND_EPS = 1e-4
@@ -38,7 +42,8 @@ class RayBlock(nn.Module):
         self.mlp = MLP(width, int(width * mlp_ratio), width)
 
     def forward(self, x: torch.Tensor, sample_mask: torch.Tensor, need_weights: bool = True):
-        """``x [R, S, W]``, ``sample_mask [R, S]`` -> ``x [R, S, W]``, attention ``[R, H, S, S]``.
+        """``x [R, S, W]``, sample weights ``sample_mask [R, S]`` -> ``x [R, S, W]``, attention
+        ``[R, H, S, S]``.
 
         Without ``need_weights`` the fused SDPA kernel runs with an additive finite mask: on every
         query row with at least one valid key it is the same softmax (exp(-1e30) is exactly 0);
@@ -53,7 +58,7 @@ class RayBlock(nn.Module):
             attn = masked_softmax(logits, sample_mask[:, None, None, :], dim=-1)
             out = attn @ v
         else:
-            bias = torch.where(sample_mask, 0.0, MASK_FILL).to(x.dtype)[:, None, None, :]
+            bias = validity_bias(sample_mask.to(x.dtype))[:, None, None, :]
             out, attn = F.scaled_dot_product_attention(q, k, v, attn_mask=bias), None
         out = out.transpose(1, 2).reshape(R, S, W)
         x = x + self.proj(out)
@@ -73,7 +78,8 @@ class RayTransformer(nn.Module):
 
     def forward(self, f: torch.Tensor, positions: torch.Tensor, directions: torch.Tensor,
                 sample_mask: torch.Tensor, need_weights: bool = True):
-        """``f [R, S, W]``, ``positions [R, S, 3]``, ``directions [R, 3]``, ``sample_mask [R, S]``."""
+        """``f [R, S, W]``, ``positions [R, S, 3]``, ``directions [R, 3]``, sample weights
+        ``sample_mask [R, S]``."""
         R, S, _ = f.shape
         unit_dir = directions / directions.norm(dim=-1, keepdim=True).clamp_min(1e-12)
         e_pos = sinusoidal_encoding(positions, self.pos_freqs)                       # [R, S, P]
@@ -108,7 +114,9 @@ class RayRenderer(nn.Module):
 
         With ``explicit_rgb``, ``colours [R, S, 3]`` is the mean reference colour of each sample
         over the views that see it; ``rgb = sigmoid(logit(blend) + head(h))`` with
-        ``blend = sum_s w_s colours_s`` and ``w = masked softmax of the per-sample logits``, and
+        ``blend = sum_s w_s colours_s`` and ``w = masked softmax of the per-sample logits`` times
+        the ray's largest sample weight (1 for a ray that sees anything; a ray whose last samples
+        leave the views fades to the empty blend), and
         ``weights`` is ``w`` (always returned: it costs nothing). Otherwise ``need_weights=False``
         (training) skips the explicit attention matrix and weights are None.
         """
@@ -116,11 +124,12 @@ class RayRenderer(nn.Module):
             need_weights = False                        # the depth weights are the blend's
         f, attn = self.ray_transformer(f, positions, directions, sample_mask, need_weights)
         m = sample_mask.to(f.dtype)                                                  # [R, S]
-        n_valid = m.sum(-1, keepdim=True)                                            # [R, 1]
+        n_valid = m.sum(-1, keepdim=True)                            # [R, 1] (weights: a sum)
         normed = self.norm(f)
         h = (normed * m[..., None]).sum(1) / n_valid.clamp_min(1.0)                  # [R, W]
         if self.explicit_rgb:
-            w = masked_softmax(self.sample_logit(normed)[..., 0], sample_mask)        # [R, S]
+            w = (masked_softmax(self.sample_logit(normed)[..., 0], m)
+                 * m.amax(-1, keepdim=True))                                          # [R, S]
             blend = (w[..., None] * colours).sum(1).clamp(BLEND_EPS, 1 - BLEND_EPS)  # [R, 3]
             rgb = torch.sigmoid(torch.log(blend) - torch.log1p(-blend) + self.rgb_head(h))
             return rgb, w

@@ -158,7 +158,7 @@ class PhotometricLoss(nn.Module):
 
             gt = gt_of(images)
             f, points, mask, colours = model.field_at(scene, origins, directions, depths[b])
-            rgb, blend_weights = model.renderer(f, points, directions, mask.any(-1), need_weights=False,
+            rgb, blend_weights = model.renderer(f, points, directions, mask.amax(-1), need_weights=False,
                                                 colours=colours)
             add("render", ((rgb - gt) ** 2).mean())
             if cfg.aux_weight or cfg.aux_blur_weight:

@@ -227,7 +227,7 @@ def test_io_names_match_spec(sessions):
             for axis, name in spec["dynamic_axes"].get(arg.name, {}).items():
                 assert arg.shape[axis] == name
     mask = next(i for i in sessions["renderer"].get_inputs() if i.name == "mask")
-    assert mask.type == "tensor(bool)"
+    assert mask.type == "tensor(float)"                   # validity weights (I/O spec 4)
     is_reference = next(i for i in sessions["encoder"].get_inputs() if i.name == "is_reference")
     assert is_reference.type == "tensor(bool)" and is_reference.shape == ["V"]
 
@@ -242,7 +242,8 @@ def _runtime_render(sessions, images, pose, uv, depths, reverse=0):
     if reverse:
         directions[-reverse:] *= -1
     points = origins[:, None, :] + depths[..., None] * directions[:, None, :]          # [R, S, 3]
-    uvp, _, valid = RG.project_points(points, K, RG.invert_pose(world_from_cam), H, W)  # [V, R, S, .]
+    uvp, zp, _ = RG.project_points(points, K, RG.invert_pose(world_from_cam), H, W)    # [V, R, S, .]
+    valid = RG.validity(uvp, zp, H, W).astype(np.float32)
     cues = RG.geometric_cue(points, origins[:, None, :], world_from_cam[:, :3, 3])     # [R, S, V, 4]
     feed = {"field_maps": maps, "grid": RG.pixels_to_grid(uvp, H, W).astype(np.float32),
             "cues": np.ascontiguousarray(np.moveaxis(cues, 2, 0), dtype=np.float32),
@@ -312,7 +313,7 @@ def _random_feed(V, R, S, seed, explicit_rgb=False):
     feed = {"field_maps": torch.randn(V, CFG.field_channels, h, w, generator=g),
             "grid": torch.rand(V, R, S, 2, generator=g) * 2.4 - 1.2,
             "cues": torch.randn(V, R, S, 4, generator=g),
-            "mask": torch.rand(V, R, S, generator=g) > 0.5,
+            "mask": (torch.rand(V, R, S, generator=g) * 2 - 0.5).clamp(0, 1),   # 0, edge, 1
             "positions": torch.randn(R, S, 3, generator=g),
             "directions": torch.randn(R, 3, generator=g)}
     if explicit_rgb:
@@ -326,18 +327,18 @@ def test_fully_masked_points_and_rays_stay_finite(model_and_sessions, case):
     V, R, S = 3, 4, 9
     feed = _random_feed(V, R, S, seed=7, explicit_rgb=model.cfg.explicit_rgb)
     if case == "all":
-        feed["mask"][:] = False
+        feed["mask"][:] = 0.0
     elif case == "point":
-        feed["mask"][:, :, 2] = False          # sample 2 of every ray masked in every view
+        feed["mask"][:, :, 2] = 0.0            # sample 2 of every ray masked in every view
     else:
-        feed["mask"][:, 1] = False             # ray 1: every sample masked
+        feed["mask"][:, 1] = 0.0               # ray 1: every sample masked
     rgb, weights = sessions["renderer"].run(None, {k: v.numpy() for k, v in feed.items()})
     with torch.no_grad():
         rgb_ref, w_ref = RendererGraph(model)(**feed)
     assert np.isfinite(rgb).all() and np.isfinite(weights).all()
     np.testing.assert_allclose(rgb, rgb_ref.numpy(), rtol=0, atol=TOL)
     np.testing.assert_allclose(weights, w_ref.numpy(), rtol=0, atol=TOL)
-    empty = ~feed["mask"].numpy().any(0)                                   # [R, S]
+    empty = ~(feed["mask"].numpy() > 0).any(0)                             # [R, S]
     assert np.all(weights[empty] == 0)
     if case == "all":
         assert np.allclose(rgb, rgb[0])                                    # rgb = head(0) everywhere
@@ -377,7 +378,7 @@ def test_explicit_rgb_contract(torch_export_rgb, torch_export, rgb_sessions, ses
     covers the probes of every model (V' 1/3/8, R 1, fully masked points and rays) in tolerance."""
     rgb_dir, rgb_model = torch_export_rgb
     m = read_manifest(rgb_dir)
-    assert m["config"]["explicit_rgb"] is True and m["io_spec_version"] == io_spec.IO_SPEC_VERSION == 3
+    assert m["config"]["explicit_rgb"] is True and m["io_spec_version"] == io_spec.IO_SPEC_VERSION == 4
     spec = io_spec.spec_for("renderer", True)
     assert list(spec["inputs"])[-1] == "colours" and list(spec["inputs"])[:-1] == list(io_spec.RENDERER["inputs"])
     assert spec["inputs"]["colours"] == {"dtype": "float32", "shape": ["V", "R", "S", 3]}

@@ -566,17 +566,12 @@ def test_bad_rgb_manifest(rgb_model_dir, tmp_path, edit, error, match):
         IrisRuntime(model_copy)
 
 
-def test_io_spec_2_is_read_for_models_without_explicit_colour(model_copy):
-    """I/O spec 2 manifests (before explicit colour) have exactly spec 3's graphs for these
-    models: read unchanged, and the same render."""
-    scene = IrisRuntime(model_copy, threads=1).encode(_images(2, (64, 64)))
-    a = IrisRuntime(model_copy, threads=1).render(scene, _pose(), height=4, width=4)
-    _edit_manifest(model_copy, lambda d: d.update(io_spec_version=2))
-    b = IrisRuntime(model_copy, threads=1).render(scene, _pose(), height=4, width=4)
-    np.testing.assert_array_equal(a, b)
-    _edit_manifest(model_copy, lambda d: d["graphs"]["renderer"]["inputs"].update(
-        colours={"dtype": "float32", "shape": ["V", "R", "S", 3]}))
-    with pytest.raises(ManifestError, match="explicit_rgb"):
+@pytest.mark.parametrize("version", [2, 3])
+def test_io_spec_with_a_bool_mask_is_refused_with_a_re_export_hint(model_copy, version):
+    """I/O spec 2 and 3 renderers take a bool ``mask``; this runtime feeds validity weights
+    (float32): such a manifest is refused up front, naming the fix, not at the first render."""
+    _edit_manifest(model_copy, lambda d: d.update(io_spec_version=version))
+    with pytest.raises(ModelFormatError, match="bool mask.*re-export with iris-export"):
         IrisRuntime(model_copy)
 
 
@@ -799,10 +794,12 @@ def shipped_pair(tmp_path_factory):
 @pytest.mark.torch
 def test_trained_model_runtime_matches_torch(shipped_pair):
     """The encoder against torch float32; the renders, end to end (each side its own scene and
-    target pose), against torch in float64. Not against float32 torch: a sample that projects
-    onto a validity-mask edge flips with the last bit of a pose, so two float32 paths can differ
-    by far more than their rounding (``benchmarks/error_vs_time.py`` reports the parity per
-    stage, against float32 and float64 torch)."""
+    target pose), against torch in float64: within 1e-5 plus twice what float32 torch itself is
+    from float64. The render is continuous but not flat in the cameras (validity fades over
+    EDGE_FADE pixels outside each image): where a ray's last samples fade out near a reference
+    camera, float32 rounding of the cameras moves a pixel by more than 1e-5 in torch too (target
+    6 of this scene: torch float32 3.1e-5 from float64, the runtime 3.2e-5; targets 1 and 4:
+    both within 7e-6; ``benchmarks/pose_sensitivity.py``)."""
     import copy
 
     import torch
@@ -812,15 +809,19 @@ def test_trained_model_runtime_matches_torch(shipped_pair):
     model64 = copy.deepcopy(model).double()
     from iris_runtime.images import load_image
     x = np.stack([load_image(p) for p in sorted(SAMPLE.glob("frame_*.png"))]).astype(np.float32)
+    x = torch.from_numpy(x.transpose(0, 3, 1, 2) * np.float32(1.0 / 255.0))
     with torch.no_grad():
-        t64 = model64.encode(torch.from_numpy(x.transpose(0, 3, 1, 2) * np.float32(1.0 / 255.0)).double())
+        t64, t32 = model64.encode(x.double()), model.encode(x)
     refs = [0, 2, 3, 5, 7]
     for target in (1, 4, 6):
         res = runtime.render(scene.subset(refs), scene.world_from_cam[target], depth=True)
         with torch.no_grad():
             rgb, depth = model64.render(t64.subset(refs), t64.world_from_cam[[target]],
                                         *runtime.image_size)
-        assert np.abs(res.image_float - rgb[0].numpy()).max() <= 1e-5
+            rgb32, _ = model.render(t32.subset(refs), t32.world_from_cam[[target]],
+                                    *runtime.image_size)
+        float32_err = np.abs(rgb32[0].double().numpy() - rgb[0].numpy()).max()
+        assert np.abs(res.image_float - rgb[0].numpy()).max() <= 1e-5 + 2 * float32_err
         assert np.abs(res.depth - depth[0].numpy()).max() <= 1e-4
 
 

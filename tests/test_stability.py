@@ -161,7 +161,8 @@ def make_scene(maps, poses, focal=(1.0, 1.0), size=(64, 64), images=None) -> Sce
 # ----------------------------------------------------------------------------------------------
 
 def reference_geometry(scene: Scene, world_from_cam, K_out, height, width, near, far, S):
-    """Float64: points [N, S, 3], camera coords Xk [V, N, S, 3], uv [V, N, S, 2], valid, cues
+    """Float64: points [N, S, 3], camera coords Xk [V, N, S, 3], uv [V, N, S, 2], validity weights
+    ``valid`` (geometry.validity's formula), cues
     [N, S, V, 4], and the per-point tolerances of points, uv and cues for the float32 runtime."""
     T = np.asarray(world_from_cam, float)
     Rt, o = T[:3, :3], T[:3, 3]
@@ -189,7 +190,8 @@ def reference_geometry(scene: Scene, world_from_cam, K_out, height, width, near,
         tol = max(Kr[0, 0], Kr[1, 1]) / Zs * dX * (1 + ratio) + 4 * U32 * (np.abs(u) + np.abs(v)
                                                                             + max(Hm, Wm))
         uv.append(np.stack([u, v], -1))
-        valid.append((Z > G.DEPTH_EPS) & (u >= 0) & (u < Wm) & (v >= 0) & (v < Hm))
+        outside = np.maximum.reduce([-u, u - Wm, -v, v - Hm, np.zeros_like(u)])   # pixels
+        valid.append(np.where(Z > G.DEPTH_EPS, np.clip(1 - outside / G.EDGE_FADE, 0, 1), 0.0))
         Xs.append(X)
         du.append(tol)
         dX_all.append(dX)
@@ -230,15 +232,17 @@ def check_feed(rec: Recorder, ref: dict, scene: Scene, S: int):
     # Sample positions.
     err = np.abs(feed["positions"] - ref["points"]).max(-1)
     assert np.all(err <= ref["dpoints"] + 1e-30), (err.max(), ref["dpoints"].max())
-    # Mask: equal away from its boundaries (depth epsilon, image borders).
+    # Validity weights: continuous in (u, v) with slope 1 / EDGE_FADE, so within the projection's
+    # tolerance over EDGE_FADE (+ float32 rounding of the weight) away from the depth epsilon.
     Hm, Wm = scene.image_size
     Z, dX, uv, duv = ref["X"][..., 2], ref["dX"], ref["uv"], ref["duv"]
-    dist = np.minimum.reduce([np.abs(uv[..., 0]), np.abs(uv[..., 0] - Wm),
-                              np.abs(uv[..., 1]), np.abs(uv[..., 1] - Hm)])
-    clear = (np.abs(Z - G.DEPTH_EPS) > dX) & ((dist > duv) | (Z <= G.DEPTH_EPS + dX))
-    np.testing.assert_array_equal(feed["mask"][clear], ref["valid"][clear])
+    assert feed["mask"].dtype == np.float32
+    clear = np.abs(Z - G.DEPTH_EPS) > dX
+    werr = np.abs(feed["mask"] - ref["valid"])
+    wtol = duv / G.EDGE_FADE + 4 * U32
+    assert np.all(werr[clear] <= wtol[clear]), (werr[clear].max(), wtol[clear].min())
     # Grid where valid: |d grid| = 2 |d uv| / size.
-    both = ref["valid"] & feed["mask"]
+    both = (ref["valid"] > 0) & (feed["mask"] > 0)
     grid_ref = np.stack([2 * uv[..., 0] / Wm - 1, 2 * uv[..., 1] / Hm - 1], -1)
     gerr = np.abs(feed["grid"] - grid_ref).max(-1)
     gtol = 2 * duv / min(Hm, Wm) + 4 * U32
@@ -257,9 +261,9 @@ def check_feed(rec: Recorder, ref: dict, scene: Scene, S: int):
     cerr = np.abs(cue - ref["cue"]).max(-1)
     assert np.all(cerr <= ref["dcue"]), (cerr.max(), cerr[cerr > ref["dcue"]][:5])
     # Depth weights: a distribution over the valid samples of every ray that has one, else 0.
-    live = feed["mask"].any(0).any(-1)
+    live = (feed["mask"] > 0).any(0).any(-1)
     np.testing.assert_allclose(weights[live].sum(-1), 1.0, rtol=0, atol=1e-5)
-    assert np.all(weights[~feed["mask"].any(0)] == 0)
+    assert np.all(weights[~(feed["mask"] > 0).any(0)] == 0)
     return feed, rgb, weights
 
 
@@ -310,7 +314,8 @@ else:                                            # placeholders so the decorator
                     min_size=1, max_size=16))
 def test_projection_float32_vs_float64(q, centre, lscale, lfx, lfy, hw, cam):
     """project_points in float32 at extreme focal lengths and scene scales: pixel positions within
-    the conditioning bound, depths within 8u relative, mask equal away from its boundaries."""
+    the conditioning bound, depths within 8u relative, mask equal away from its boundaries, and
+    validity weights within the pixel bound over EDGE_FADE everywhere."""
     H, W = hw
     scale = 10.0 ** lscale
     Rw = quaternion_rotation(q)                               # world_from_cam rotation
@@ -344,6 +349,17 @@ def test_projection_float32_vs_float64(q, centre, lscale, lfx, lfy, hw, cam):
     ref_valid = (Zs > G.DEPTH_EPS) & (ref[:, 0] >= 0) & (ref[:, 0] < W) & (ref[:, 1] >= 0) \
         & (ref[:, 1] < H)
     np.testing.assert_array_equal(valid[0][clear], ref_valid[clear])
+    # The validity weight: continuous in (u, v), slope 1 / EDGE_FADE, so within tol / EDGE_FADE
+    # everywhere away from the depth epsilon (no border exclusion needed).
+    outside = np.maximum.reduce([-ref[:, 0], ref[:, 0] - W, -ref[:, 1], ref[:, 1] - H,
+                                 np.zeros(len(ref))])
+    ref_w = np.where(Zs > G.DEPTH_EPS, np.clip(1 - outside / G.EDGE_FADE, 0, 1), 0.0)
+    weight = G.validity(uv, z, H, W)[0]
+    assert weight.dtype == uv.dtype and np.all((weight >= 0) & (weight <= 1))
+    near_z = np.abs(Zs - G.DEPTH_EPS) <= dX
+    werr = np.abs(weight - ref_w)
+    assert np.all(werr[~near_z & inside_clip] <= tol[~near_z & inside_clip] / G.EDGE_FADE
+                  + 4 * U32), werr.max()
 
 
 @needs_hypothesis
@@ -499,21 +515,23 @@ def test_target_centre_equal_to_a_reference_centre(stiff, nudge):
 
 def test_points_projecting_exactly_onto_image_borders(stiff):
     """fx = 32 (a power of two) and a target principal point shifted by half a pixel: pixel (i, j)
-    of the target projects exactly to (u, v) = (j, i) in view 0. u = 0 and v = 0 are inside,
-    u = W and v = H outside (strict <). A 2 x 65 and a 65 x 2 render cover all four borders."""
+    of the target projects exactly to (u, v) = (j, i) in view 0. The image is [0, 64] x [0, 64]
+    with validity 1 (borders included), fading to 0 at EDGE_FADE = 1 pixel outside: u = 65 or
+    v = 65 has weight 0. A 2 x 66 and a 66 x 2 render cover all four borders."""
     model_dir, _, maps, images = stiff
+    assert G.EDGE_FADE == 1.0
     focal = np.array([0.5, 0.5])                     # fx = fy = 32 on the 64 x 64 model image
     scene = make_scene(maps, [np.eye(4)], focal=focal, images=images)
     Kr = scene.K
-    for H, W, row0, col0 in ((2, 65, 0, 0), (65, 2, 0, 62)):
+    for H, W, row0, col0 in ((2, 66, 0, 0), (66, 2, 0, 62)):
         K_out = np.array([[Kr[0, 0], 0, Kr[0, 2] + 0.5 - col0],
                           [0, Kr[1, 1], Kr[1, 2] + 0.5 - row0], [0, 0, 1.0]])
         res, feed, ref = render_and_check(model_dir, scene, np.eye(4), K_out, (H, W))
         mask = feed["mask"][0].reshape(H, W, -1)
         u = (np.arange(W) + col0)[None, :].repeat(H, 0)
         v = (np.arange(H) + row0)[:, None].repeat(W, 1)
-        inside = (u < 64) & (v < 64)
-        assert np.all(mask.all(-1) == inside)            # every sample: same (u, v) at any depth
+        inside = (u <= 64) & (v <= 64)
+        assert np.all(mask[inside] == 1.0) and np.all(mask[~inside] == 0.0)  # every depth alike
         grid = feed["grid"][0].reshape(H, W, -1, 2)
         assert np.all(grid[u == 0][..., 0] == -1.0) and np.all(grid[v == 0][..., 1] == -1.0)
         assert np.all(grid[u == 64][..., 0] == 1.0) and np.all(grid[v == 64][..., 1] == 1.0)
@@ -715,13 +733,18 @@ def _ort(path):
     return ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
 
 
+def _weights(u: np.ndarray) -> np.ndarray:
+    """Validity weights from uniforms: 0 (40 %), fractional (an image edge, 20 %), 1."""
+    return np.where(u < 0.4, 0.0, np.where(u < 0.6, (u - 0.4) * 5, 1.0)).astype(F32)
+
+
 def _renderer_feed(V, R_, S, seed, cfg):
     rng = np.random.default_rng(seed)
     h, w = cfg.feature_grid
     feed = {"field_maps": rng.normal(size=(V, cfg.field_channels, h, w)).astype(F32),
             "grid": rng.uniform(-1.2, 1.2, size=(V, R_, S, 2)).astype(F32),
             "cues": rng.normal(size=(V, R_, S, 4)).astype(F32),
-            "mask": rng.random((V, R_, S)) > 0.4,
+            "mask": _weights(rng.random((V, R_, S))),
             "positions": rng.normal(size=(R_, S, 3)).astype(F32),
             "directions": rng.normal(size=(R_, 3)).astype(F32)}
     if cfg.explicit_rgb:     # ray 0 black, ray 1 white (the blend's clamp), the others random
@@ -768,7 +791,7 @@ def test_renderer_graph_vs_float64_torch(any_torch_models, case):
     assert np.all(np.isfinite(rgb)) and np.all(np.isfinite(weights))
     np.testing.assert_allclose(rgb, rgb64, rtol=0, atol=tol)
     np.testing.assert_allclose(weights, w64, rtol=0, atol=tol)
-    live = feed["mask"].any(0)
+    live = (feed["mask"] > 0).any(0)
     np.testing.assert_allclose(weights[live.any(-1)].sum(-1), 1.0, rtol=0, atol=1e-5)
     assert np.all(weights[~live] == 0)
 
