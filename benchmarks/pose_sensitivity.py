@@ -18,6 +18,9 @@ rendered from the references at their predicted poses (the knobs part of
   shipped setting: what float32 itself allows.
 - ``runtime vs torch``: ``IrisRuntime(MODEL_DIR)``'s exact render against torch's, each with its
   own encoder (the benchmark's torch parity), at the exported setting.
+- ``pool gap``: the largest gap between the first and second view's max-pool input (u, per
+  channel, over the samples seen by two views or more): ``FADE_GAIN`` must exceed it, or a view
+  fading out would still lead the pool when its bias jumps from -FADE_GAIN to MASK_FILL.
 
 Needs torch (the [train] extra). The constants are set on the torch modules for each setting
 (module globals read at call time); the runtime runs the exported graph as it is.
@@ -41,6 +44,26 @@ def parse_setting(text: str) -> tuple[str, float, float]:
         return text, 1e6, 1e-9
     gain, fade = text.split("x")
     return text, float(gain), float(fade)
+
+
+def max_pool_gap(model, scene, world_from_cam) -> float:
+    """The largest top-1 minus top-2 gap over views of the field's max-pool input u at the
+    samples of a render of ``scene`` from ``world_from_cam [4, 4]`` (torch, no grad)."""
+    import torch
+    import iris_train.geometry as TG
+    from iris_train.model import SAMPLERS, sampler_for
+    H, W = scene.image_size
+    o, d = TG.rays_from_pixels(TG.pixel_centres(H, W), scene.intrinsics(), world_from_cam)
+    depths = TG.sample_depths(model.cfg.near, model.cfg.far, model.cfg.samples, o.shape[0])
+    s = scene.project_samples(o, d, depths)
+    sampled = SAMPLERS[sampler_for(*s.field_maps.shape[-2:])](s.field_maps, s.grid)
+    if s.colours is not None:
+        sampled = sampled + model.field.rgb_to_maps(s.colours - 0.5)
+    u = sampled[..., :model.cfg.field_width]                                  # [V, R, S, W]
+    filled = torch.where((s.mask > 0)[..., None], u, torch.tensor(-torch.inf, dtype=u.dtype))
+    top2 = filled.topk(2, dim=0).values
+    seen_twice = torch.isfinite(top2[1])
+    return float((top2[0] - top2[1])[seen_twice].max()) if bool(seen_twice.any()) else 0.0
 
 
 def main(argv=None) -> int:
@@ -68,7 +91,8 @@ def main(argv=None) -> int:
     refs, targets = (list(x) for x in split_frames(8))
     print(f"shipped setting: FADE_GAIN {shipped[0]:g}, EDGE_FADE {shipped[1]:g} px; "
           f"{len(targets)} targets per scene, max abs rgb")
-    columns = [name for name, _, _ in settings] + ["torch32 vs 64", "runtime vs torch"]
+    columns = [name for name, _, _ in settings] + ["torch32 vs 64", "runtime vs torch",
+                                                    "pool gap"]
     print("| scene | camera diff | " + " | ".join(columns) + " |")
     print("|---" * (len(columns) + 2) + "|")
     worst = dict.fromkeys(columns, 0.0)
@@ -93,6 +117,7 @@ def main(argv=None) -> int:
                                        ).abs().max()) for t in targets)
             L.FADE_GAIN, TG.EDGE_FADE = shipped
             sub, sub64 = sc.subset(refs), sc64.subset(refs)
+            row["pool gap"] = max(max_pool_gap(model, sub, sc.world_from_cam[t]) for t in targets)
             r32 = [model.render(sub, sc.world_from_cam[[t]], 64, 64)[0][0].double().numpy()
                    for t in targets]
             row["torch32 vs 64"] = max(

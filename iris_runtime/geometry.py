@@ -23,7 +23,8 @@ DEPTH_EPS = 1e-6
 #: it (``validity``), so that the render is continuous in the cameras: a hard edge moved one
 #: pixel's colour by ~3e-4 when float32 cameras differing in the last bits put a sample on either
 #: side of it (STABILITY.md). One pixel, outside the image: samples of the image keep weight 1
-#: exactly, and a pose moved by float32 rounding moves the render by ~4e-6 (docs/PERFORMANCE.md).
+#: exactly; float32 rounding of the cameras moves the render by 3e-6 to 6e-6 on three of four
+#: held-out scenes (docs/PERFORMANCE.md, "Continuous validity").
 EDGE_FADE = 1.0
 #: Normalised grid coordinates are clipped to this range so that masked points never carry inf
 #: or NaN into the feature sampler; any |g| > 1 is outside the image and masked anyway.

@@ -25,11 +25,10 @@ MASK_FILL = -1e30
 #: Slope of the bias of a fractional validity weight (``validity_bias``): an entry at weight w
 #: has its logit (max-pool input) lowered by FADE_GAIN * (1 - w). It must exceed the largest gap
 #: between one view's max-pool input and the next view's, or that view would still lead the pool
-#: at w -> 0, where its bias jumps from -FADE_GAIN to MASK_FILL: the shipped model's gaps are at
-#: most 2.4 on held-out scenes (inputs within +-3), and a gain of 2 showed that jump (a pose moved
-#: by float32 rounding moved a pixel by 5.5e-5). The render's slope in the pose grows with
-#: FADE_GAIN / EDGE_FADE: 10 over one pixel moved it by 3.7e-6, 100 over half a pixel by 5.4e-5
-#: (docs/PERFORMANCE.md, "Continuous validity").
+#: at w -> 0, where its bias jumps from -FADE_GAIN to MASK_FILL (the shipped model's gaps:
+#: ``benchmarks/pose_sensitivity.py``, "pool gap"). The render's slope in the cameras grows with
+#: FADE_GAIN / EDGE_FADE; the same benchmark compares settings (docs/PERFORMANCE.md, "Continuous
+#: validity").
 FADE_GAIN = 10.0
 
 
