@@ -80,14 +80,14 @@ RENDERER = {
     "tolerance": {"rgb": 1e-4, "weights": 1e-4},
 }
 
-#: The renderer's extra input for explicit-colour models (``ModelConfig.explicit_rgb``), listed
-#: in their spec only (``spec_for``): the reference photos' RGB in [0, 1] at each sample's
-#: projection into each view, bilinear on the full-resolution image with the same normalised
-#: ``grid`` as the field maps (align_corners=False, border-clamped), sampled by the caller in
-#: numpy (``iris_runtime.geometry.sample_taps``). Masked (view, sample) entries are
-#: ignored by the graph (any finite value). The graph adds ``rgb_to_maps(colours - 0.5)`` to the
-#: sampled field maps, takes each sample's mean colour over its valid views and blends it along
-#: the ray; ``weights`` are then the blend weights.
+#: The renderer's extra input for explicit-colour models (``ModelConfig.explicit_rgb``), listed in
+#: their spec only (``spec_for``): the reference photos' RGB in [0, 1] at each sample's projection
+#: into each view, bilinear on the full-resolution image with the same normalised ``grid`` as the
+#: field maps (align_corners=False, border-clamped), sampled by the caller in numpy
+#: (``iris_runtime.geometry.sample_taps``). Masked (view, sample) entries are ignored by the graph
+#: (any finite value). The graph adds ``rgb_to_maps(colours - 0.5)`` to the sampled field maps,
+#: takes each sample's validity-weighted mean colour over its views and blends it along the ray;
+#: ``weights`` are then the blend weights.
 #:
 #: Sampled in numpy, not in the graph: about as fast as ``GridSample`` on the photos, far cheaper
 #: than a dense weight matrix over the full-resolution image, keeps every graph input per sample
@@ -99,13 +99,13 @@ EXPLICIT_RGB_AXES = {"colours": {0: "V", 1: "R", 2: "S"}}
 
 #: The renderer on per-point pre-selected views (optional: iris-export writes it with the "fast"
 #: renderer graphs; the runtime renders per-point top-k with it). The caller passes the (view,
-#: point) pairs it keeps in P groups of G pairs, each group of one view (``groups``: its index
-#: into ``field_maps``; ``grid``, ``cues``, ``colours`` at ``[p, g]``; unused padding entries:
-#: any finite value), and per point K view slots: slot k of point (r, s) is pair
-#: ``pairs[k, r, s]`` (flat index p * G + g) with validity weight ``mask[k, r, s]`` (0: no pair).
-#: The result equals ``RENDERER`` fed every view with the pairs not kept masked, so the sampling
-#: shrinks to the kept pairs and the field's view axis to K. A point's slots must hold distinct views (a view
-#: held twice would count twice). Built by ``raymarch.select_point_views``.
+#: point) pairs it keeps in P groups of G pairs, each group of one view (``groups``: its index into
+#: ``field_maps``; ``grid``, ``cues``, ``colours`` at ``[p, g]``; unused padding entries: any
+#: finite value), and per point K view slots: slot k of point (r, s) is pair ``pairs[k, r, s]``
+#: (flat index p * G + g) with validity weight ``mask[k, r, s]`` (0: no pair). The result equals
+#: ``RENDERER`` fed every view with the pairs not kept masked, so the sampling shrinks to the kept
+#: pairs and the field's view axis to K. A point's slots must hold distinct views (a view held
+#: twice would count twice). Built by ``raymarch.select_point_views``.
 RENDERER_VIEWS = {
     "file": "renderer_views.onnx",
     "inputs": {
