@@ -18,8 +18,8 @@ benchmarks/results/error_vs_time.md: ``Where`` 14% and ``Transpose`` 14% of node
 
 * Masks are additive biases. The validity weights ``mask`` become
   ``bias = FADE_GAIN * (m - 1) + (m <= 0) * MASK_FILL`` once per call (``[V', R*S]``;
-  ``MASK_FILL = -1e30``, finite): the values of ``layers.validity_bias`` (0 at weight 1, -1e30 at 0) without a ``Where``.
-  The masked max-pool over views is ``ReduceMax(u + bias) * any_view`` and the masked softmaxes are
+  ``MASK_FILL = -1e30``, finite): the values of ``layers.validity_bias`` (0 at weight 1, -1e30 at
+  0) without a ``Where``. The masked max-pool over views is ``ReduceMax(u + bias) * any_view`` and the masked softmaxes are
   ``Softmax(logits + bias)``; the sample weights (each point's best view's) give the ray
   attention's key bias the same way. For every row with at least one valid entry this is exactly
   the masked fill (``x + (-1e30)`` rounds to ``-1e30`` and ``exp(-1e30 - max)`` is exactly 0). Rows
