@@ -19,17 +19,18 @@ benchmarks/results/error_vs_time.md: ``Where`` 14% and ``Transpose`` 14% of node
 * Masks are additive biases. The validity weights ``mask`` become
   ``bias = FADE_GAIN * (m - 1) + (m <= 0) * MASK_FILL`` once per call (``[V', R*S]``;
   ``MASK_FILL = -1e30``, finite): the values of ``layers.validity_bias`` (0 at weight 1, -1e30 at
-  0) without a ``Where``. The masked max-pool over views is ``ReduceMax(u + bias) * any_view`` and the masked softmaxes are
-  ``Softmax(logits + bias)``; the sample weights (each point's best view's) give the ray
-  attention's key bias the same way. For every row with at least one valid entry this is exactly
-  the masked fill (``x + (-1e30)`` rounds to ``-1e30`` and ``exp(-1e30 - max)`` is exactly 0). Rows
-  with no valid entry are where the semantics could differ, and they are kept: a point seen by no
-  view gets ``q0 = 0`` and zero view-attention weights (the attention's normaliser is multiplied by
-  ``any_view``), exactly as in ``layers.masked_max`` / ``masked_softmax``; a ray with no valid
-  sample gets uniform (finite) ray-attention rows, which the reference's masked softmax would make
-  0 -- but those rows belong to rays whose samples are all pooled away (weight 0 in the mean pool
-  and in the depth weights, which are therefore exactly 0), so rgb = head(0) and weights = 0 as
-  before (the reference's own non-final ray blocks already work this way).
+  0) without a ``Where``. The masked max-pool over views is ``ReduceMax(u + bias) * any_view`` and
+  the masked softmaxes are ``Softmax(logits + bias)``; the sample weights (each point's best
+  view's) give the ray attention's key bias the same way. For every row with at least one valid
+  entry this is exactly the masked fill (``x + (-1e30)`` rounds to ``-1e30`` and ``exp(-1e30 -
+  max)`` is exactly 0). Rows with no valid entry are where the semantics could differ, and they are
+  kept: a point seen by no view gets ``q0 = 0`` and zero view-attention weights (the attention's
+  normaliser is multiplied by ``any_view``), exactly as in ``layers.masked_max`` /
+  ``masked_softmax``; a ray with no valid sample gets uniform (finite) ray-attention rows, which
+  the reference's masked softmax would make 0 -- but those rows belong to rays whose samples are
+  all pooled away (weight 0 in the mean pool and in the depth weights, which are therefore exactly
+  0), so rgb = head(0) and weights = 0 as before (the reference's own non-final ray blocks already
+  work this way).
 * View-major throughout the latent field: no Transpose. The field is computed on ``[V', R*S, .]``
   tensors; every reduction over views (max-pool, softmax, weighted sum) is a reduction over the
   leading axis (ONNX Runtime's contiguous "reduce leading dims" kernel), whose result is already
