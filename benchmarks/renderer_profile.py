@@ -8,7 +8,7 @@ profiling) and the median time of one call.
 ``iris-export ckpt.pt a/`` and ``iris-export ckpt.pt b/ --renderer fast``); their field maps must
 have the same shape (the feed is shared). The feed is seeded random data in the renderer's I/O
 spec: field maps N(0, 1), grid coordinates in [-1.1, 1.1] (a few samples off the map), unit cues,
-a mask valid with probability ``--valid`` (default 0.9: real scenes keep almost every sample) and,
+validity weights 1 with probability ``--valid`` (default 0.9: real scenes keep almost every sample) and,
 for explicit-colour models, uniform colours. Sessions are created like ``IrisRuntime`` creates
 them (``ORT_ENABLE_ALL``, sequential, ``--threads`` intra-op threads): one plain session for the
 call times (one warm-up call, then ``--runs`` timed calls, interleaved A/B), and one with
@@ -49,7 +49,7 @@ def make_feed(manifest, rays: int, samples: int, views: int, valid: float, seed:
         "field_maps": rng.standard_normal((V, dims["C'"], dims["h"], dims["w"])).astype(f32),
         "grid": rng.uniform(-1.1, 1.1, (V, R, S, 2)).astype(f32),
         "cues": np.concatenate([unit, rng.uniform(-1, 1, (V, R, S, 1))], -1).astype(f32),
-        "mask": rng.random((V, R, S)) < valid,
+        "mask": (rng.random((V, R, S)) < valid).astype(f32),        # validity weights 0 / 1
         "positions": (rng.standard_normal((R, S, 3)) * 0.5).astype(f32),
         "directions": rng.standard_normal((R, 3)).astype(f32),
     }

@@ -257,7 +257,7 @@ def read_manifest(model_dir: str | os.PathLike, *, verify_hashes: bool = True) -
                                f"iris_runtime)")
 
     io_version = doc.get("io_spec_version")
-    if io_version in IO_SPEC_BOOL_MASK and not isinstance(io_version, bool):
+    if io_version in IO_SPEC_BOOL_MASK:
         raise ModelFormatError(f"{path}: I/O spec version {io_version}, written before validity "
                                f"weights (its renderer takes a bool mask); this runtime feeds "
                                f"I/O spec version {IO_SPEC_VERSION}: re-export with iris-export "

@@ -187,10 +187,9 @@ class Block:
     points:     float32 [R, S', 3]       sample points o + z d
     views:      int64   [V'']            the scene's views that see the block
     uv:         float32 [V'', R, S', 2]  pixel positions of the samples in those views
-    valid:      bool    [V'', R, S']     sample projects validly (and is kept by its ray's window
-                                         and by ``top_k``): ``weight > 0``
-    weight:     float32 [V'', R, S']     its validity weight (``geometry.validity``; 0 where not
-                                         ``valid``): the renderer's ``mask``
+    weight:     float32 [V'', R, S']     each sample's validity weight in each view
+                                         (``geometry.validity``; 0 where its ray's window or
+                                         ``top_k`` drops it): the renderer's ``mask``
     cue:        float32 [V'', R, S', 4]  geometric cue of each sample in each view (view-major)
     ray_views:  bool    [V'', R] or None the views each ray keeps (``top_k`` by ray, else None)
     """
@@ -200,10 +199,14 @@ class Block:
     points: np.ndarray
     views: np.ndarray
     uv: np.ndarray
-    valid: np.ndarray
     weight: np.ndarray
     cue: np.ndarray
     ray_views: np.ndarray | None
+
+    @property
+    def valid(self) -> np.ndarray:
+        """bool [V'', R, S']: the sample projects validly and is kept (``weight > 0``)."""
+        return self.weight > 0
 
 
 @dataclass(frozen=True, eq=False)
@@ -382,7 +385,7 @@ def trace_block(plan: MarchPlan, start: int) -> Block:
         else:
             valid = valid & Q.top_k_mask(valid, score, plan.top_k)
     weight = np.where(valid, weight, f32(0))              # the windows' and top_k's drops too
-    return Block(rows, directions, z, points, views, uv_ref, valid, weight, cue, ray_views)
+    return Block(rows, directions, z, points, views, uv_ref, weight, cue, ray_views)
 
 
 def plan_calls(plan: MarchPlan, block: Block) -> list[Call]:
