@@ -18,6 +18,8 @@ rendered from the references at their predicted poses (the knobs part of
   shipped setting: what float32 itself allows.
 - ``runtime vs torch``: ``IrisRuntime(MODEL_DIR)``'s exact render against torch's, each with its
   own encoder (the benchmark's torch parity), at the exported setting.
+- ``runtime vs 64``: the same runtime render against torch float64: how close each float32 path
+  comes to the float64 answer (compare ``torch32 vs 64``).
 - ``pool gap``: the largest gap between the first and second view's max-pool input (u, per
   channel, over the samples seen by two views or more): ``FADE_GAIN`` must exceed it, or a view
   fading out would still lead the pool when its bias jumps from -FADE_GAIN to MASK_FILL.
@@ -92,7 +94,7 @@ def main(argv=None) -> int:
     print(f"shipped setting: FADE_GAIN {shipped[0]:g}, EDGE_FADE {shipped[1]:g} px; "
           f"{len(targets)} targets per scene, max abs rgb")
     columns = [name for name, _, _ in settings] + ["torch32 vs 64", "runtime vs torch",
-                                                    "pool gap"]
+                                                    "runtime vs 64", "pool gap"]
     print("| scene | camera diff | " + " | ".join(columns) + " |")
     print("|---" * (len(columns) + 2) + "|")
     worst = dict.fromkeys(columns, 0.0)
@@ -120,13 +122,14 @@ def main(argv=None) -> int:
             row["pool gap"] = max(max_pool_gap(model, sub, sc.world_from_cam[t]) for t in targets)
             r32 = [model.render(sub, sc.world_from_cam[[t]], 64, 64)[0][0].double().numpy()
                    for t in targets]
-            row["torch32 vs 64"] = max(
-                float(np.abs(a - model64.render(sub64, sc64.world_from_cam[[t]], 64, 64)[0][0]
-                             .numpy()).max()) for a, t in zip(r32, targets))
+            r64 = [model64.render(sub64, sc64.world_from_cam[[t]], 64, 64)[0][0].numpy()
+                   for t in targets]
         ort_sub = enc.subset(refs)
-        row["runtime vs torch"] = max(
-            float(np.abs(rt.render(ort_sub, enc.world_from_cam[t], depth=True).image_float
-                         .astype(np.float64) - a).max()) for a, t in zip(r32, targets))
+        rts = [rt.render(ort_sub, enc.world_from_cam[t], depth=True).image_float
+               .astype(np.float64) for t in targets]
+        for name, got, want in (("torch32 vs 64", r32, r64), ("runtime vs torch", rts, r32),
+                                ("runtime vs 64", rts, r64)):
+            row[name] = max(float(np.abs(a - b).max()) for a, b in zip(got, want))
         for k in columns:
             worst[k] = max(worst[k], row[k])
         print(f"| {seed} | {cam_diff:.1e} | " + " | ".join(f"{row[k]:.1e}" for k in columns)

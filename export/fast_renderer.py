@@ -77,6 +77,12 @@ benchmarks/results/error_vs_time.md: ``Where`` 14% and ``Transpose`` 14% of node
   attention scale is folded into the query weights (exact for the power-of-two scales of the
   presets). One Transpose per ray block remains: merging heads before the output projection (the
   transpose-free alternatives cost H x the memory or H x the attention FLOPs).
+* The key-bias Add only where a key is masked or fading: when every sample of a call has full
+  weight the bias is all 0 and ``softmax(scores + 0)`` is ``softmax(scores)`` bit for bit, so the
+  ray attentions take an ONNX ``If`` branch without the Add over ``[R, H, S, S]``
+  (``_key_softmax``, ``torch.cond``). The runtime gives such rays calls of their own
+  (``iris_runtime.raymarch.plan_calls``). ``python benchmarks/call_ab.py OLD NEW`` on the calls
+  of one held-out scene's targets (docs/PERFORMANCE.md): 2-3 % per call.
 * Per-ray work out of the per-sample path: each block's injection ``psi(enc)`` is split into its
   position part (per sample, ``[R*S, P] @ [P, W]``) and its direction part (per ray, ``[R, W]``,
   broadcast over samples), instead of expanding the direction encoding to every sample and
@@ -377,19 +383,20 @@ class FastRendererGraph(nn.Module):
         return self._add_norm(q, delta + next_delta, b, next_norm)
 
     # -- the ray transformer ------------------------------------------------------------------
-    def _ray_attention(self, i: int, normed, R: int, S: int, ones, key_bias, keep_attn: bool):
+    def _ray_attention(self, i: int, normed, R: int, S: int, ones, key_bias, no_key_bias,
+                       keep_attn: bool):
         """Masked self-attention of ray block ``i`` on ``normed [R*S, W]`` -> its output
         ``[R*S, W]`` before the output projection, the attention ``[R, H, S, S]`` if
         ``keep_attn`` (else None) and the output projection's bias to use with it.
         ``ones [R*S, 1]``, ``key_bias [R, 1, 1, S]`` (the validity bias of the sample
-        weights)."""
+        weights), ``no_key_bias`` (a bool scalar: ``key_bias`` is all 0, see ``_key_softmax``)."""
         W = normed.shape[-1]
         y = normed.reshape(R, 1, S, W)                                              # [R, 1, S, W]
         y1 = torch.cat([normed, ones], -1).reshape(R, 1, S, W + 1)
         q = y1 @ getattr(self, f"ray{i}_wq")                                       # [R, H, S, Dh]
         k = y @ getattr(self, f"ray{i}_wk")
         v = y @ getattr(self, f"ray{i}_wv")
-        attn = torch.softmax(q @ k.transpose(-1, -2) + key_bias, dim=-1)            # [R, H, S, S]
+        attn = _key_softmax(q @ k.transpose(-1, -2), key_bias, no_key_bias)        # [R, H, S, S]
         out = (attn @ v).transpose(1, 2).reshape(R * S, W)           # heads merged: one Transpose
         # The value bias is in the output projection's bias (the rows of attn sum to one).
         return out, (attn if keep_attn else None), getattr(self, f"ray{i}_bproj")
@@ -423,6 +430,7 @@ class FastRendererGraph(nn.Module):
         rt = renderer.ray_transformer
         sample_mask = s.reshape(R, S)
         key_bias = _validity_bias(sample_mask)                                         # [R, S]
+        no_key_bias = key_bias.min() == 0.0                 # every sample at full weight
         ones = torch.ones_like(key_bias).reshape(N, 1)
         unit_dir = directions / directions.norm(dim=-1, keepdim=True).clamp_min(1e-12)
         p = positions.reshape(N, 3)
@@ -442,6 +450,7 @@ class FastRendererGraph(nn.Module):
         last = len(rt.blocks) - 1
         for i, block in enumerate(rt.blocks):
             out, attn, bproj = self._ray_attention(i, normed, R, S, ones, key_bias[:, None, None],
+                                                   no_key_bias,
                                                    keep_attn=i == last and not cfg.explicit_rgb)
             normed, x = self._add_norm(x, *self._linear(out, block.proj, bias=bproj), block.norm2)
             delta, b = self._mlp(block.mlp, normed)
@@ -512,6 +521,22 @@ def _validity_bias(w: torch.Tensor) -> torch.Tensor:
     """``layers.validity_bias(w)``, the same values, as ``FADE_GAIN * (w - 1) + (w <= 0) *
     MASK_FILL`` (no ``Where``: -100 - 1e30 rounds to -1e30 in float32)."""
     return FADE_GAIN * (w - 1.0) + (w <= 0).to(w.dtype) * MASK_FILL
+
+
+def _key_softmax(scores: torch.Tensor, key_bias: torch.Tensor,
+                 no_key_bias: torch.Tensor) -> torch.Tensor:
+    """``softmax(scores + key_bias)`` over the last axis, with the Add over ``scores [R, H, S, S]``
+    left out when ``no_key_bias`` (``key_bias`` all 0: then ``scores + 0`` is ``scores``, bit for
+    bit). Exported as an ONNX ``If`` (``torch.cond``). Most calls need no key bias: the runtime
+    gives the rays whose every sample has full weight calls of their own
+    (``iris_runtime.raymarch.plan_calls``)."""
+    def plain(s, b):
+        return torch.softmax(s, dim=-1)
+
+    def biased(s, b):
+        return torch.softmax(s + b, dim=-1)
+
+    return torch.cond(no_key_bias, plain, biased, (scores, key_bias))
 
 
 def _sum_views(x: torch.Tensor) -> torch.Tensor:

@@ -56,6 +56,7 @@ no faster at this model size.
 from __future__ import annotations
 
 import contextlib
+import heapq
 import logging
 import time
 import warnings
@@ -320,11 +321,52 @@ def quantize_int8(src: str | Path, dst: str | Path) -> GraphFile:
     finally:
         quant_logger.setLevel(level)
     proto = set_min_ir_version(onnx.load_model(str(dst)))
+    # The quantiser sorts nodes by their explicit inputs only; an If whose branches read a
+    # tensor of the main graph (export.fast_renderer._key_softmax) can end up before it.
+    toposort_with_subgraphs(proto.graph)
     _check_self_contained(proto, Path(dst).name)
     onnx.save_model(proto, str(dst), save_as_external_data=False)
     return GraphFile(Path(dst).stem, Path(dst), len(proto.graph.node), time.perf_counter() - start)
 
 
+def _outer_inputs(node) -> set[str]:
+    """Every tensor ``node`` reads: its inputs and the outer-scope names its subgraphs use."""
+    names = {i for i in node.input if i}
+    for attr in node.attribute:
+        for g in ([attr.g] if attr.HasField("g") else []) + list(attr.graphs):
+            local = {i.name for i in g.input} | {t.name for t in g.initializer}
+            local |= {o for n in g.node for o in n.output}
+            names |= {i for n in g.node for i in _outer_inputs(n)} - local
+    return names
+
+
+def toposort_with_subgraphs(graph) -> None:
+    """Sort ``graph.node`` (in place) so that every node, subgraph reads included, comes after
+    the nodes it reads from; ties keep the current order. Raises ``ValueError`` on a cycle."""
+    nodes = list(graph.node)
+    producer = {o: k for k, n in enumerate(nodes) for o in n.output if o}
+    deps = [{producer[i] for i in _outer_inputs(n) if i in producer} for n in nodes]
+    users: list[list[int]] = [[] for _ in nodes]
+    for k, d in enumerate(deps):
+        for j in d:
+            users[j].append(k)
+    pending = [len(d) for d in deps]
+    ready = [k for k, p in enumerate(pending) if p == 0]
+    heapq.heapify(ready)
+    order = []
+    while ready:
+        k = heapq.heappop(ready)
+        order.append(k)
+        for u in users[k]:
+            pending[u] -= 1
+            if pending[u] == 0:
+                heapq.heappush(ready, u)
+    if len(order) != len(nodes):
+        raise ValueError("graph has a cycle")
+    del graph.node[:]
+    graph.node.extend(nodes[k] for k in order)
+
+
 __all__ = ["EncoderGraph", "RendererGraph", "WRAPPERS", "DEFAULT_OPSET", "MIN_OPSET", "EXPORTER",
            "fixed_dims", "example_inputs", "export_graph", "quantize_int8", "check_opset",
-           "set_min_ir_version", "GraphFile", "SAMPLERS"]
+           "set_min_ir_version", "toposort_with_subgraphs", "GraphFile", "SAMPLERS"]

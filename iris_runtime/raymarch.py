@@ -38,6 +38,8 @@ so dropping them changes nothing but the float rounding of sums. Each call is th
 the valid samples of each ray (in depth order, padded to the call's longest ray with masked
 samples), the views that see its rays, and the rays that see anything; an empty ray gets the
 renderer's answer to an empty ray (``plan.empty_rgb``: rgb = head(0), zero weights, depth 0).
+The rays whose every sample has full weight get calls of their own (``plan_calls``): the graph
+then skips its ray attentions' key-bias Add (export/fast_renderer.py), the same values.
 A sample window is the same masking: the samples outside a ray's window are dropped as if they
 projected nowhere, so a windowed ray renders what the renderer makes of its window's samples
 alone, and a ray whose window is every sample renders as without windows.
@@ -391,17 +393,25 @@ def trace_block(plan: MarchPlan, start: int) -> Block:
 def plan_calls(plan: MarchPlan, block: Block) -> list[Call]:
     """The renderer calls of ``block``: without culling one call of every ray and view; with it
     only the rays that see anything, with the views that see them (per-ray view sets: grouped by
-    ``quality.group_rays``, at most ``plan.chunk_rays`` rays and ``top_k`` views per call)."""
+    ``quality.group_rays``, at most ``plan.chunk_rays`` rays and ``top_k`` views per call).
+
+    With culling, the rays whose every sample has full weight in its best view go to calls of
+    their own: such a call has no masked or fading key, so the renderer graph skips its ray
+    attentions' key-bias Add (``export.fast_renderer._key_softmax``). On the held-out scenes that
+    is 91 % of the rays of a 64x64 frame."""
     if not plan.cull:
         return [Call(np.arange(len(block.rows)), np.arange(len(block.views)))]
     live = np.flatnonzero(block.valid.any(axis=(0, 2)))
     if live.size == 0:                                   # nothing of the scene on these rays
         return []
+    full = (block.weight.max(axis=0) == 1).all(axis=1)[live]                      # [live]
+    parts = [rays for rays in (live[full], live[~full]) if rays.size]
     if block.ray_views is not None:
-        return [Call(live[r], v) for r, v in Q.group_rays(block.ray_views[:, live], plan.top_k,
-                                                          plan.chunk_rays)]
-    seen = np.flatnonzero(block.valid[:, live].reshape(len(block.views), -1).any(axis=1))
-    return [Call(live, seen)]
+        return [Call(rays[r], v) for rays in parts
+                for r, v in Q.group_rays(block.ray_views[:, rays], plan.top_k, plan.chunk_rays)]
+    V = len(block.views)
+    return [Call(rays, np.flatnonzero(block.valid[:, rays].reshape(V, -1).any(axis=1)))
+            for rays in parts]
 
 
 def call_feed(plan: MarchPlan, block: Block, call: Call,

@@ -106,6 +106,16 @@ def test_everything_masked(model, contrib):
 
 
 @pytest.mark.parametrize("contrib", [False, True])
+def test_every_sample_at_full_weight(model, contrib):
+    """All validity weights 1: the ray attentions skip their key-bias Add (``_key_softmax``'s
+    other branch), same values; the weights of each ray sum to one."""
+    inputs = random_renderer_inputs(model, 3, 5, 17, torch.Generator().manual_seed(4))
+    inputs["mask"][:] = 1.0
+    _, weights = _check(model, inputs, contrib)
+    assert torch.allclose(weights.sum(-1), torch.ones(5), atol=1e-5)
+
+
+@pytest.mark.parametrize("contrib", [False, True])
 @pytest.mark.parametrize("k", [1, 2])
 def test_top_k_masks_and_view_subsets(model, contrib, k):
     """Per-point top-k (the runtime's ``quality.top_k_mask`` on the cue's t.s) and a call fed a
@@ -265,6 +275,14 @@ def test_onnx_runtime_matches_torch(model, exported, kind):
         assert all(np.isfinite(x).all() for x in got)
         errors = _errors(got, want)
         assert max(errors) <= TOL, (V, R, S, errors)
+    # Every sample at full weight: the ray attentions take the If's branch without the key
+    # bias (``_key_softmax``); the probes above have masked and fading keys.
+    for V, R, S in [(1, 1, 1), (3, 9, 64)]:
+        feed = {k: v.numpy() for k, v in random_renderer_inputs(model, V, R, S, g).items()}
+        feed["mask"][:] = 1.0
+        with torch.no_grad():
+            want = ref(*(torch.from_numpy(v) for v in feed.values()))
+        assert max(_errors(sess.run(None, feed), want)) <= TOL, (V, R, S)
     # The runtime's empty-ray probe (every size 1, everything masked).
     feed = {k: v.numpy() for k, v in random_renderer_inputs(model, 1, 1, 1, g).items()}
     feed["mask"][:] = 0.0
@@ -284,6 +302,7 @@ def test_onnx_graph_has_no_where_and_no_per_sample_transpose(model, exported):
         assert opt["Transpose"] == blocks, opt
         onnx.checker.check_model(onnx.load_model(str(exported[kind])), full_check=True)
         assert raw["com.microsoft.MultiHeadAttention"] == 0     # it cannot take fractional masks
+        assert opt["If"] == blocks                  # the key-bias Add skipped at full weight
 
 
 def test_onnx_graph_reduces_over_views_with_scan_and_no_trailing_one_broadcasts(model, exported):
@@ -347,6 +366,42 @@ def test_views_max_as_scan_keeps_values(keepdims):
 
 
 # -- export option ---------------------------------------------------------------------------------
+def test_toposort_with_subgraphs_orders_an_if_after_what_its_branches_read():
+    """``export.graphs.toposort_with_subgraphs``: an ``If`` whose branch reads a main-graph tensor
+    produced after it (what ONNX Runtime's quantiser leaves, export.graphs.quantize_int8) is moved
+    after the producer; the graph then passes the checker and runs; independent nodes keep their
+    order."""
+    from onnx import TensorProto, helper
+
+    from export.graphs import toposort_with_subgraphs
+    t = TensorProto.FLOAT
+    branch = lambda name, op: helper.make_graph(                                # noqa: E731
+        [helper.make_node(op, ["late"], [f"{name}_out"])], name, [],
+        [helper.make_tensor_value_info(f"{name}_out", t, [3])])
+    nodes = [helper.make_node("ReduceMin", ["x"], ["m"], keepdims=0, name="min"),
+             helper.make_node("Greater", ["m", "zero"], ["c"], name="cond"),
+             helper.make_node("If", ["c"], ["y"], name="if", then_branch=branch("t", "Relu"),
+                              else_branch=branch("e", "Neg")),
+             helper.make_node("Abs", ["x"], ["late"], name="late"),
+             helper.make_node("Exp", ["x"], ["z"], name="other")]
+    graph = helper.make_graph(nodes, "g", [helper.make_tensor_value_info("x", t, [3])],
+                              [helper.make_tensor_value_info("y", t, [3]),
+                               helper.make_tensor_value_info("z", t, [3])],
+                              initializer=[onnx.numpy_helper.from_array(
+                                  np.array(0, np.float32), "zero")])
+    proto = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 20)])
+    proto.ir_version = 9
+    with pytest.raises(onnx.checker.ValidationError):
+        onnx.checker.check_model(proto)
+    toposort_with_subgraphs(proto.graph)
+    assert [n.name for n in proto.graph.node] == ["min", "cond", "late", "if", "other"]
+    onnx.checker.check_model(proto)
+    sess = ort.InferenceSession(proto.SerializeToString(), providers=["CPUExecutionProvider"])
+    x = np.array([1.0, -2.0, 3.0], np.float32)
+    np.testing.assert_array_equal(sess.run(None, {"x": x})[0], -np.abs(x))      # min < 0: Neg
+    np.testing.assert_array_equal(sess.run(None, {"x": np.abs(x)})[0], np.abs(x))
+
+
 def test_export_model_refuses_unknown_renderer(tmp_path):
     from export.pipeline import export_model
     with pytest.raises(ExportArgumentError, match="renderer"):

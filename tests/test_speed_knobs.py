@@ -146,6 +146,35 @@ def test_culling_is_exact(model_dir, scene, full):
     assert np.abs(res.depth - full.depth).max() <= 1e-6
 
 
+def test_full_weight_rays_get_calls_of_their_own(rt, scene):
+    """``raymarch.plan_calls`` with culling: every ray that sees anything is in exactly one call;
+    the rays whose every sample has full weight in its best view are in calls whose mask needs
+    no key bias (the renderer graph's Add-free branch), the others are not mixed into them."""
+    from iris_runtime import raymarch
+    h = w = 16
+    T = _pose(scene)
+    c, s = np.cos(0.4), np.sin(0.4)                      # turned away: some rays leave the views
+    T[:3, :3] = T[:3, :3] @ np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
+    plan = raymarch.MarchPlan.build(
+        scene, T, scene.intrinsics(h, w), h, w, samples=rt.samples, near=rt.near,
+        far=rt.far, top_k=None, top_k_by="ray", chunk_rays=64, cull=True,
+        photos=rt._view_images(scene), empty_rgb=rt._empty_ray_rgb(scene, "renderer"))
+    kinds = set()
+    for start in range(0, plan.rays, plan.block_rays):
+        block = raymarch.trace_block(plan, start)
+        best = block.weight.max(axis=0)                                     # [R, S]
+        calls = raymarch.plan_calls(plan, block)
+        rays = np.concatenate([c.rays for c in calls]) if calls else np.zeros(0, int)
+        np.testing.assert_array_equal(np.sort(rays), np.flatnonzero((best > 0).any(axis=1)))
+        for c in calls:
+            full = (best[c.rays] == 1).all(axis=1)
+            assert full.all() or not full.any()
+            kinds.add(bool(full[0]))
+            mask = block.weight[np.ix_(c.views, c.rays)]
+            assert (mask.max(axis=0) == 1).all() == bool(full[0])
+    assert kinds == {True, False}                       # the scene has both kinds of rays
+
+
 def test_culling_skips_work_off_the_views(rt, scene):
     # Looking away from the scene: nothing projects anywhere -> no renderer call at all.
     T = scene.world_from_cam[0].copy()

@@ -177,13 +177,20 @@ def part_knobs(args, rt, rt_nocull, rt_par, model, log) -> dict:
         runtime.render(subs[0], frames[0][2], depth=True, **kw)             # warm-up
         meds, alls, outs, works, tims = [], [], [], [], []
         for i, t, pose, _ in frames:
-            med, times, res = timed(lambda: runtime.render(subs[i], pose, depth=True, **kw),
-                                    args.runs)
+            runs = []                                          # every timed run's timings
+
+            def render():
+                res = runtime.render(subs[i], pose, depth=True, **kw)
+                runs.append(res.timings)
+                return res
+
+            med, times, res = timed(render, args.runs)
             meds.append(med)
             alls.append(times)
             outs.append(res.image_float.astype(np.float64))
             works.append(res.work)
-            tims.append(res.timings)
+            # Per stage, the median over the runs (like the frame time), not the last run's.
+            tims.append({k: statistics.median(r[k] for r in runs) for k in runs[0]})
         return meds, alls, outs, works, tims
 
     rows = []
