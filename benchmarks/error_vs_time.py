@@ -46,7 +46,7 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 from benchmarks.evt import measure, report, rows as R  # noqa: E402
-from benchmarks.evt.machine import machine_facts, matmul_peak  # noqa: E402
+from benchmarks.evt.machine import best_peak, machine_facts, matmul_peak  # noqa: E402
 from benchmarks.evt.targets import evaluate_targets, fastest_exact  # noqa: E402
 from iris_runtime.fileio import sha256_file  # noqa: E402
 
@@ -147,6 +147,12 @@ def main(argv=None) -> int:
         log(f"  {results['peak']['matmul']['gflops']:.1f} GFLOP/s")
     if "knobs" in parts:
         results["knobs"] = measure.part_knobs(args, rt, rt_nocull, rt_par, model, log)
+    if "peak" in parts and "knobs" in parts:
+        # Again after the exact paths were timed: the peak is the faster of the two.
+        log(f"peak: numpy matmul {args.matmul_size}^3 again")
+        again = matmul_peak(args.matmul_size)
+        log(f"  {again['gflops']:.1f} GFLOP/s")
+        results["peak"]["matmul"] = best_peak([results["peak"]["matmul"], again])
     # The faster exact configuration (1 worker x threads, or 2 workers) runs the remaining parts
     # (same output; measured in the knobs table).
     best = fastest_exact(results)

@@ -54,6 +54,14 @@ def matmul_peak(n: int = 4096, runs: int = 3) -> dict:
     return {"n": n, "seconds": times, "gflops": 2 * n ** 3 / med / 1e9}
 
 
+def best_peak(measurements: list[dict]) -> dict:
+    """The fastest of several ``matmul_peak`` measurements (the machine's speed drifts by 10-30 %
+    over minutes here; the highest peak is the hardest denominator), with every measurement's
+    GFLOP/s under ``"measurements"``."""
+    best = max(measurements, key=lambda m: m["gflops"])
+    return {**best, "measurements": [m["gflops"] for m in measurements]}
+
+
 def renderer_flops(cfg: dict, work: dict) -> float:
     """Multiply-add FLOPs (2 per MAC) of the renderer graph for the calls summarised in ``work``
     (``RenderResult.work``). Matmul-like work only (sampling matmul, linear layers, attention
@@ -71,6 +79,19 @@ def renderer_flops(cfg: dict, work: dict) -> float:
     per_ray = 2 * (W * W + 3 * W)
     return (per_point_view * work["point_views"] + per_point * work["points"]
             + per_ray_pair * work["ray_pairs"] + per_ray * work["rays"])
+
+
+#: ONNX Runtime ops that run subgraphs: the profiler reports their kernel time including the
+#: nodes they run, and reports those nodes again under their own op types.
+CONTAINER_OPS = ("If", "Scan", "Loop")
+
+
+def node_shares(shares: list) -> list[tuple[str, float]]:
+    """``ort_profile``'s raw ``shares`` without the container ops (``CONTAINER_OPS``), renormalised:
+    each node's time counted once."""
+    kept = [(op, share) for op, share in shares if op not in CONTAINER_OPS]
+    total = sum(share for _, share in kept) or 1.0
+    return [(op, share / total) for op, share in kept]
 
 
 def ort_profile(rt, scene, pose, threads: int) -> dict:
@@ -106,4 +127,5 @@ def ort_profile(rt, scene, pose, threads: int) -> dict:
             by_op[op] = by_op.get(op, 0.0) + e.get("dur", 0)
     total = sum(by_op.values()) or 1.0
     shares = sorted(((op, d / total) for op, d in by_op.items()), key=lambda x: -x[1])
+    # Raw: container ops included (``node_shares`` drops them for the report).
     return {"shares": shares, "note": "one 64x64 frame, first held-out scene"}

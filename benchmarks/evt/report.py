@@ -11,6 +11,7 @@ from pathlib import Path
 from iris_runtime.fileio import atomic_write_text
 
 from . import rows as R
+from .machine import CONTAINER_OPS, node_shares
 
 #: The files a run writes into ``--out``.
 JSON_NAME, MARKDOWN_NAME, PLOT_NAME = "error_vs_time.json", "error_vs_time.md", "error_vs_time.png"
@@ -178,7 +179,11 @@ def markdown(results: dict) -> str:
         p = results["peak"]
         L += ["## Renderer throughput against the matmul peak", "",
               f"numpy float32 matmul {p['matmul']['n']}^3: {p['matmul']['gflops']:.1f} GFLOP/s "
-              f"(median of {len(p['matmul']['seconds'])}).", "",
+              f"(median of {len(p['matmul']['seconds'])})"
+              + (f"; the fastest of {len(p['matmul']['measurements'])} measurements, before and "
+                 f"after the knobs part: "
+                 + ", ".join(f"{g:.1f}" for g in p['matmul']['measurements'])
+                 if len(p['matmul'].get('measurements', [])) > 1 else "") + ".", "",
               "Graph: FLOPs over the renderer graph's own time (the ORT calls); frame: over the "
               "whole frame's wall time (numpy geometry and Python included).", "",
               "| path | renderer GFLOP/frame | graph s/frame | basis | graph GFLOP/s | graph % of "
@@ -190,9 +195,11 @@ def markdown(results: dict) -> str:
             L.append(f"| {r['name']} | {r['gflop']:.2f} | {r['seconds']:.3f} | {r['basis']} | "
                      f"{r['gflops']:.1f} | {100 * r['fraction']:.0f}% | {wall} |")
         if p.get("profile"):
-            L += ["", f"ORT per-op profile of the exact path ({p['profile']['note']}):", "",
+            L += ["", f"ORT per-op profile of the exact path ({p['profile']['note']}; each node "
+                  f"counted once: {', '.join(CONTAINER_OPS)} left out, their subgraphs' nodes are "
+                  "under their own op types):", "",
                   "| op type | share of node time |", "|---|---|"]
-            for op, share in p["profile"]["shares"][:12]:
+            for op, share in node_shares(p["profile"]["shares"])[:12]:
                 L.append(f"| {op} | {100 * share:.1f}% |")
         L.append("")
     if "memory" in results:

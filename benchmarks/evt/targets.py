@@ -4,6 +4,7 @@ checked against one run's results; each missed target says what limits it, from 
 from __future__ import annotations
 
 from . import rows as R
+from .machine import node_shares
 
 #: Exact path against torch eager as installed / with tcmalloc: at least this many times faster.
 SPEEDUP_VS_TORCH = 3.0
@@ -41,7 +42,7 @@ def _e(x: float) -> str:
 
 def graph_limits(results: dict) -> str:
     """What limits the exact path, from the run's own profile and FLOP counts."""
-    prof = dict(results.get("peak", {}).get("profile", {}).get("shares", []))
+    prof = dict(node_shares(results.get("peak", {}).get("profile", {}).get("shares", [])))
     if not prof:
         return ""
     mm = sum(prof.get(k, 0.0) for k in _MATMUL_OPS)
