@@ -401,10 +401,13 @@ def plan_calls(plan: MarchPlan, block: Block) -> list[Call]:
     held-out scenes' targets (``benchmarks/call_ab.py``)."""
     if not plan.cull:
         return [Call(np.arange(len(block.rows)), np.arange(len(block.views)))]
-    live = np.flatnonzero(block.valid.any(axis=(0, 2)))
-    if live.size == 0:                                   # nothing of the scene on these rays
+    if len(block.views) == 0:                            # nothing of the scene on these rays
         return []
-    full = (block.weight.max(axis=0) == 1).all(axis=1)[live]                      # [live]
+    best = block.weight.max(axis=0)                      # [R, S']: each sample's best view
+    live = np.flatnonzero((best > 0).any(axis=1))
+    if live.size == 0:
+        return []
+    full = (best[live] == 1).all(axis=1)
     parts = [rays for rays in (live[full], live[~full]) if rays.size]
     if block.ray_views is not None:
         return [Call(rays[r], v) for rays in parts
