@@ -85,6 +85,11 @@ PRESETS: dict[str, ModelConfig] = {
     "tiny": ModelConfig(),
     # The tiny preset with explicit colour: the default for new runs (docs/TRAINING.md).
     "tiny-rgb": ModelConfig(explicit_rgb=True, canonical_marker=True),
+    # The same network at 128x128 with 16-pixel patches: the same token grid and encoder cost, rays
+    # and explicit colours at twice the resolution (``scripts/resize_checkpoint.py`` carries a
+    # tiny-rgb checkpoint to it).
+    "tiny-rgb-128": ModelConfig(image_height=128, image_width=128, patch_size=16, explicit_rgb=True,
+                                canonical_marker=True),
     # Muskie-base-like widths at 256x256, patch 16 (needs a GPU to train).
     "paper": ModelConfig(image_height=256, image_width=256, patch_size=16, encoder_width=768,
                          encoder_pairs=6, encoder_heads=12, field_width=256, view_blocks=1,
