@@ -55,7 +55,11 @@ __all__ = ["SceneData", "SceneSpec", "MeshSpec", "LightSpec", "KINDS", "CAPTURE_
            "GENERATOR_VERSION", "KIND_VERSIONS", "SUPERSAMPLE", "FOV_RANGE_DEG", "PRINCIPAL_OFFSET",
            "DEPTH_TARGET_RANGE", "MARKER_COLORS", "MARKER_RADIUS", "MARKER_SUBDIVISIONS",
            "build_scene_spec", "render_spec", "render_scene", "downsample_scene", "look_at",
-           "capture_kind", "resolve_kind", "kind_version", "photometric", "GL_FROM_CV"]
+           "capture_kind", "resolve_kind", "kind_version", "photometric", "GL_FROM_CV", "LARGE_RENDER"]
+
+
+#: Capture renders with at least this many rows are not supersampled (see ``render_scene``).
+LARGE_RENDER = 192
 
 
 def kind_version(kind: str) -> int:
@@ -65,16 +69,21 @@ def kind_version(kind: str) -> int:
 
 def render_scene(seed: int, n_views: int = 8, size: tuple[int, int] = (64, 64),
                  kind: str | None = None, markers: bool = False, clean: bool = False,
-                 supersample: int = SUPERSAMPLE) -> SceneData:
+                 supersample: int | None = None) -> SceneData:
     """Generate and render the synthetic scene of ``seed``; same seed -> bitwise same arrays.
 
     ``size`` is (height, width); ``kind`` is None (a classic kind drawn from the seed),
     "turntable", "room", a capture kind or "capture" (the seed's capture kind); ``markers`` adds
     small emissive spheres at ``meta["markers"]["centers_world"]`` (for tests). Capture kinds get
     the seed's photometric camera effects unless ``clean`` (classic kinds never do; depth, poses
-    and K are the same either way).
+    and K are the same either way). ``supersample`` None: ``SUPERSAMPLE``, except capture renders
+    of ``LARGE_RENDER`` rows or more, which are rendered without (they are made to be area-
+    downsampled to the training sizes, which anti-aliases them; 3x3 would cost 4x the time).
     """
     spec = build_scene_spec(seed, n_views, size, kind, markers)
+    if supersample is None:
+        large = spec.kind in CAPTURE_KINDS and spec.size[0] >= LARGE_RENDER
+        supersample = 1 if large else SUPERSAMPLE
     scene = render_spec(spec, supersample)
     if spec.kind in CAPTURE_KINDS and not clean:
         scene = SceneData(photometric.apply(scene.images, seed), scene.world_from_cam, scene.K,

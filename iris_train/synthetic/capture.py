@@ -75,20 +75,19 @@ def _rotunda(rng: np.random.Generator, radius: float, z0: float, z1: float) -> l
     return meshes
 
 
-def _cluster(rng: np.random.Generator, radius: float, ground_z: float, n_extra: int
-             ) -> tuple[list[MeshSpec], list[np.ndarray], float]:
-    """A main object at the origin and up to ``n_extra`` smaller ones around it (sometimes one
-    stacked on a box) -> ``(meshes, anchors, top height)``."""
-    meshes, anchors = [], []
-    main, top = object_on_ground(rng, np.zeros(2), radius * rng.uniform(0.7, 1.0), ground_z)
-    meshes.append(main)
-    anchors.append(np.array([0.0, 0.0, 0.5 * (ground_z + top)]))
-    placed = place_discs(rng, n_extra, region_radius=1.8 * radius, r_lo=0.18 * radius, r_hi=0.4 * radius)
-    for c, r in placed:
+def _clutter(rng: np.random.Generator, radius: float, ground_z: float, n: int,
+             cameras: np.ndarray, clearance: float) -> tuple[list[MeshSpec], list[np.ndarray], float]:
+    """Up to ``n`` smaller objects around the main one (sometimes on a book-like box), none within
+    ``clearance`` of a camera centre ``cameras [V, 3]`` -> ``(meshes, anchors, top height)``."""
+    meshes, anchors, top = [], [], ground_z
+    for c, r in place_discs(rng, n, region_radius=1.8 * radius, r_lo=0.18 * radius, r_hi=0.4 * radius):
         if np.linalg.norm(c) < 0.9 * radius + r:
             continue
+        centre = np.array([*c, ground_z + r])
+        if np.linalg.norm(cameras - centre, axis=1).min() < 2 * r + clearance:
+            continue
         z = ground_z
-        if rng.random() < 0.2:      # a small object on a book-like box
+        if rng.random() < 0.2:
             h = r * rng.uniform(0.3, 0.7)
             meshes.append(box_mesh(np.array([*(c - r), z]), np.array([*(c + r), z + h]),
                                    make_photo_texture(rng), tex_scale=2 * r, name="stand"))
@@ -106,34 +105,40 @@ def build_object(rng: np.random.Generator, n_views: int, yfov: float, path: str)
     fill = rng.uniform(0.45, 0.85)
     radius = min(dist * math.tan(fill * yfov / 2), 0.36 * dist)
     table = rng.random() < 0.5
-    ground_z = 0.0
     meshes = []
     if table:
-        half = rng.uniform(1.3 * radius, max(1.4 * radius, 0.75 * dist), size=2)
+        half = rng.uniform(1.3 * radius, max(1.4 * radius, 0.6 * dist), size=2)
         thick = rng.uniform(0.02, 0.05)
         meshes.append(box_mesh(np.array([-half[0], -half[1], -thick]), np.array([half[0], half[1], 0.0]),
                                make_photo_texture(rng), tex_scale=rng.uniform(0.1, 0.4), name="table"))
         floor_z = -rng.uniform(0.6, 1.0) * dist
     else:
         floor_z = 0.0
-    objects, anchors, top = _cluster(rng, radius, ground_z, int(rng.integers(0, 5)))
-    meshes += objects
-    target = anchors[0] + rng.normal(0, 0.1 * radius, size=3)
+    main, top = object_on_ground(rng, np.zeros(2), radius * rng.uniform(0.7, 1.0), 0.0)
+    meshes.append(main)
+    anchor = np.array([0.0, 0.0, 0.5 * top])
+    target = anchor + rng.normal(0, 0.1 * radius, size=3)
+    # Cameras at least 0.3 dist above the ground, so the ground under them is not too near.
+    el_min = math.degrees(math.asin(float(np.clip((0.3 * dist - target[2]) / dist, 0.0, 0.7))))
     if path == "walk":
-        world_from_cam, info = object_walk(rng, n_views, target, dist, (5.0, 45.0), (60.0, 270.0),
-                                           aim_sd=0.15 * radius)
+        world_from_cam, info = object_walk(rng, n_views, target, dist, (max(5.0, el_min), 45.0),
+                                           (60.0, 270.0), aim_sd=0.15 * radius)
     else:
         from .cameras import arc_cameras
         world_from_cam, info = arc_cameras(rng, n_views, target, rng.uniform(0, 2 * np.pi),
-                                           (10.0, 50.0), dist_range=(0.95 * dist, 1.05 * dist))
+                                           (max(10.0, el_min + 2), 50.0),
+                                           dist_range=(0.95 * dist, 1.05 * dist))
         info["path"] = "orbit"
+    objects, anchors, top2 = _clutter(rng, radius, 0.0, int(rng.integers(0, 5)),
+                                      world_from_cam[:, :3, 3], 0.25 * dist)
+    meshes += objects
     wall_r = rng.uniform(1.4, 2.2) * dist
     cam_top = float(world_from_cam[:, 2, 3].max())
-    ceiling = max(cam_top + 0.3 * dist, top + 0.3 * dist, rng.uniform(1.2, 2.2) * dist)
+    ceiling = max(cam_top + 0.3 * dist, max(top, top2) + 0.3 * dist, rng.uniform(1.2, 2.2) * dist)
     meshes += _rotunda(rng, wall_r, floor_z, ceiling)
     lights, ambient = _lights(rng)
-    info.update(n_objects=len(anchors), table=bool(table), object_radius=float(radius))
-    return meshes, lights, ambient, world_from_cam, np.stack(anchors), info
+    info.update(n_objects=1 + len(anchors), table=bool(table), object_radius=float(radius))
+    return meshes, lights, ambient, world_from_cam, np.stack([anchor, *anchors]), info
 
 
 def _box_room(rng: np.random.Generator, x0, x1, y0, y1, z1) -> list[MeshSpec]:
@@ -188,7 +193,9 @@ def build_handheld(rng: np.random.Generator, n_views: int, yfov: float):
         xy = np.array([c[0] * 0.8 * half_w, -0.1 * dist + (c[1] + 1) / 2 * (depth_y + 0.05 * dist)])
         if xy[1] + r > y_wall - 0.01:
             continue
-        m, top = object_on_ground(rng, xy, r * rng.uniform(0.8, 1.6), table_z)
+        # Object sizes follow the field of view, so that narrow views are not filled by one.
+        m, top = object_on_ground(rng, xy, r * rng.uniform(0.8, 1.6) * math.tan(yfov / 2) / 0.577,
+                                  table_z)
         meshes.append(m)
         anchors.append(np.array([xy[0], xy[1], 0.5 * (table_z + top)]))
     if not anchors:
@@ -199,10 +206,10 @@ def build_handheld(rng: np.random.Generator, n_views: int, yfov: float):
     pitch = math.radians(rng.uniform(15, 60))
     back = dist * math.cos(pitch)
     eye = centre + np.array([rng.uniform(-0.05, 0.05), -back, dist * math.sin(pitch)])
-    hfov = yfov / 2
+    half_fov = yfov / 2
     world_from_cam, info = forward_path(rng, n_views, eye, centre, baseline=rng.uniform(0.05, 0.3) * dist,
-                                        pan_deg=math.degrees(hfov) * rng.uniform(0.2, 0.5),
-                                        tilt_deg=math.degrees(hfov) * rng.uniform(0.1, 0.3),
+                                        pan_deg=math.degrees(half_fov) * rng.uniform(0.2, 0.55),
+                                        tilt_deg=math.degrees(half_fov) * rng.uniform(0.1, 0.3),
                                         roll_deg=rng.uniform(2, 12))
     lights, ambient = _lights(rng)
     info.update(n_objects=len(anchors), pitch_deg=math.degrees(pitch))
@@ -212,11 +219,11 @@ def build_handheld(rng: np.random.Generator, n_views: int, yfov: float):
 
 def build_indoor(rng: np.random.Generator, n_views: int, yfov: float):
     """``indoor``: a furnished room (boxes as furniture, objects, pictures), larger pans."""
-    hx, hy = rng.uniform(0.8, 1.3), rng.uniform(0.8, 1.3)
+    hx, hy = rng.uniform(0.7, 1.1), rng.uniform(0.7, 1.1)
     height = rng.uniform(0.8, 1.2)
     meshes = _box_room(rng, -hx, hx, -hy, hy, height)
     meshes += _pictures(rng, hy, (-0.6 * hx, 0.6 * hx), (0.35, 0.7 * height), int(rng.integers(1, 4)))
-    anchors = []
+    anchors, boxes = [], []
     # Furniture against the back and side walls, objects on top of it and on the floor.
     for _ in range(int(rng.integers(2, 5))):
         w, d, h = rng.uniform(0.15, 0.5), rng.uniform(0.12, 0.3), rng.uniform(0.1, 0.45)
@@ -226,6 +233,7 @@ def build_indoor(rng: np.random.Generator, n_views: int, yfov: float):
         else:
             x, y = (hx - d if side == 1 else -hx + d), rng.uniform(-0.2, hy - w)
         lo, hi = np.array([x - w, y - d, 0.0]), np.array([x + w, y + d, h])
+        boxes.append((lo, hi))
         meshes.append(box_mesh(lo, hi, make_photo_texture(rng), tex_scale=rng.uniform(0.1, 0.4),
                                color=tuple(random_colour(rng, 0.6, 1.0)), name="furniture"))
         if rng.random() < 0.8:
@@ -238,18 +246,22 @@ def build_indoor(rng: np.random.Generator, n_views: int, yfov: float):
         meshes.append(m)
         anchors.append(np.array([*xy, 0.5 * top]))
     focus = anchors[int(rng.integers(len(anchors)))]
-    # Stand 0.45-0.6 from the focus, on the room's open side, at eye height.
-    for _ in range(50):
-        az = rng.uniform(-np.pi * 0.85, -np.pi * 0.15)
+    # Stand 0.45-0.6 from the focus, at least 0.3 from the walls and clear of the furniture.
+    margin = 0.3
+    for _ in range(100):
+        az = rng.uniform(-np.pi, np.pi)
         eye_xy = focus[:2] + rng.uniform(0.45, 0.6) * np.array([math.cos(az), math.sin(az)])
-        if abs(eye_xy[0]) < hx - 0.25 and abs(eye_xy[1]) < hy - 0.25:
+        inside = abs(eye_xy[0]) < hx - margin and abs(eye_xy[1]) < hy - margin
+        clear = min(np.linalg.norm(a[:2] - eye_xy) for a in anchors) > 0.3
+        if inside and clear and all(np.any((eye_xy < lo[:2] - 0.2) | (eye_xy > hi[:2] + 0.2)) for lo, hi in boxes):
             break
-    eye_xy = np.clip(eye_xy, [-hx + 0.25, -hy + 0.25], [hx - 0.25, hy - 0.25])
+    else:
+        eye_xy = np.zeros(2)
     eye = np.array([*eye_xy, rng.uniform(0.25, min(0.6, height - 0.15))])
-    hfov = yfov / 2
+    half_fov = yfov / 2
     world_from_cam, info = forward_path(rng, n_views, eye, focus, baseline=rng.uniform(0.05, 0.25),
-                                        pan_deg=math.degrees(hfov) * rng.uniform(0.3, 0.6),
-                                        tilt_deg=math.degrees(hfov) * rng.uniform(0.1, 0.3),
+                                        pan_deg=math.degrees(half_fov) * rng.uniform(0.3, 0.55),
+                                        tilt_deg=math.degrees(half_fov) * rng.uniform(0.1, 0.3),
                                         roll_deg=rng.uniform(2, 10))
     lights, ambient = _lights(rng)
     info.update(n_objects=len(anchors), room_half=[float(hx), float(hy)], room_height=float(height))

@@ -74,7 +74,7 @@ def object_walk(rng: np.random.Generator, n_views: int, target: np.ndarray, dist
     direction = 1.0 if rng.random() < 0.5 else -1.0
     t = _progress(rng, n_views)
     elev0 = rng.uniform(*elev_range_deg)
-    el = np.radians(np.clip(elev0 + _smooth(rng, t, rng.uniform(0, 12)), 2.0, 70.0))
+    el = np.radians(np.clip(elev0 + _smooth(rng, t, rng.uniform(0, 12)), elev_range_deg[0], 70.0))
     radius = dist * (1 + _smooth(rng, t, rng.uniform(0, 0.15)))
     aim = target + np.stack([_smooth(rng, t, aim_sd) for _ in range(3)], 1)
     poses = []
@@ -93,25 +93,26 @@ def object_walk(rng: np.random.Generator, n_views: int, target: np.ndarray, dist
 def forward_path(rng: np.random.Generator, n_views: int, eye: np.ndarray, target: np.ndarray,
                  baseline: float, pan_deg: float, tilt_deg: float, roll_deg: float,
                  shake_deg: float = 1.0) -> tuple[np.ndarray, dict]:
-    """Hand-held cameras near ``eye`` looking towards ``target``: a smooth translation of total
-    extent about ``baseline`` (mostly sideways), pans of up to +-``pan_deg`` (yaw), +-``tilt_deg``
-    (pitch) and +-``roll_deg`` (roll) along the path, plus per-view shake."""
+    """Hand-held cameras near ``eye`` aimed at ``target``: a smooth translation of total extent
+    about ``baseline`` (mostly sideways), and on top of the aim, pans within +-``pan_deg`` (yaw),
+    +-``tilt_deg`` (pitch) and +-``roll_deg`` (roll) along the path, plus per-view shake of
+    ``shake_deg``. The target stays within those angles of the optical axis."""
     base = look_at(eye, target)
     t = _progress(rng, n_views)
     lateral = rng.uniform(0.5, 1.0) * (1.0 if rng.random() < 0.5 else -1.0)
     move = np.stack([baseline * lateral * (t - 0.5) + _smooth(rng, t, 0.15 * baseline),
                      _smooth(rng, t, 0.3 * baseline), _smooth(rng, t, 0.4 * baseline)], 1)
-    yaw = (rng.uniform(-1, 1) * pan_deg * (t - 0.5) * 2 + _smooth(rng, t, 0.3 * pan_deg))
+    sweep = rng.uniform(0.4, 1.0) * (1.0 if rng.random() < 0.5 else -1.0)
+    yaw = pan_deg * (0.7 * sweep * (2 * t - 1) + _smooth(rng, t, 0.3))
     pitch = _smooth(rng, t, tilt_deg)
-    roll = rng.normal(0, roll_deg / 3) + _smooth(rng, t, roll_deg)
+    roll = rng.uniform(-0.3, 0.3) * roll_deg + _smooth(rng, t, 0.7 * roll_deg)
     poses = []
     for k in range(n_views):
-        T = base.copy()
-        T[:3, 3] = eye + base[:3, :3] @ move[k]
-        shake = np.radians(rng.normal(0, shake_deg, size=3))
-        T[:3, :3] = base[:3, :3] @ camera_rotation(math.radians(yaw[k]) + shake[0],
-                                                   math.radians(pitch[k]) + shake[1],
-                                                   math.radians(roll[k]) + shake[2])
+        T = look_at(eye + base[:3, :3] @ move[k], target)
+        shake = np.radians(np.clip(rng.normal(0, shake_deg, size=3), -2 * shake_deg, 2 * shake_deg))
+        T[:3, :3] = T[:3, :3] @ camera_rotation(math.radians(yaw[k]) + shake[0],
+                                                math.radians(pitch[k]) + shake[1],
+                                                math.radians(roll[k]) + shake[2])
         poses.append(T)
     info = {"path": "forward", "baseline": float(baseline), "pan_deg": float(np.ptp(yaw)),
             "distance": float(np.linalg.norm(target - eye))}

@@ -50,18 +50,27 @@ def _single_sample_framebuffers():
         prr.glRenderbufferStorageMultisample = original
 
 
-@functools.lru_cache(maxsize=4)
-def _renderer(width: int, height: int):
-    """One offscreen renderer (an EGL context) per size and process, created on first use."""
+@functools.lru_cache(maxsize=1)
+def _offscreen():
+    """The process's one offscreen renderer (an EGL context), created on first use. One context
+    whose framebuffer is resized per size: several contexts would be torn down together when
+    one of them is garbage-collected (pyrender terminates the shared EGL display)."""
     try:
         import pyrender
-        return pyrender.OffscreenRenderer(width, height)
+        return pyrender.OffscreenRenderer(64, 64)
     except Exception as e:  # EGL missing/broken: say what to do
         raise RuntimeError(
             f"cannot create a pyrender offscreen renderer with PYOPENGL_PLATFORM="
             f"{os.environ.get('PYOPENGL_PLATFORM')!r} ({type(e).__name__}: {e}). Install Mesa's "
             f"EGL (libegl1) or set PYOPENGL_PLATFORM=osmesa before importing iris_train.synthetic."
         ) from e
+
+
+def _renderer(width: int, height: int):
+    """The offscreen renderer, set to render ``width`` x ``height`` pixels."""
+    r = _offscreen()
+    r.viewport_width, r.viewport_height = width, height
+    return r
 
 
 def _pyrender_scene(spec: SceneSpec):
@@ -182,6 +191,7 @@ def render_spec(spec: SceneSpec, supersample: int = SUPERSAMPLE) -> SceneData:
                     hit = np.all(seg == seg_colours[node], axis=-1).astype(np.float32)
                     coverage[v, i] = hit.reshape(h, s, w, s).mean(axis=(1, 3))
     meta = dict(spec.meta)
+    meta["supersample"] = s
     world_from_cam = spec.world_from_cam.astype(np.float64)
     markers_world = spec.markers_world
     if spec.depth_target is not None:

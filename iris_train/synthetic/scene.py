@@ -100,7 +100,8 @@ class SceneSpec:
     #: Capture kinds: the scene's median valid depth after rendering (the world and cameras are
     #: scaled to it, see ``render.render_spec``); None keeps the world's own units (classic kinds).
     depth_target: float | None = None
-    #: Capture kinds: world points that every camera must see (object centres), scaled with it.
+    #: Capture kinds: object centres [A, 3], scaled with the world; row 0 is the object every
+    #: camera is aimed at (and sees), the others may leave the view along a walk.
     anchors_world: np.ndarray | None = None
 
 

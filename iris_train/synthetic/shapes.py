@@ -4,7 +4,8 @@ Each builder returns ``(vertices [N, 3], faces [F, 3], smooth)`` in object units
 about 1), and ``object_on_ground`` scales, turns, places
 and textures it. Families: the classic primitives; superquadrics (boxes with rounded edges,
 pillows, cushions, stars); solids of revolution with a random profile (vases, bottles, bowls,
-cups); star-shaped prisms (extruded outlines); noise-displaced blobs (stones, fruit).
+cups); star-shaped prisms (extruded outlines); noise-displaced blobs (stones, fruit); and meshes of real objects that registry packages ship
+(``packaged.py``).
 """
 from __future__ import annotations
 
@@ -18,7 +19,8 @@ from .scene import MeshSpec
 from .textures import make_photo_texture, random_colour
 
 #: Shape families and their draw weights.
-FAMILIES = {"primitive": 0.2, "superquadric": 0.25, "revolved": 0.25, "prism": 0.15, "blob": 0.15}
+FAMILIES = {"primitive": 0.12, "superquadric": 0.18, "revolved": 0.18, "prism": 0.1, "blob": 0.1,
+            "packaged": 0.32}
 
 
 @functools.lru_cache(maxsize=4)
@@ -95,8 +97,14 @@ def primitive(rng: np.random.Generator):
     return np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64), smooth
 
 
+def packaged(rng: np.random.Generator):
+    from .packaged import random_packaged
+    v, f, _ = random_packaged(rng)
+    return v, f, True
+
+
 _BUILDERS = {"primitive": primitive, "superquadric": superquadric, "revolved": revolved,
-             "prism": prism, "blob": blob}
+             "prism": prism, "blob": blob, "packaged": packaged}
 
 
 def random_shape(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, bool, str]:
