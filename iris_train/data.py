@@ -24,6 +24,7 @@ import os
 import time
 import warnings
 import zipfile
+from collections import OrderedDict
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterable, Sequence
@@ -159,11 +160,13 @@ class SyntheticScenes:
     at ``render_size`` (default ``size``; a multiple of it, e.g. 256 for a 64 or 128 model) and
     brought to ``size`` on access by ``downsample_scene``, then given their photometric camera
     effects unless ``clean``. So one 256 cache serves a teacher at 256 and models at 64 and 128.
+    ``memory``: how many scenes to keep in memory once brought to ``size`` (least recently used
+    out; a 64x64 8-view scene takes ~230 kB), which spares reading and downsampling them again.
     """
 
     def __init__(self, seeds: Sequence[int], n_views: int = 8, size: tuple[int, int] = (64, 64),
                  cache_dir: Path | None = None, kind=None, render_size: tuple[int, int] | None = None,
-                 clean: bool = False):
+                 clean: bool = False, memory: int = 0):
         self.seeds = seeds
         self.n_views = int(n_views)
         self.size = (int(size[0]), int(size[1]))
@@ -177,6 +180,8 @@ class SyntheticScenes:
         if self.kind is not None and not isinstance(self.kind, dict):
             resolve_kind(0, self.kind)                   # raises on an unknown kind
         self.clean = bool(clean)
+        self.memory = int(memory)
+        self._kept: OrderedDict[int, SceneData] = OrderedDict()
         self._root = Path(cache_dir) if cache_dir is not None else None
         # The folder of kind=None (and of the classic kinds' files); kept as an attribute because
         # callers put side caches (pseudo-poses, solved cameras) beside the scenes.
@@ -223,22 +228,30 @@ class SyntheticScenes:
             except InputError as e:
                 warnings.warn(f"regenerating cached scene: {e}", stacklevel=3)
         scene = self.render(seed)
-        self._save(p, scene)
-        return scene
+        return self._save(p, scene)
 
-    def _save(self, path: Path, scene: SceneData) -> None:
-        # A render cache that is only ever downsampled keeps depth in float16: 8x smaller on disk
-        # (depth compresses badly in float32), and the block average loses the difference anyway.
-        save_scene(path, scene, np.float16 if self.factor > 1 else np.float32)
+    def _save(self, path: Path, scene: SceneData) -> SceneData:
+        """Write ``scene`` and return it as it reads back. A render cache that is only ever
+        downsampled keeps depth in float16: 8x smaller on disk (float32 depth compresses badly)."""
+        dtype = np.float16 if self.factor > 1 else np.float32
+        save_scene(path, scene, dtype)
+        depth = scene.depth.astype(dtype).astype(np.float32)
+        return SceneData(scene.images, scene.world_from_cam, scene.K, depth, scene.meta)
 
     def get_seed(self, seed: int) -> SceneData:
+        if seed in self._kept:
+            self._kept.move_to_end(seed)
+            return self._kept[seed]
         scene = self.cached(seed)
-        if scene.meta.get("kind") not in CAPTURE_KINDS:
-            return scene
-        scene = downsample_scene(scene, self.factor)
-        if not self.clean:
-            scene = SceneData(photometric.apply(scene.images, seed), scene.world_from_cam, scene.K,
-                              scene.depth, {**scene.meta, "photometric": True})
+        if scene.meta.get("kind") in CAPTURE_KINDS:
+            scene = downsample_scene(scene, self.factor)
+            if not self.clean:
+                scene = SceneData(photometric.apply(scene.images, seed), scene.world_from_cam,
+                                  scene.K, scene.depth, {**scene.meta, "photometric": True})
+        if self.memory > 0:
+            self._kept[seed] = scene
+            while len(self._kept) > self.memory:
+                self._kept.popitem(last=False)
         return scene
 
     def is_cached(self, seed: int) -> bool:

@@ -267,6 +267,10 @@ def test_render_cache_serves_smaller_sizes(tmp_path):
     np.testing.assert_array_equal(clean.images, downsample_scene(cached, 2).images)
     assert not np.array_equal(SyntheticScenes([8], 2, (32, 32), tmp_path, "capture", (64, 64))[0].images,
                               clean.images)
+    kept = SyntheticScenes([8, 9], 2, (16, 16), tmp_path, "capture", (64, 64), memory=1)
+    first = kept[0]
+    assert kept[0] is first and kept[1] is not first and kept[0] is not first   # LRU of one
+    _same(first, s)
     with pytest.raises(InputError, match="render_size"):
         SyntheticScenes([8], size=(16, 16), render_size=(40, 40), kind="capture")
 

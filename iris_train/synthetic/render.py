@@ -227,10 +227,11 @@ def downsample_scene(scene: SceneData, factor: int) -> SceneData:
         return scene
     h, w = H // factor, W // factor
     images = np.stack([cv2.resize(im, (w, h), interpolation=cv2.INTER_AREA) for im in scene.images])
-    blocks = scene.depth.reshape(V, h, factor, w, factor).astype(np.float64)
-    full = (blocks > 0).all(axis=(2, 4))
-    inv = np.where(blocks > 0, 1.0 / np.where(blocks > 0, blocks, 1.0), 0.0).mean(axis=(2, 4))
-    depth = np.where(full, 1.0 / np.where(full, inv, 1.0), 0.0).astype(np.float32)
+    blocks = scene.depth.reshape(V, h, factor, w, factor).astype(np.float32, copy=False)
+    valid = blocks > 0
+    full = valid.all(axis=(2, 4))
+    inv = np.reciprocal(blocks, where=valid, out=np.zeros_like(blocks)).mean(axis=(2, 4))
+    depth = np.divide(1.0, inv, where=full, out=np.zeros((V, h, w), np.float32))
     K = np.diag([1.0 / factor, 1.0 / factor, 1.0]) @ scene.K
     meta = {k: v for k, v in scene.meta.items() if k != "marker_coverage"}
     meta["downsampled_from"] = [H, W]
