@@ -344,8 +344,9 @@ def main(argv: Sequence[str] | None = None) -> None:
     ap.add_argument("--heldout", action="store_true", help="the 16 classic held-out seeds")
     ap.add_argument("--validation", action="store_true", help="the validation seeds of --kind")
     ap.add_argument("--capture-heldout", action="store_true",
-                    help="the 16 held-out seeds of the capture kinds (kind capture)")
-    ap.add_argument("--kind", default=None,
+                    help="the 16 held-out seeds of the capture kinds (kind capture), rendered at "
+                         "--size whatever --render-size")
+    ap.add_argument("--kind", "--mix", default=None,
                     help=f"one of {ALL_KINDS}, or a mix such as walk=2,orbit=1,handheld=1,indoor=1 "
                          "(default: the classic kinds drawn from the seed)")
     ap.add_argument("--views", type=int, default=8)
@@ -370,8 +371,10 @@ def main(argv: Sequence[str] | None = None) -> None:
               ("capture-heldout", CAPTURE_HELDOUT_SEEDS if a.capture_heldout else (), "capture")]
     for name, seeds, k in splits:
         if len(seeds):
+            # Held-out scenes are rendered at the model's size: exact depth for the evaluation.
+            render = tuple(a.render_size) if a.render_size and name != "capture-heldout" else None
             r = pregenerate(seeds, a.views, tuple(a.size), a.cache_dir, a.workers, k,
-                            verify=a.verify, render_size=tuple(a.render_size) if a.render_size else None)
+                            verify=a.verify, render_size=render)
             n = max(r["generated"], 1)
             print(json.dumps({"split": name, **r, "bytes_per_scene": r["bytes"] / len(seeds),
                               "seconds_per_scene": r["seconds"] / n}))
