@@ -217,3 +217,95 @@ def test_load_dataset_folder(tmp_path):
     scenes = load_dataset_folder(tmp_path, size=(16, 16))
     assert [s.meta["path"].rsplit("/", 1)[-1] for s in scenes] == ["scene_a", "scene_b"]
     assert all(s.images.shape == (2, 16, 16, 3) for s in scenes)
+
+
+# ---------------------------------------------------------------------------------------------
+# capture kinds: splits, mixes, the render cache at a larger size, the CLI
+# ---------------------------------------------------------------------------------------------
+
+def test_capture_splits_are_disjoint_from_training_and_each_other():
+    from iris_train.data import CAPTURE_HELDOUT_SEEDS, CAPTURE_VALIDATION_SEEDS, VALIDATION_SEEDS
+    assert len(CAPTURE_HELDOUT_SEEDS) == 16 and not set(CAPTURE_HELDOUT_SEEDS) & set(TRAIN_SEEDS)
+    assert not set(CAPTURE_VALIDATION_SEEDS) & (set(VALIDATION_SEEDS) | set(CAPTURE_HELDOUT_SEEDS))
+    # Training runs use seeds below min(VALIDATION_SEEDS) (iris_train.train refuses more).
+    assert min(CAPTURE_VALIDATION_SEEDS) > min(VALIDATION_SEEDS)
+    from iris_train.synthetic import capture_kind
+    kinds = [capture_kind(s) for s in CAPTURE_HELDOUT_SEEDS]
+    assert {k: kinds.count(k) for k in set(kinds)} == {"walk": 4, "orbit": 4, "handheld": 4, "indoor": 4}
+
+
+def test_mix_parsing_and_per_seed_kinds():
+    from iris_train.data import kind_of_seed, parse_mix
+    mix = parse_mix("walk=3, orbit=1,handheld")
+    assert mix == {"walk": 3.0, "orbit": 1.0, "handheld": 1.0}
+    kinds = [kind_of_seed(s, mix) for s in range(2000)]
+    assert abs(kinds.count("walk") / 2000 - 0.6) < 0.05 and set(kinds) == set(mix)
+    assert kinds == [kind_of_seed(s, mix) for s in range(2000)]
+    for bad in ("forest=1", "walk=0", "walk=x", "capture=1", "walk=nan"):
+        with pytest.raises(InputError, match="mix"):
+            parse_mix(bad)
+    with pytest.raises(InputError, match="kind"):
+        SyntheticScenes([0], kind="forest")
+
+
+def test_render_cache_serves_smaller_sizes(tmp_path):
+    """A 64 render cache (clean, float16 depth) gives 32 and 16 scenes by area downsampling with
+    photometric effects; ``clean=True`` gives the plain downsample; poses and K as a direct render."""
+    from iris_train.synthetic import downsample_scene
+    ds = SyntheticScenes([8, 9], n_views=2, size=(16, 16), cache_dir=tmp_path, kind="capture",
+                         render_size=(64, 64))
+    s = ds[0]
+    assert s.images.shape == (2, 16, 16, 3) and s.meta["photometric"] and s.depth.dtype == np.float32
+    assert ds.path(8).name == "scene_0000008_v2_g3.npz"
+    cached = load_scene(ds.path(8))
+    assert cached.images.shape == (2, 64, 64, 3)
+    direct = render_scene(8, n_views=2, size=(16, 16), kind="capture")
+    np.testing.assert_allclose(s.K, direct.K, rtol=1e-14)
+    np.testing.assert_array_equal(s.world_from_cam, direct.world_from_cam)
+    clean = SyntheticScenes([8], n_views=2, size=(32, 32), cache_dir=tmp_path, kind="capture",
+                            render_size=(64, 64), clean=True)[0]
+    np.testing.assert_array_equal(clean.images, downsample_scene(cached, 2).images)
+    assert not np.array_equal(SyntheticScenes([8], 2, (32, 32), tmp_path, "capture", (64, 64))[0].images,
+                              clean.images)
+    kept = SyntheticScenes([8, 9], 2, (16, 16), tmp_path, "capture", (64, 64), memory=1)
+    first = kept[0]
+    assert kept[0] is first and kept[1] is not first and kept[0] is not first   # LRU of one
+    _same(first, s)
+    with pytest.raises(InputError, match="render_size"):
+        SyntheticScenes([8], size=(16, 16), render_size=(40, 40), kind="capture")
+
+
+def test_stale_capture_file_is_regenerated(tmp_path):
+    ds = SyntheticScenes([3], n_views=2, size=(16, 16), cache_dir=tmp_path, kind="walk")
+    good = ds[0]
+    scene = load_scene(ds.path(3))
+    bad_meta = dict(scene.meta, kind="turntable")            # version 1 expected, file says 3
+    save_scene(ds.path(3), type(scene)(scene.images, scene.world_from_cam, scene.K, scene.depth, bad_meta))
+    import io
+    import json
+    z = dict(np.load(ds.path(3)))
+    z["meta"] = np.array(json.dumps(scene.meta))
+    z["generator_version"] = np.array(2)                     # an older capture generator
+    buf = io.BytesIO()
+    np.savez(buf, **z)
+    ds.path(3).write_bytes(buf.getvalue())
+    with pytest.raises(InputError, match="generator version 2"):
+        load_scene(ds.path(3))
+    with pytest.warns(UserWarning, match="regenerating"):
+        again = ds[0]
+    _same(good, again)
+
+
+def test_cli_pregenerates_capture_scenes(tmp_path, capsys):
+    import json
+    from iris_train.data import main
+    main(["--kind", "walk=1,indoor=1", "--train", "2", "--size", "16", "16", "--render-size", "32", "32",
+          "--views", "2", "--workers", "2", "--cache-dir", str(tmp_path)])
+    out = [json.loads(line) for line in capsys.readouterr().out.splitlines() if line.startswith("{")]
+    assert out[0]["split"] == "train" and out[0]["generated"] == 2 and out[0]["bytes_per_scene"] > 0
+    ds = SyntheticScenes([0, 1], n_views=2, size=(16, 16), cache_dir=tmp_path, kind="walk=1,indoor=1",
+                         render_size=(32, 32))
+    assert all(ds.is_cached(s) for s in (0, 1))
+    assert sorted(p.parent.name for p in tmp_path.rglob("*.npz")) == sorted(ds.kind_of(s) for s in (0, 1))
+    with pytest.raises(SystemExit):
+        main(["--kind", "forest", "--train", "1"])

@@ -262,3 +262,201 @@ def test_non_square_size():
     s = render_scene(7, n_views=2, size=(48, 80))
     assert s.images.shape == (2, 48, 80, 3) and s.depth.shape == (2, 48, 80)
     np.testing.assert_allclose(s.K[:2, 2], [40, 24])
+
+
+# ---------------------------------------------------------------------------------------------
+# Classic kinds frozen; capture kinds (walk, orbit, handheld, indoor)
+# ---------------------------------------------------------------------------------------------
+
+def _sha(a: np.ndarray) -> str:
+    import hashlib
+    return hashlib.sha256(np.ascontiguousarray(a).tobytes()).hexdigest()
+
+
+def test_classic_scenes_are_bitwise_those_of_generator_version_1():
+    """Held-out, validation and training scenes of the classic kinds hash as rendered by main's
+    single-file generator before the capture kinds were added (tests/data/synthetic_v1_hashes.json,
+    recorded from that code: 8 views, 64x64)."""
+    import json
+    from pathlib import Path
+    recorded = json.loads((Path(__file__).parent / "data" / "synthetic_v1_hashes.json").read_text())
+    assert {v["kind"] for v in recorded.values()} == {"turntable", "room"}
+    for seed, want in recorded.items():
+        s = render_scene(int(seed), n_views=8, size=(64, 64))
+        assert s.meta["kind"] == want["kind"] and s.meta["generator_version"] == 1
+        for f in ("images", "world_from_cam", "K", "depth"):
+            assert _sha(getattr(s, f)) == want[f], (seed, f)
+
+
+CAPTURE_SEEDS = [(101, "walk"), (102, "orbit"), (103, "handheld"), (104, "indoor")]
+
+
+@pytest.fixture(scope="module")
+def capture_scenes() -> list[SceneData]:
+    return [render_scene(seed, n_views=6, size=(64, 64), kind=kind, markers=True, clean=True)
+            for seed, kind in CAPTURE_SEEDS]
+
+
+def test_capture_markers_project_where_K_with_its_principal_point_says(capture_scenes):
+    """The off-centre principal point is honoured by the renderer: marker centroids sit within
+    0.3 px of K . cam_from_world (a centred principal point would be off by up to 5 px)."""
+    n = 0
+    jj, ii = np.meshgrid(np.arange(64) + 0.5, np.arange(64) + 0.5)
+    for s in capture_scenes:
+        assert np.abs(s.K[:2, 2] - 32).max() > 0.5               # off centre
+        X = np.asarray(s.meta["markers"]["centers_world"])
+        r = s.meta["markers"]["radius"]
+        for v in range(s.n_views):
+            uv, Xc = _project(s, v, X)
+            for m in range(len(X)):
+                w = s.meta["marker_coverage"][v, m]
+                r_px = s.K[0, 0] * r / Xc[m, 2]
+                if not ((uv[m] > r_px + 1).all() and (uv[m] < 64 - r_px - 1).all()) or r_px < 0.7:
+                    continue
+                c = np.array([(w * jj).sum(), (w * ii).sum()]) / w.sum()
+                assert np.linalg.norm(c - uv[m]) < 0.3, (s.meta["seed"], v, m, c, uv[m])
+                n += 1
+    assert n >= 40, n
+
+
+def test_capture_depth_is_z_depth_after_scaling(capture_scenes):
+    """World and cameras are scaled after rendering: depth at fully covered marker pixels is
+    still the ray-cast z of the (scaled) marker sphere."""
+    n = 0
+    for s in capture_scenes:
+        info = s.meta["markers"]
+        X, r = np.asarray(info["centers_world"]), info["radius"]
+        colours = np.asarray(info["colors"])
+        for v in range(s.n_views):
+            uv, Xc = _project(s, v, X)
+            for m in range(len(X)):
+                j, i = np.floor(uv[m]).astype(int)
+                if not (0 <= i < 64 and 0 <= j < 64):
+                    continue
+                if s.meta["marker_coverage"][v, m][i, j] < 1 or not _shows(s.images[v, i, j], colours[m]):
+                    continue
+                o, d = _ray(s, v, j + 0.5, i + 0.5)
+                oc = o - X[m]
+                a, b, c = d @ d, 2 * d @ oc, oc @ oc - r * r
+                z = (-b - np.sqrt(b * b - 4 * a * c)) / (2 * a)
+                assert abs(s.depth[v, i, j] - z) < 2e-3 * r / 0.015 + 1e-4, (s.depth[v, i, j], z)
+                n += 1
+    assert n >= 5, n
+
+
+def test_capture_kinds_cover_the_specified_camera_ranges():
+    from iris_train.synthetic.paths import FOV_RANGE_DEG, PRINCIPAL_OFFSET, draw_intrinsics
+    assert FOV_RANGE_DEG[0] <= 25 and FOV_RANGE_DEG[1] >= 90 and PRINCIPAL_OFFSET >= 0.08
+    rng = np.random.default_rng(0)
+    draws = [draw_intrinsics(rng) for _ in range(4000)]
+    fov = np.degrees([d[0] for d in draws])
+    off = np.array([d[1] for d in draws])
+    assert 25 <= fov.min() < 26 and 89 < fov.max() <= 90
+    assert np.abs(off).max() <= 0.08 and np.abs(off).max() > 0.079
+    # The specs carry them into K, for any size (K proportional to the size).
+    for seed in range(4):
+        a = build_scene_spec(seed, 2, (64, 64), kind="capture")
+        b = build_scene_spec(seed, 2, (256, 256), kind="capture")
+        np.testing.assert_allclose(b.K, np.diag([4, 4, 1.0]) @ a.K, rtol=1e-14)
+        fy = a.K[1, 1]
+        assert 25 <= np.degrees(2 * np.arctan(32 / fy)) <= 90
+        np.testing.assert_allclose(a.K[:2, 2], 64 * (0.5 + np.asarray(a.meta["principal_offset"])))
+        assert {"walk": 0, "orbit": 1, "handheld": 2, "indoor": 3}[a.kind] == seed % 4
+
+
+def test_capture_paths_have_their_baselines_and_every_camera_sees_the_object():
+    """Walks span 60-270 degrees, orbits 10-90; the anchor (object centre) of every view
+    projects inside the image and in front of the camera, at a distance the near bound allows."""
+    from iris_train.synthetic.paths import object_walk
+    rng = np.random.default_rng(3)
+    for _ in range(50):
+        T, info = object_walk(rng, 8, np.zeros(3), 0.5, (5, 45), (60, 270), 0.02)
+        assert 60 <= info["arc_deg"] <= 270
+        az = np.unwrap(np.arctan2(T[:, 1, 3], T[:, 0, 3]))
+        assert abs(np.degrees(az[-1] - az[0])) == pytest.approx(info["arc_deg"], abs=1e-6)
+    for seed in range(16):
+        spec = build_scene_spec(seed, 8, (64, 64), kind="capture")
+        X = spec.anchors_world[:1]                      # the object the cameras aim at
+        for T in spec.world_from_cam:
+            Xc = (X - T[:3, 3]) @ T[:3, :3]
+            uv = (spec.K @ Xc.T).T
+            uv = uv[:, :2] / uv[:, 2:]
+            assert (Xc[:, 2] > 0).all()
+            assert ((uv > 0) & (uv < 64)).all(), (seed, spec.kind, uv)
+
+
+def test_capture_depth_ranges_vary_by_scene_within_the_model_range():
+    medians = []
+    for seed in range(200, 208):
+        s = render_scene(seed, n_views=3, size=(48, 48), kind="capture", clean=True)
+        z = s.depth[s.depth > 0]
+        assert (s.depth > 0).mean() > 0.97                     # closed scenes, no empty views
+        p1, p50, p99 = np.percentile(z, [1, 50, 99])
+        assert p1 > 0.1 and p99 < 1.3 and z.max() < 1.6, (seed, p1, p99, z.max())
+        # The drawn target is 0.25-0.75; the far bound can pull a deep room's median below it.
+        assert 0.15 < p50 < 0.8
+        medians.append(p50)
+    assert np.ptp(medians) > 0.15                                 # not one fixed depth band
+
+
+def test_capture_scenes_are_deterministic_across_processes():
+    import subprocess
+    import sys
+    a = render_scene(7, n_views=3, size=(32, 32), kind="walk")
+    code = ("import hashlib,numpy as np;from iris_train.synthetic import render_scene;"
+            "s=render_scene(7,n_views=3,size=(32,32),kind='walk');"
+            "print(*[hashlib.sha256(np.ascontiguousarray(getattr(s,f)).tobytes()).hexdigest() "
+            "for f in ('images','world_from_cam','K','depth')])")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                         env={**__import__("os").environ, "OMP_NUM_THREADS": "1"})
+    assert out.stdout.split() == [_sha(getattr(a, f)) for f in ("images", "world_from_cam", "K", "depth")]
+    b = render_scene(7, n_views=3, size=(32, 32), kind="walk")
+    assert a.meta == b.meta and _sha(a.images) == _sha(b.images)
+
+
+def test_downsampled_256_render_matches_a_direct_render():
+    """256 -> 64 / 128 by area: K is exactly the direct render's, poses are identical, images
+    agree to > 24 dB PSNR (anti-aliasing differs) and depth to < 1 % on most valid pixels."""
+    from iris_train.synthetic import downsample_scene
+    big = render_scene(11, n_views=3, size=(256, 256), kind="capture", clean=True)
+    for size in (64, 128):
+        small = render_scene(11, n_views=3, size=(size, size), kind="capture", clean=True)
+        down = downsample_scene(big, 256 // size)
+        assert down.images.shape == small.images.shape and down.images.dtype == np.uint8
+        np.testing.assert_allclose(down.K, small.K, rtol=1e-14, atol=1e-12)
+        np.testing.assert_array_equal(down.world_from_cam, small.world_from_cam)
+        mse = np.mean((down.images.astype(float) - small.images.astype(float)) ** 2)
+        assert 10 * np.log10(255 ** 2 / mse) > 24
+        both = (down.depth > 0) & (small.depth > 0)
+        rel = np.abs(down.depth[both] / small.depth[both] - 1)
+        assert both.mean() > 0.9 and np.median(rel) < 1e-3 and np.mean(rel < 0.01) > 0.9
+    with pytest.raises(ValueError, match="factor"):
+        downsample_scene(big, 3)
+
+
+def test_photometric_variation_is_bounded_deterministic_and_sometimes_grey():
+    from iris_train.synthetic import photometric
+    rng = np.random.default_rng(0)
+    images = rng.integers(0, 256, (4, 40, 56, 3), dtype=np.uint8)
+    images[:, :20] = 0
+    images[:, 20:, :8] = 255
+    greys = 0
+    for seed in range(40):
+        out = photometric.apply(images, seed)
+        assert out.dtype == np.uint8 and out.shape == images.shape
+        assert np.array_equal(out, photometric.apply(images, seed))
+        grey, views = photometric.draw(seed, 4)
+        if grey:
+            greys += 1
+            assert (out[..., 0] == out[..., 1]).all() and (out[..., 1] == out[..., 2]).all()
+        # Camera effects change the picture but keep it: mean change well under half the range.
+        assert np.abs(out.astype(int) - images.astype(int)).mean() < 60
+        assert len({v.gain for v in views}) > 1 or views[0].gain == views[1].gain
+    assert 4 <= greys <= 20
+    with pytest.raises(ValueError, match="images"):
+        photometric.apply(images.astype(np.float32), 0)
+    clean = render_scene(5, n_views=2, size=(32, 32), kind="orbit", clean=True)
+    shot = render_scene(5, n_views=2, size=(32, 32), kind="orbit")
+    assert not np.array_equal(clean.images, shot.images)
+    np.testing.assert_array_equal(clean.depth, shot.depth)
+    assert np.isfinite(shot.images.astype(float)).all()
