@@ -27,6 +27,7 @@ import math
 import os
 import sys
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -80,6 +81,11 @@ class TrainConfig:
     min_lr_ratio: float = 0.1
     grad_clip: float = 1.0
     train_scenes: int = 3000          # synthetic training seeds 0 .. train_scenes-1
+    # Capture-like scenes (``iris_train.synthetic`` kind "capture": object walks, orbits,
+    # hand-held and indoor paths, 25-90 deg fields of view, photometric camera effects), seeds
+    # 0 .. capture_scenes-1, rendered at CAPTURE_RENDER_SIZE and brought to the model's size; drawn
+    # beside the classic scenes with equal probability per scene (docs/DATA.md).
+    capture_scenes: int = 0
     seed: int = 0
     log_every: int = 10
     ckpt_every: int = 250
@@ -346,16 +352,50 @@ def draw_batch(scenes, cfg: TrainConfig, mcfg: ModelConfig, rng: np.random.Gener
             solved if solutions is not None else None)
 
 
+#: Render size of the capture-like training scenes: the teacher's solve sees them at this size,
+#: the model at its own (one 256 cache serves 64 and 128 models).
+CAPTURE_RENDER_SIZE = (256, 256)
+
+
+class SceneSets:
+    """Several scene sets drawn as one: index ``i`` runs through ``parts[0]``, then ``parts[1]``,
+    ... (so a uniform draw weights each part by its size). ``part_of(i)`` gives the set and the
+    index inside it, which is what the on-disk teacher caches are keyed by."""
+
+    def __init__(self, parts: Sequence):
+        self.parts = [p for p in parts if len(p)]
+        self._starts = np.cumsum([0] + [len(p) for p in self.parts])
+
+    def __len__(self) -> int:
+        return int(self._starts[-1])
+
+    def part_of(self, index: int) -> tuple:
+        if not 0 <= index < len(self):
+            raise IndexError(f"index {index} out of range for {len(self)} scenes")
+        k = int(np.searchsorted(self._starts, index, side="right")) - 1
+        return self.parts[k], index - int(self._starts[k])
+
+    def __getitem__(self, index: int):
+        part, local = self.part_of(int(index))
+        return part[local]
+
+
 def _per_scene(scenes, cached, compute):
     """scene index -> ``cached(scenes, index)`` for a ``SyntheticScenes`` (read from beside its
     cache, computed and written when missing), else ``compute(images)``; kept in memory. For
-    the pair teacher and the solved cameras alike."""
+    the pair teacher and the solved cameras alike; a ``SceneSets`` is looked up per part."""
     memo: dict[int, object] = {}
-    on_disk = hasattr(scenes, "cache_dir") and hasattr(scenes, "seeds")
+
+    def one(sets, index: int):
+        if isinstance(sets, SceneSets):
+            return one(*sets.part_of(index))
+        if hasattr(sets, "cache_dir") and hasattr(sets, "seeds"):
+            return cached(sets, index)
+        return compute(sets[index].images)
 
     def lookup(index: int):
         if index not in memo:
-            memo[index] = cached(scenes, index) if on_disk else compute(scenes[index].images)
+            memo[index] = one(scenes, index)
         return memo[index]
     return lookup
 
@@ -411,10 +451,19 @@ def train(cfg: TrainConfig, out: Path, resume: bool = False, scenes=None, thread
     model.train()
     if scenes is None:
         from .data import VALIDATION_SEEDS, SyntheticScenes
+        from .data import CAPTURE_VALIDATION_SEEDS
+        if cfg.capture_scenes > min(CAPTURE_VALIDATION_SEEDS):
+            raise ValueError(f"capture_scenes: at most {min(CAPTURE_VALIDATION_SEEDS)} (the capture "
+                             f"validation scenes start there), got {cfg.capture_scenes}")
         if cfg.train_scenes > min(VALIDATION_SEEDS):
             raise ValueError(f"train_scenes: at most {min(VALIDATION_SEEDS)} (the validation "
                              f"scenes start there), got {cfg.train_scenes}")
-        scenes = SyntheticScenes(range(cfg.train_scenes), size=(mcfg.image_height, mcfg.image_width))
+        size = (mcfg.image_height, mcfg.image_width)
+        scenes = SyntheticScenes(range(cfg.train_scenes), size=size)
+        if cfg.capture_scenes:
+            capture = SyntheticScenes(range(cfg.capture_scenes), size=size, kind="capture",
+                                      render_size=CAPTURE_RENDER_SIZE)
+            scenes = SceneSets([scenes, capture])
     if cfg.render_cameras not in CAMERAS:
         raise ValueError(f"render_cameras: expected one of {CAMERAS}, got {cfg.render_cameras!r}")
     teachers = solutions = None

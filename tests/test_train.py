@@ -182,3 +182,31 @@ def test_train_on_solved_cameras_from_an_init_checkpoint(tmp_path):
     with pytest.raises(ValueError, match="render_cameras"):
         train(TrainConfig(steps=1, render_cameras="truth", **base), tmp_path / "bad2", scenes=scenes,
               threads=1)
+
+
+def test_scene_sets_index_through_their_parts():
+    from iris_train.train import SceneSets, _per_scene
+    a, b = ["a0", "a1"], ["b0", "b1", "b2"]
+    sets = SceneSets([a, [], b])
+    assert len(sets) == 5
+    assert [sets[i] for i in range(5)] == ["a0", "a1", "b0", "b1", "b2"]
+    assert sets.part_of(3) == (b, 1)
+    with pytest.raises(IndexError):
+        sets.part_of(5)
+
+    class Cached(list):            # stands in for a SyntheticScenes: keyed by (cache_dir, seed)
+        cache_dir, seeds = "dir", (10, 11)
+
+    class Plain(list):
+        pass
+
+    class Data:
+        def __init__(self, name):
+            self.images = name
+
+    seen = []
+    lookup = _per_scene(SceneSets([Cached(["c0", "c1"]), Plain([Data("p0")])]),
+                        lambda part, i: seen.append(("cached", part.seeds[i])) or part.seeds[i],
+                        lambda images: seen.append(("computed", images)) or images)
+    assert [lookup(i) for i in (1, 2, 1)] == [11, "p0", 11]
+    assert seen == [("cached", 11), ("computed", "p0")]          # memoised
