@@ -14,7 +14,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .validation import RIGID_ATOL, rigidity_error
+# The rigid-transform maths of the boundary checks, here under their geometric names.
+from .validation import RIGID_ATOL, nearest_rotation, rigidity_error  # noqa: F401
 
 #: A point is valid in a view only when its camera depth exceeds this (model units). Keeps
 #: ``u = x / z`` finite and excludes points on or behind the camera plane.

@@ -28,7 +28,7 @@ is orthonormal only to ~1e-3. So the readers of text camera files (``camera_io``
 ``transforms.json`` reader, ``iris-render --pose`` JSON) call ``snap_world_from_cam``: a matrix
 that passes the strict check is returned as is (IRIS's own files round-trip bit for bit); one
 rigid only to ``SNAP_ATOL = 1e-3`` is replaced by the nearest rigid transform (rotation block by
-its polar factor ``U V^T``, the translation kept, last row set to [0, 0, 0, 1]); beyond, the same
+``nearest_rotation``, the translation kept, last row set to [0, 0, 0, 1]); beyond, the same
 ``InputError`` as the strict check. That is the only place a pose is changed, and everything it
 returns passes the strict check. COLMAP's quaternions need neither: a normalised quaternion is a
 rotation by construction.
@@ -40,7 +40,8 @@ import numpy as np
 from .errors import ImageError, InputError
 
 __all__ = ["RIGID_ATOL", "SNAP_ATOL", "INTRINSICS_ATOL", "FLOAT_IMAGE_ATOL", "rigidity_error",
-           "check_world_from_cam", "snap_world_from_cam", "check_intrinsics", "check_images"]
+           "nearest_rotation", "check_world_from_cam", "snap_world_from_cam", "check_intrinsics",
+           "check_images"]
 
 #: The one tolerance of a rigid ``world_from_cam``: max of |R^T R - I|, |det R - 1| and
 #: |last row - [0, 0, 0, 1]| (see the module docstring for why 1e-4).
@@ -72,6 +73,18 @@ def rigidity_error(T: np.ndarray) -> np.ndarray:
     det = np.abs(np.linalg.det(R) - 1.0)
     bottom = np.abs(T[..., 3, :] - [0.0, 0.0, 0.0, 1.0]).max(axis=-1)
     return np.maximum(np.maximum(ortho, det), bottom)
+
+
+def nearest_rotation(M: np.ndarray) -> np.ndarray:
+    """The rotation closest to ``M [..., 3, 3]`` in Frobenius norm: ``U D V^T`` of the SVD
+    ``M = U S V^T`` with ``D = diag(1, 1, sign det(U V^T))`` (det +1 also for a mirrored ``M``;
+    finite for any finite ``M``). ``geometry.nearest_rotation`` is this function."""
+    U, _, Vt = np.linalg.svd(M)
+    d = np.sign(np.linalg.det(U @ Vt))
+    d = np.where(d == 0, 1.0, d)
+    U = U.copy()
+    U[..., :, 2] *= d[..., None]
+    return U @ Vt
 
 
 def _pose_array(value, name: str, batch: bool) -> np.ndarray:
@@ -132,16 +145,15 @@ def check_world_from_cam(value, name: str = "pose", *, batch: bool = False) -> n
 def snap_world_from_cam(value, name: str) -> np.ndarray:
     """For readers of text camera files only: ``value [4, 4]`` (numbers from a file) as a rigid
     float64 ``world_from_cam``. Rigid to ``RIGID_ATOL``: returned unchanged. Rigid to
-    ``SNAP_ATOL`` (rounded decimals): the nearest rigid transform (rotation ``U V^T`` of the SVD
-    ``R = U S V^T``, translation kept, last row [0, 0, 0, 1]). Otherwise ``InputError``."""
+    ``SNAP_ATOL`` (rounded decimals): the nearest rigid transform (rotation ``nearest_rotation(R)``,
+    translation kept, last row [0, 0, 0, 1]). Otherwise ``InputError``."""
     T = _pose_array(value, name, batch=False)
     err = float(rigidity_error(T))
     if err <= RIGID_ATOL:
         return T
     if err > SNAP_ATOL:
         raise _not_rigid(T, name, SNAP_ATOL)
-    U, _, Vt = np.linalg.svd(T[:3, :3])
-    T[:3, :3] = U @ Vt                        # det +1: det R is within SNAP_ATOL of 1
+    T[:3, :3] = nearest_rotation(T[:3, :3])
     T[3] = [0.0, 0.0, 0.0, 1.0]
     return T
 

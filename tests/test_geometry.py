@@ -592,6 +592,26 @@ def test_is_rigid():
         assert not NG.is_rigid(bad)
 
 
+def test_nearest_rotation_matches_scipy_and_keeps_det_one():
+    """``nearest_rotation`` (the one SVD projection of the runtime: validation's snap, the camera
+    pictures, the epipolar solve) against SciPy's ``Rotation.from_matrix`` (Markley's nearest
+    orthonormal matrix), batched, and a proper rotation for mirrored and singular input."""
+    Rotation = pytest.importorskip("scipy.spatial.transform").Rotation
+    rng = np.random.default_rng(12)
+    R = Rotation.random(16, random_state=3).as_matrix()
+    M = R + rng.normal(0.0, 0.05, R.shape)
+    got = NG.nearest_rotation(M)
+    np.testing.assert_allclose(got, Rotation.from_matrix(M).as_matrix(), atol=1e-10)
+    np.testing.assert_allclose(NG.nearest_rotation(R), R, atol=1e-12)
+    np.testing.assert_allclose(got[3], NG.nearest_rotation(M[3]), atol=0)
+    mirrored = R[0] @ np.diag([1.0, 1.0, -1.0])
+    for odd in (mirrored, np.zeros((3, 3)), np.diag([1.0, 1.0, 0.0])):
+        out = NG.nearest_rotation(odd)
+        assert np.all(np.isfinite(out))
+        np.testing.assert_allclose(out.T @ out, np.eye(3), atol=1e-12)
+        assert abs(np.linalg.det(out) - 1.0) < 1e-12
+
+
 # -- geometric cue ---------------------------------------------------------------------------
 def cue_by_hand(x, target, source):
     """Float64 loop reference of DESIGN.md's cue for one point and one source view."""
