@@ -39,12 +39,14 @@ NORM_EPS = 1e-12
 CUE_EPS = 1e-4
 
 
-def intrinsics_from_focal(focal: np.ndarray, height: int, width: int) -> np.ndarray:
-    """``K [3, 3]`` in pixels from the model's normalised focal ``[fx/W, fy/H]``; centred principal point."""
+def intrinsics_from_focal(focal, height: int, width: int) -> np.ndarray:
+    """``K [3, 3]`` in pixels from a normalised focal, principal point at the image centre: the
+    model's ``[fx/W, fy/H]``, or one number fx/W for square pixels (fy = fx in pixels, the focal
+    of the epipolar solve)."""
     focal = np.asarray(focal)
     K = np.zeros((3, 3), dtype=np.result_type(focal.dtype, np.float32))
-    K[0, 0] = focal[0] * width
-    K[1, 1] = focal[1] * height
+    K[0, 0] = focal[0] * width if focal.ndim else focal * width
+    K[1, 1] = focal[1] * height if focal.ndim else focal * width
     K[0, 2] = width / 2.0
     K[1, 2] = height / 2.0
     K[2, 2] = 1.0

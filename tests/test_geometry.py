@@ -151,6 +151,12 @@ def test_twin_intrinsics_and_scale(seed):
     np.testing.assert_allclose(Ks, n(TG.scale_intrinsics(t64(K), (H, W), to_hw)), atol=TWIN_ATOL, rtol=0)
     # A resize of a centred camera keeps the normalised focal and the centred principal point.
     np.testing.assert_allclose(Ks, NG.intrinsics_from_focal(focal, *to_hw), atol=1e-9, rtol=0)
+    # One number: fx/W with square pixels (the epipolar solve's focal), bit for bit its K.
+    f = float(focal[0])
+    square = NG.intrinsics_from_focal(f, H, W)
+    np.testing.assert_array_equal(square, [[f * W, 0, W / 2], [0, f * W, H / 2], [0, 0, 1]])
+    twin = TG.intrinsics_from_focal(torch.tensor(f, dtype=torch.float64), H, W)
+    np.testing.assert_allclose(square, n(twin), atol=TWIN_ATOL, rtol=0)
 
 
 @needs_torch
