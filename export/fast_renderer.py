@@ -129,12 +129,13 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from iris_train.layers import FADE_GAIN, MASK_FILL, sinusoidal_encoding
+from iris_train.layers import sinusoidal_encoding, validity_bias_where_free
 from iris_train.model import SAMPLERS as MODEL_SAMPLERS
-from iris_train.model import IrisModel, sampler_for
+from iris_train.model import IrisModel
 from iris_train.ray_renderer import BLEND_EPS
 
 from .errors import ExportArgumentError
+from .graphs import RendererGraph, resolve_sampler
 
 #: Renderer graph kinds of ``export_model(..., renderer=...)``: "reference" is ``RendererGraph``
 #: (the model's render_samples traced as is), "fast" (the default) this module's graph
@@ -145,7 +146,6 @@ RENDERER_KINDS = ("reference", "fast", "fast-contrib")
 #: quantize_int8`` leaves their MatMuls and Gemms in float (quantising them would quantise the
 #: tent weights, the coordinates and the attention weights they carry).
 SELECTION_PREFIX = "select_"
-SAMPLERS = ("auto", *MODEL_SAMPLERS)
 
 
 class FastRendererGraph(nn.Module):
@@ -167,10 +167,8 @@ class FastRendererGraph(nn.Module):
 
     def __init__(self, model: IrisModel, sampler: str = "auto", contrib: bool = False):
         super().__init__()
-        if sampler not in SAMPLERS:
-            raise ExportArgumentError(f"sampler: expected one of {SAMPLERS}, got {sampler!r}")
         self.model = model
-        self.sampler = sampler_for(*model.cfg.feature_grid) if sampler == "auto" else sampler
+        self.sampler = resolve_sampler(model, sampler)
         self.contrib = bool(contrib)
         if self.contrib:
             from . import ort_contrib
@@ -423,14 +421,14 @@ class FastRendererGraph(nn.Module):
         N = R * S
         W = cfg.field_width
         m = mask.to(dtype).reshape(V, N)                                     # [V, N] weights
-        bias = _validity_bias(m)                                             # 0 / -1e30 at 1 / 0
+        bias = validity_bias_where_free(m)                                   # 0 / -1e30 at 1 / 0
         s = m.amax(0)                                                        # [N] sample weights
         any_view = (s > 0).to(dtype)                                         # [N] 0 / 1
 
         renderer = self.model.renderer
         rt = renderer.ray_transformer
         sample_mask = s.reshape(R, S)
-        key_bias = _validity_bias(sample_mask)                                         # [R, S]
+        key_bias = validity_bias_where_free(sample_mask)                               # [R, S]
         no_key_bias = key_bias.min() == 0.0                 # every sample at full weight
         ones = torch.ones_like(key_bias).reshape(N, 1)
         unit_dir = directions / directions.norm(dim=-1, keepdim=True).clamp_min(1e-12)
@@ -518,12 +516,6 @@ class SelectedViewsRendererGraph(FastRendererGraph):
         return self._render(slots, field_maps.dtype, mask, positions, directions, slot_colours)
 
 
-def _validity_bias(w: torch.Tensor) -> torch.Tensor:
-    """``layers.validity_bias(w)``, the same values, as ``FADE_GAIN * (w - 1) + (w <= 0) *
-    MASK_FILL`` (no ``Where``: -100 - 1e30 rounds to -1e30 in float32)."""
-    return FADE_GAIN * (w - 1.0) + (w <= 0).to(w.dtype) * MASK_FILL
-
-
 def _key_softmax(scores: torch.Tensor, key_bias: torch.Tensor,
                  no_key_bias: torch.Tensor) -> torch.Tensor:
     """``softmax(scores + key_bias)`` over the last axis, with the Add over ``scores [R, H, S, S]``
@@ -609,7 +601,6 @@ def renderer_wrapper(model: IrisModel, renderer: str = "reference") -> nn.Module
                                   f"{renderer!r}")
     if renderer in ("fast", "fast-contrib"):
         return FastRendererGraph(model, contrib=renderer == "fast-contrib")
-    from .graphs import RendererGraph
     return RendererGraph(model)
 
 

@@ -98,7 +98,17 @@ class EncoderGraph(nn.Module):
         return self.model.field.prepare(features[0]), world_from_cam[0], focal[0]
 
 
+#: Field-map samplers of the renderer graphs: the model's (``iris_train.model.SAMPLERS``), or
+#: "auto", the model's own choice for its feature grid (``resolve_sampler``).
 SAMPLERS = ("auto", *MODEL_SAMPLERS)
+
+
+def resolve_sampler(model: IrisModel, sampler: str) -> str:
+    """The field-map sampler a renderer graph of ``model`` uses for ``sampler`` (``SAMPLERS``), or
+    ``ExportArgumentError``."""
+    if sampler not in SAMPLERS:
+        raise ExportArgumentError(f"sampler: expected one of {SAMPLERS}, got {sampler!r}")
+    return sampler_for(*model.cfg.feature_grid) if sampler == "auto" else sampler
 
 
 class RendererGraph(nn.Module):
@@ -116,10 +126,8 @@ class RendererGraph(nn.Module):
 
     def __init__(self, model: IrisModel, sampler: str = "auto"):
         super().__init__()
-        if sampler not in SAMPLERS:
-            raise ExportArgumentError(f"sampler: expected one of {SAMPLERS}, got {sampler!r}")
         self.model = model
-        self.sampler = sampler_for(*model.cfg.feature_grid) if sampler == "auto" else sampler
+        self.sampler = resolve_sampler(model, sampler)
 
     def forward(self, field_maps: torch.Tensor, grid: torch.Tensor, cues: torch.Tensor,
                 mask: torch.Tensor, positions: torch.Tensor, directions: torch.Tensor,
@@ -369,4 +377,5 @@ def toposort_with_subgraphs(graph) -> None:
 
 __all__ = ["EncoderGraph", "RendererGraph", "WRAPPERS", "DEFAULT_OPSET", "MIN_OPSET", "EXPORTER",
            "fixed_dims", "example_inputs", "export_graph", "quantize_int8", "check_opset",
-           "set_min_ir_version", "toposort_with_subgraphs", "GraphFile", "SAMPLERS"]
+           "set_min_ir_version", "toposort_with_subgraphs", "GraphFile", "SAMPLERS",
+           "resolve_sampler"]
