@@ -55,7 +55,6 @@ from iris_runtime.geometry import nearest_rotation
 DEFAULT_ALPHAS = (0.0, 0.25, 0.5, 0.75, 1.0)
 VIEWS = 8
 CHUNK_RAYS = 256          # rays per renderer call (memory: 256 x 64 samples x 5 views x 192 ch)
-PSNR_CAP = 100.0
 
 
 # ----------------------------------------------------------------------------------------------
@@ -110,6 +109,7 @@ def interpolate_poses(world_from_cam: np.ndarray, alpha: float) -> np.ndarray:
 # ----------------------------------------------------------------------------------------------
 
 def _psnr(mse: float) -> float:
+    from iris_train.metrics import PSNR_CAP
     if not np.isfinite(mse):
         return float("nan")
     return PSNR_CAP if mse <= 0 else min(PSNR_CAP, 10.0 * math.log10(1.0 / mse))
