@@ -27,6 +27,7 @@ from __future__ import annotations
 import numpy as np
 
 from .errors import InputError
+from .validation import check_integer
 
 __all__ = ["orbit_poses", "look_at", "scene_centre"]
 
@@ -78,8 +79,7 @@ def orbit_poses(world_from_cam, n: int, *, near: float, far: float,
     T = np.asarray(world_from_cam, dtype=np.float64)
     if T.ndim != 3 or T.shape[1:] != (4, 4) or len(T) == 0 or not np.all(np.isfinite(T)):
         raise InputError(f"world_from_cam: expected finite [V, 4, 4] poses, got shape {T.shape}")
-    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
-        raise InputError(f"n: expected a positive number of frames, got {n!r}")
+    n = check_integer(n, "n")
     centres = T[:, :3, 3]
     target = scene_centre(T, near, far)
     m = centres.mean(0)

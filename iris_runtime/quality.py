@@ -48,6 +48,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import InputError
+from .validation import check_integer
 
 __all__ = ["RenderSettings", "QUALITY_PRESETS", "TOP_K_BY", "UPSAMPLERS", "PRECISIONS",
            "resolve_settings", "top_k_mask", "ray_view_sets", "group_rays"]
@@ -96,10 +97,7 @@ class RenderSettings:
 
     def __post_init__(self):
         for name in ("samples", "top_k"):
-            v = getattr(self, name)
-            if v is not None and (isinstance(v, bool) or not isinstance(v, (int, np.integer))
-                                  or v < 1):
-                raise InputError(f"{name}: expected a positive integer or None, got {v!r}")
+            check_integer(getattr(self, name), name, allow_none=True)
         if self.top_k_by not in TOP_K_BY:
             raise InputError(f"top_k_by: expected one of {list(TOP_K_BY)}, got {self.top_k_by!r}")
         if self.upsample not in UPSAMPLERS:
@@ -109,9 +107,7 @@ class RenderSettings:
         _check_fraction("depth_mass", self.depth_mass, "in [0, 1]", lambda x: 0.0 <= x <= 1.0)
         if self.refine is not None:
             _check_fraction("refine", self.refine, ">= 0 or None", lambda x: x >= 0.0)
-        w = self.depth_window
-        if w is not None and (isinstance(w, bool) or not isinstance(w, (int, np.integer)) or w < 0):
-            raise InputError(f"depth_window: expected a non-negative integer or None, got {w!r}")
+        check_integer(self.depth_window, "depth_window", minimum=0, allow_none=True)
         if self.precision is not None and (not isinstance(self.precision, str)
                                            or self.precision not in PRECISIONS):
             raise InputError(f"precision: expected one of {list(PRECISIONS)} or None, got "

@@ -13,6 +13,8 @@ behind them trusts what they return and checks nothing again.
 
 Every failure is a typed error (``InputError`` for cameras, ``ImageError`` for images) whose
 message starts with the argument's name and says what was expected and what was found.
+``check_integer`` is the one check of a count (sizes, samples, views, threads, frames) for every
+caller, with the caller's error type.
 
 Rigidity policy
 ---------------
@@ -41,7 +43,7 @@ from .errors import ImageError, InputError
 
 __all__ = ["RIGID_ATOL", "SNAP_ATOL", "INTRINSICS_ATOL", "FLOAT_IMAGE_ATOL", "rigidity_error",
            "nearest_rotation", "check_world_from_cam", "snap_world_from_cam", "check_intrinsics",
-           "check_images"]
+           "check_images", "check_integer"]
 
 #: The one tolerance of a rigid ``world_from_cam``: max of |R^T R - I|, |det R - 1| and
 #: |last row - [0, 0, 0, 1]| (see the module docstring for why 1e-4).
@@ -249,3 +251,23 @@ def check_images(value, name: str = "image", *, batch: bool = False) -> np.ndarr
         raise ImageError(f"{name}: float image values must lie in [0, 1], got [{lo:.4g}, "
                          f"{hi:.4g}]; {_range_hint(lo, hi)}")
     return a
+
+
+# ----------------------------------------------------------------------------------------------
+# Counts
+# ----------------------------------------------------------------------------------------------
+
+def check_integer(value, name: str, *, minimum: int = 1, allow_none: bool = False,
+                  error: type[Exception] = InputError) -> int | None:
+    """``value`` as a Python int ``>= minimum`` (numpy integers accepted, bools refused), or
+    ``error`` naming ``name``: "expected a positive integer" (``minimum`` 1), "a non-negative
+    integer" (0), "an integer >= minimum" otherwise, "or None" with ``allow_none`` (None is then
+    returned as is)."""
+    if value is None and allow_none:
+        return None
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)) \
+            or value < minimum:
+        what = {1: "a positive integer", 0: "a non-negative integer"}.get(
+            minimum, f"an integer >= {minimum}")
+        raise error(f"{name}: expected {what}{' or None' if allow_none else ''}, got {value!r}")
+    return int(value)
