@@ -42,6 +42,7 @@ from . import quality as Q
 from . import raymarch
 from .errors import InputError, ManifestError, ModelFileError
 from .images import fit_to_model, load_image
+from .io_spec import FIELD_MAPS, FOCAL, IMAGES, IS_REFERENCE, WORLD_FROM_CAM
 from .limits import (MAX_CHUNK_RAYS, MAX_CHUNK_SAMPLES, MAX_ENCODER_TOKENS, MAX_LOCATE_CALLS,
                      MAX_OUTPUT_PIXELS, RENDER_BUDGET, render_memory_bound)
 from .manifest import CAMERAS, MANIFEST_NAME, Manifest, read_graph_bytes, read_manifest
@@ -228,8 +229,8 @@ class IrisRuntime:
         """The encoder graph on ``batch [V, 3, H, W]`` with ``is_reference`` bool [V] -> field_maps
         float32 [V, C', h, w], world_from_cam float32 [V, 4, 4], focal float32 [2], checked."""
         maps, world_from_cam, focal = self._session("encoder").run(
-            ["field_maps", "world_from_cam", "focal"],
-            {"images": batch, "is_reference": np.ascontiguousarray(is_reference, dtype=bool)})
+            [FIELD_MAPS, WORLD_FROM_CAM, FOCAL],
+            {IMAGES: batch, IS_REFERENCE: np.ascontiguousarray(is_reference, dtype=bool)})
         V = batch.shape[0]
         channels = self.manifest.field_channels
         if (maps.ndim != 4 or maps.shape[0] != V or (channels and maps.shape[1] != channels)
