@@ -24,10 +24,8 @@ FORMAT_VERSION = 2
 #: takes ``colours``; for every other model the two graphs are those of 2), 4 (the renderers'
 #: ``mask`` is float32 validity weights, ``geometry.validity``, not bool).
 IO_SPEC_VERSION = 4
-#: Older I/O spec versions this runtime reads as ``IO_SPEC_VERSION``: none (2 and 3 take a bool
-#: mask; the manifest check refuses them with a re-export hint).
-IO_SPEC_COMPATIBLE: tuple[int, ...] = ()
-#: I/O spec versions whose renderers take a bool ``mask`` (refused: re-export).
+#: I/O spec versions whose renderers take a bool ``mask``: the manifest reader refuses them with
+#: a re-export hint (it reads ``IO_SPEC_VERSION`` only).
 IO_SPEC_BOOL_MASK = (2, 3)
 
 # The graphs' input and output names: the keys of the specs below, and what the runtime feeds and
@@ -166,8 +164,7 @@ def required_dtypes(graph: str, explicit_rgb: bool = False) -> dict[str, dict[st
             for kind in ("inputs", "outputs")}
 
 
-__all__ = ["MANIFEST_NAME", "FORMAT_NAME", "FORMAT_VERSION", "IO_SPEC_VERSION", "IO_SPEC_COMPATIBLE",
-           "IO_SPEC_BOOL_MASK",
+__all__ = ["MANIFEST_NAME", "FORMAT_NAME", "FORMAT_VERSION", "IO_SPEC_VERSION", "IO_SPEC_BOOL_MASK",
            "ENCODER", "RENDERER", "RENDERER_VIEWS", "EXPLICIT_RGB_INPUTS", "EXPLICIT_RGB_AXES",
            "GRAPHS", "OPTIONAL_GRAPHS", "spec_for", "required_dtypes",
            "IMAGES", "IS_REFERENCE", "FIELD_MAPS", "WORLD_FROM_CAM", "FOCAL", "GRID", "CUES", "MASK",
