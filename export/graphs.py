@@ -315,11 +315,10 @@ def quantize_int8(src: str | Path, dst: str | Path) -> GraphFile:
             # contrib ops (export.fast_renderer's "fast-contrib" graph); float32 is every
             # tensor's type here. Graphs whose types are all inferred are unaffected.
             # reduce_range: 7-bit weights. Without AVX-512 VNNI, ORT's u8 x s8 kernels sum
-            # pairs of products in int16 and saturate with 8-bit weights: on an AVX2-only EPYC
-            # the shipped model's int8 renderer was 8.9e-2 off in rgb (tests/test_export.py
-            # bounds it at 5e-2; 7.4e-3 with 7-bit weights, export validation in iris.json).
+            # pairs of products in int16 and saturate with 8-bit weights (tests/test_export.py
+            # bounds the int8 error; the figures: docs/PERFORMANCE.md, "int8").
             # The fast graphs' 0/1 selection matmuls stay float: they carry the bilinear and
-            # attention weights, which 8 bits would round (rgb 0.16 off when they were quantised).
+            # attention weights, which 8 bits would round.
             from .fast_renderer import SELECTION_PREFIX
             exclude = [n.name for n in proto.graph.node
                        if any(i.startswith(SELECTION_PREFIX) for i in n.input)]
