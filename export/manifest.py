@@ -8,7 +8,7 @@ report (max abs error of ONNX Runtime vs torch per output, tolerances, median ti
 
     {
       "format": "iris-model", "version": 2, "io_spec_version": 4,
-      "created": "2025-01-01T00:00:00Z",
+      "created": "YYYY-MM-DDThh:mm:ssZ",                 # UTC, when it was written
       "config": {...ModelConfig.to_dict()...},
       "image_size": [H, W], "patch_size": p, "feature_grid": [h, w], "field_channels": C',
       "near": 0.1, "far": 1.0, "samples": 64,

@@ -133,8 +133,8 @@ def _check_fraction(name: str, x, expected: str, ok) -> None:
 #: - "adaptive": a quarter-resolution coarse pass, bicubic upsampling, and the 12 % least trusted
 #:               pixels (colour or depth range >= 0.1 over their coarse neighbourhood) rendered
 #:               again exactly: a coarse pass costs 1/16 of the full render and the budget
-#:               bounds the rest, so about 1/5 of the full render's renderer work, for issue 12's
-#:               bar of >= 4x at <= 0.1 dB ground-truth PSNR loss. The budget, not the
+#:               bounds the rest, so about 1/5 of the full render's renderer work, aimed at
+#:               >= 4x the speed for <= 0.1 dB of ground-truth PSNR. The budget, not the
 #:               threshold, decides on textured views; a plain view refines less. No
 #:               ``depth_window``: the shipped model's weights are spread along its rays (the
 #:               fallback would keep every sample), see docs/PERFORMANCE.md.

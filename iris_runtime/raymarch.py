@@ -399,8 +399,8 @@ def plan_calls(plan: MarchPlan, block: Block) -> list[Call]:
 
     With culling, the rays whose every sample has full weight in its best view go to calls of
     their own: such a call has no masked or fading key, so the renderer graph skips its ray
-    attentions' key-bias Add (``export.fast_renderer._key_softmax``): 91.5 % of the rays of four
-    held-out scenes' targets (``benchmarks/call_ab.py``)."""
+    attentions' key-bias Add (``export.fast_renderer._key_softmax``). Most rays of a render are
+    such rays (docs/PERFORMANCE.md, "The fast renderer graph")."""
     if not plan.cull:
         return [Call(np.arange(len(block.rows)), np.arange(len(block.views)))]
     if len(block.views) == 0:                            # nothing of the scene on these rays

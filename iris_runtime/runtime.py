@@ -271,10 +271,10 @@ class IrisRuntime:
                  focal becomes the Scene's ``focal`` and ``K`` (rendering uses the focal the
                  poses were solved at); the encoder's is kept in ``Scene.encoder_focal``. Views
                  that view 0 does not reach through trusted pairs keep the encoder's camera
-                 (``Scene.camera_source`` "mixed"; "model" if none is reached). Costs 8.5 s for 8
-                 views at 64x64 on one core against 0.03 s with the encoder's cameras
-                 (``benchmarks/epipolar_cost.py``).
-                 Held-out figures: README, "Epipolar cameras".
+                 (``Scene.camera_source`` "mixed"; "model" if none is reached). Costs
+                 V (V - 1) / 2 optical flows and the solve, far more than the encoder
+                 (``benchmarks/epipolar_cost.py``). How it works and its held-out figures:
+                 docs/CAMERAS.md.
         """
         return self._encode(images, {}, self._check_cameras(
             self.default_cameras if cameras is None else cameras))
