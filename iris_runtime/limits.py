@@ -12,7 +12,7 @@ from .validation import check_integer
 
 __all__ = ["RENDER_BUDGET", "MAX_CHUNK_RAYS", "MAX_OUTPUT_PIXELS", "MAX_ENCODER_TOKENS",
            "MAX_CHUNK_SAMPLES", "MAX_LOCATE_CALLS", "render_memory_bound", "default_chunk_rays",
-           "max_views", "check_output_size", "check_chunk_rays"]
+           "max_views", "check_output_size", "check_chunk_rays", "chunk_rays_for"]
 
 #: Rays x samples x views per renderer call by default: ``default_chunk_rays`` gives
 #: ``min(MAX_CHUNK_RAYS, RENDER_BUDGET // (S * V))`` rays (256 for 1-2 views, 128 for 4, 64 for 8
@@ -83,6 +83,17 @@ def check_output_size(image_size: tuple[int, int], height=None, width=None) -> t
                          f"MAX_OUTPUT_PIXELS = {MAX_OUTPUT_PIXELS} (the output is held in "
                          f"memory whole, ~31 bytes per pixel); render tiles with intrinsics")
     return h, w
+
+
+def chunk_rays_for(chunk_rays, *, pixels: int, samples: int, num_views: int,
+                   views_per_call: int) -> int:
+    """Rays per renderer call of a render of ``pixels`` pixels, ``samples`` samples per ray and
+    ``num_views`` reference views: ``chunk_rays`` checked (``check_chunk_rays``), or when None
+    ``default_chunk_rays`` of the views a call feeds per point (``views_per_call``: fewer than
+    ``num_views`` when the calls shrink to a top-k of them)."""
+    if chunk_rays is None:
+        return default_chunk_rays(views_per_call, samples)
+    return check_chunk_rays(chunk_rays, pixels, samples, num_views)
 
 
 def check_chunk_rays(chunk_rays, pixels: int, samples: int, num_views: int) -> int:

@@ -114,6 +114,14 @@ class RenderSettings:
                              f"{self.precision!r}")
 
 
+    def march_size(self, height: int, width: int) -> tuple[int, int]:
+        """The pixels a render of ``height`` x ``width`` marches before its resize: ``scale`` x
+        each side, rounded, at least 1 (never more than the output: ``scale`` is in (0, 1])."""
+        if self.scale == 1.0:
+            return height, width
+        return max(1, int(round(height * self.scale))), max(1, int(round(width * self.scale)))
+
+
 def _check_fraction(name: str, x, expected: str, ok) -> None:
     """``InputError`` naming ``name`` unless ``x`` is a finite real number with ``ok(x)``."""
     if isinstance(x, bool) or not isinstance(x, (int, float, np.integer, np.floating)) \
