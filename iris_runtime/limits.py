@@ -96,12 +96,14 @@ def chunk_rays_for(chunk_rays, *, pixels: int, samples: int, num_views: int,
     return check_chunk_rays(chunk_rays, pixels, samples, num_views)
 
 
-def check_chunk_rays(chunk_rays, pixels: int, samples: int, num_views: int) -> int:
-    """An explicit ``chunk_rays`` as an int, or ``InputError`` when it is not a positive integer
-    or when ``min(chunk_rays, pixels) * samples * num_views`` exceeds ``MAX_CHUNK_SAMPLES``."""
-    chunk_rays = check_integer(chunk_rays, "chunk_rays")
+def check_chunk_rays(chunk_rays, pixels: int, samples: int, num_views: int,
+                     name: str = "chunk_rays") -> int:
+    """An explicit ``chunk_rays`` as an int, or ``InputError`` naming ``name`` when it is not a
+    positive integer or when ``min(chunk_rays, pixels) * samples * num_views`` exceeds
+    ``MAX_CHUNK_SAMPLES``."""
+    chunk_rays = check_integer(chunk_rays, name)
     if min(chunk_rays, pixels) * samples * num_views > MAX_CHUNK_SAMPLES:
-        raise InputError(f"chunk_rays: {chunk_rays} rays x {samples} samples x "
+        raise InputError(f"{name}: {chunk_rays} rays x {samples} samples x "
                          f"{num_views} views per renderer call exceeds "
                          f"MAX_CHUNK_SAMPLES = {MAX_CHUNK_SAMPLES} (memory grows with it); "
                          f"use at most {max(1, MAX_CHUNK_SAMPLES // (samples * num_views))}")
