@@ -34,7 +34,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--renderer", choices=["reference", "fast", "fast-contrib"],
                         default="fast",
                         help="renderer graph: 'fast' (default: laid out for ONNX Runtime's CPU "
-                             "kernels, 1.38x faster frames than 'reference', same values), "
+                             "kernels, faster frames than 'reference', same values), "
                              "'reference' (the model's render_samples traced as is) or "
                              "'fast-contrib' (fast with com.microsoft fused ops, slower here); "
                              "see export/fast_renderer.py and docs/PERFORMANCE.md")

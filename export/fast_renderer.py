@@ -5,136 +5,87 @@
 (``iris_runtime.io_spec.RENDERER``, plus ``colours`` for explicit-colour models), so the runtime
 runs either graph unchanged. It is built from the model's own modules (norms, MLPs, projections,
 heads, ``layers.sinusoidal_encoding``) and parameters; the weights it needs in another form are
-derived from them at construction (see the class). Same values as torch up to float rounding
-(tests/test_fast_renderer.py: <= 1e-5 on rgb and weights for both renderer kinds, measured
-<= 3e-7 in torch and in ONNX Runtime).
+derived from them at construction (see the class). tests/test_fast_renderer.py holds it to torch
+within 1e-5 on rgb and weights for both renderer kinds, in torch and in ONNX Runtime.
 
 ``SelectedViewsRendererGraph(model)`` is the same renderer on per-point pre-selected views
 (``iris_runtime.io_spec.RENDERER_VIEWS``: the kept (view, point) pairs in groups of one view,
 and K view slots per point), which the runtime uses for per-point top-k.
 
-What differs from the reference graph, and why (the reference graph's profile,
-benchmarks/results/error_vs_time.md: ``Where`` 14% and ``Transpose`` 14% of node time):
+What differs from the reference graph, and why: each change replaces a layout that ONNX Runtime's
+CPU kernels run slowly by one they run fast, with the same values. What each was worth, and the
+commands that measure it: docs/PERFORMANCE.md, "The fast renderer graph".
 
-* Masks are additive biases. The validity weights ``mask`` become
-  ``bias = FADE_GAIN * (m - 1) + (m <= 0) * MASK_FILL`` once per call (``[V', R*S]``;
-  ``MASK_FILL = -1e30``, finite): the values of ``layers.validity_bias`` (0 at weight 1, -1e30 at
-  0) without a ``Where``. The masked max-pool over views is ``ReduceMax(u + bias) * any_view`` and
-  the masked softmaxes are ``Softmax(logits + bias)``; the sample weights (each point's best
-  view's) give the ray attention's key bias the same way. For every row with at least one valid
-  entry this is exactly the masked fill (``x + (-1e30)`` rounds to ``-1e30`` and ``exp(-1e30 -
-  max)`` is exactly 0). Rows with no valid entry are where the semantics could differ, and they are
-  kept: a point seen by no view gets ``q0 = 0`` and zero view-attention weights (the attention's
-  normaliser is multiplied by ``any_view``), exactly as in ``layers.masked_max`` /
-  ``masked_softmax``; a ray with no valid sample gets uniform (finite) ray-attention rows, which
-  the reference's masked softmax would make 0 -- but those rows belong to rays whose samples are
-  all pooled away (weight 0 in the mean pool and in the depth weights, which are therefore exactly
-  0), so rgb = head(0) and weights = 0 as before (the reference's own non-final ray blocks already
-  work this way).
-* View-major throughout the latent field: no Transpose. The field is computed on ``[V', R*S, .]``
-  tensors; every reduction over views (max-pool, softmax, weighted sum) is a reduction over the
-  leading axis (ONNX Runtime's contiguous "reduce leading dims" kernel), whose result is already
-  point-major ``[R*S, W]`` (rays, then samples), the layout the ray transformer needs. The softmax
-  over views is written out (ReduceMax, Sub, Exp, ReduceSum) because ONNX ``Softmax`` on a
-  non-last axis transposes internally.
-* One sampling matmul per field-map slot, with the per-view affine work folded into it. The dense
-  bilinear weights ``[V', N, h*w]`` are extended by the cues, (explicit colour) the sampled RGB
-  and the mask bias: ``A = [tent | cues | colours | bias] [V', N, h*w + 5 (+ 3)]``; each slot (u,
-  and every view block's keys and values) is ``A @ B_slot`` with ``B_slot = [maps_slot ;
-  cue_to_kv_slot ; rgb_to_maps_slot ; 1 for u, 0 for k and v]``, built per call from the field
-  maps (``[V', K, W]``, small). So the cue's 4 -> 2W map, the colour's 3 -> C' map, the masked
-  max-pool's bias and their Adds over ``[V', N, C']`` disappear into the matmul's K dimension,
-  and separate u/k/v products replace one product + Slices (copies). The constant of
-  ``rgb_to_maps(colours - 0.5)`` is added to the maps (bilinear weights sum to one). ``A`` itself
-  is ``([wy | extras] @ select_rows) * (wx @ select_cols)``: 0/1 matmuls copy the per-axis tent
-  weights to their cells (the outer product bit for bit; the extras times sum_x wx = 1 within one
-  rounding), because ONNX Runtime runs the broadcast outer product ``wy[..., :, None] *
-  wx[..., None, :]`` (spans of 8) and the wide Concat at a fraction of its same-shape speed.
-* Reductions over views as matmuls: ONNX Runtime's ``ReduceSum`` over a leading axis ran ~8x
-  slower than ``ones [1, V] @ x [V, -1]`` (``benchmarks/ort_reductions.py``), so every sum over
-  views is that matmul (``_sum_views``); the per-head sums and broadcasts of the view attention
-  are 0/1 matmuls (``select_head_sum [W, H]``, ``select_head_expand [H, W]``). The maxima over
-  views (the max-pool, the softmax's shift) have no matmul form: the exported graph's
-  ``ReduceMax`` over the leading axis is rewritten as a ``Scan`` of element-wise ``Max``
-  (``views_max_as_scan``, ``rewrite_onnx``), ~3x faster (``benchmarks/ort_reductions.py``).
-  ``benchmarks/renderer_profile.py`` of the shipped model before / after the selection matmuls
-  (5 views x 102 rays x 64 samples, 2 threads, one run): node time per call 51.6 / 50.1 ms,
-  median call 0.955x (docs/PERFORMANCE.md).
-* No broadcast over a trailing axis of 1 on per-sample tensors: ONNX Runtime runs
-  ``x [..., 1] * y [..., n]`` 2.5-5x slower than the same values made by a matmul
-  (``benchmarks/ort_reductions.py``). Masks and normalisers are widened by ``x @ ones [1, n]``
-  (``_expand``, exact copies); the tent's ``g - centres`` is a Gemm on the pixel coordinates
-  (``_tent_axes``: a copy and the same subtraction, bit for bit); the position encoding's
-  ``x_c 2^k pi`` is a matmul with one nonzero per column (the same products).
-* Separate q/k/v weights in the ray attention, per head: ``y [R, 1, S, W] @ Wq [H, W, Dh]`` gives
-  ``[R, H, S, Dh]`` directly (a broadcast batched MatMul instead of a Gemm + Reshape + Transpose
-  + Split). The query bias is a row of the query weights, multiplied by a column of ones
-  appended to the input (the same sum, the bias added last). The key mask stays an Add over
-  ``[R, H, S, S]``: carrying it as a 17th q . k component makes the projections 17 wide, which
-  ONNX Runtime ran 1.8x slower than 16 wide (``benchmarks/ort_reductions.py``). The key bias is
-  dropped (it adds ``q . b_k`` to every logit of a row: softmax-invariant)
-  and the value bias is folded into the output projection's bias (softmax rows sum to one). The
-  attention scale is folded into the query weights (exact for the power-of-two scales of the
-  presets). One Transpose per ray block remains: merging heads before the output projection (the
-  transpose-free alternatives cost H x the memory or H x the attention FLOPs).
-* The key-bias Add only where a key is masked or fading: when every sample of a call has full
-  weight the bias is all 0 and ``softmax(scores + 0)`` is ``softmax(scores)`` bit for bit, so the
-  ray attentions take an ONNX ``If`` branch without the Add over ``[R, H, S, S]``
-  (``_key_softmax``, ``torch.cond``). The runtime gives such rays calls of their own
-  (``iris_runtime.raymarch.plan_calls``): ``python benchmarks/call_ab.py OLD NEW --scenes 4``,
-  on the 717 calls of four held-out scenes' targets (485 of them at full weight, 91.5 % of the
-  rays): graph time per call 0.981x, outputs bit-identical (docs/PERFORMANCE.md).
-* Per-ray work out of the per-sample path: each block's injection ``psi(enc)`` is split into its
-  position part (per sample, ``[R*S, P] @ [P, W]``) and its direction part (per ray, ``[R, W]``,
-  broadcast over samples), instead of expanding the direction encoding to every sample and
-  concatenating.
-* Reductions as matmuls: the mean pool over valid samples is ``c [R, 1, S] @ normed [R, S, W]``
-  and the paper renderer's depth weights (mean over heads and valid queries of the last attention)
-  are ``c / H [R, 1, 1, S] @ attn [R, H, S, S]`` summed over heads.
-* The residual streams are 2-D ``[R*S, W]``, so every linear layer exports as a Gemm with its bias
-  fused (on 3-D ``[R, S, W]`` the exporter writes MatMul + Add, which ONNX Runtime 1.32 left
-  unfused here).
+* Masks are additive biases, no ``Where``: the validity weights become
+  ``layers.validity_bias_where_free`` once per call, the masked max-pool over views is
+  ``ReduceMax(u + bias) * any_view`` and the masked softmaxes are ``Softmax(logits + bias)``. For
+  every row with a valid entry this is exactly the masked fill (``x + MASK_FILL`` rounds to
+  ``MASK_FILL``, whose ``exp`` is exactly 0). Rows with no valid entry keep the reference's
+  meaning: a point seen by no view gets ``q0 = 0`` and zero view-attention weights (the
+  attention's normaliser is multiplied by ``any_view``, as in ``layers.masked_max`` /
+  ``masked_softmax``); a ray with no valid sample gets uniform, finite ray-attention rows, but its
+  samples are all pooled away (weight 0 in the mean pool and in the depth weights), so rgb =
+  head(0) and weights = 0 as in the reference.
+* View-major throughout the latent field, so no Transpose: the field runs on ``[V', R*S, .]``,
+  every reduction over views is over the leading axis and leaves the point-major ``[R*S, W]``
+  the ray transformer needs. The softmax over views is written out (ReduceMax, Sub, Exp, sum),
+  because ONNX ``Softmax`` on a non-last axis transposes internally.
+* One sampling matmul per field-map slot (u, and every view block's keys and values):
+  ``A @ B_slot`` with the design matrix ``A = [tent | cues | colours | bias]`` and ``B_slot =
+  [maps_slot ; cue_to_kv_slot ; rgb_to_maps_slot ; 1 for u, 0 for k and v]``, so the cue's and
+  the colour's maps, the max-pool's bias and their Adds disappear into the matmul's K dimension.
+  ``A`` is ``([wy | extras] @ select_rows) * (wx @ select_cols)``: 0/1 matmuls copy the per-axis
+  tent weights to their cells (the outer product, bit for bit) instead of a broadcast outer
+  product and a wide Concat.
+* Reductions over views as matmuls: sums are ``ones [1, V] @ x [V, -1]`` (``_sum_views``), the
+  view attention's per-head sums and broadcasts 0/1 matmuls (``select_head_sum``,
+  ``select_head_expand``); the maxima, which have no matmul form, are a ``Scan`` of element-wise
+  ``Max`` (``views_max_as_scan``, applied by ``rewrite_onnx``).
+* No broadcast over a trailing axis of 1 on per-sample tensors: masks and normalisers are widened
+  by ``x @ ones [1, n]`` (``_expand``, exact copies), the tent's ``g - centres`` is a Gemm
+  (``_tent_axes``) and the position encoding's ``x_c 2^k pi`` a matmul with one nonzero per
+  column (the same products).
+* Ray attention on per-head q/k/v weights: ``y [R, 1, S, W] @ Wq [H, W, Dh]`` gives
+  ``[R, H, S, Dh]`` directly (no Gemm + Reshape + Transpose + Split). The attention scale is in
+  the query weights (exact for the presets' power-of-two scales), the query bias is a row of them
+  times an appended column of ones, the key bias is dropped (it adds ``q . b_k`` to a whole row:
+  softmax-invariant) and the value bias is folded into the output projection's bias (attention
+  rows sum to one). The key mask stays an Add over ``[R, H, S, S]`` (a 17th q . k component
+  carrying it would make the projections 17 wide) and is skipped when every key has full weight
+  (``_key_softmax``, an ONNX ``If``; the runtime gives such rays calls of their own,
+  ``iris_runtime.raymarch.plan_calls``). One Transpose per ray block remains, merging the heads
+  (the transpose-free forms cost H x the memory or the attention FLOPs).
+* Per-ray work out of the per-sample path (each block's injection ``psi(enc)`` split into a
+  per-sample position part and a per-ray direction part); the mean pool and the paper renderer's
+  depth weights as matmuls; the residual streams 2-D ``[R*S, W]`` so that every linear layer
+  exports as a Gemm with its bias fused.
 
-Fused ``com.microsoft`` contrib operators (``contrib=True``, ``export.ort_contrib``): every
-residual Add + LayerNormalization becomes ``SkipLayerNormalization`` (the pending bias of the
-preceding linear layer as its bias) and every MLP's first layer MatMul + ``BiasGelu``. (The ray
-attentions were ``MultiHeadAttention`` while masks were 0 / 1; its ``key_padding_mask`` cannot
-carry the fractional validity weights, so they keep the explicit attention.) Checked: loads in
-onnxruntime 1.32 CPU, <= 3e-7 from torch. Without ``contrib``, ONNX Runtime's own optimiser fuses
-none of these in this layout (after ``ORT_ENABLE_ALL``: no SkipLayerNormalization, no BiasGelu; the
-reference graph gets 1 and 2). Which of the two is faster is a measurement for a quiet machine
-(benchmarks/renderer_profile.py).
+``contrib=True`` (``export.ort_contrib``): every residual Add + LayerNormalization becomes
+``SkipLayerNormalization`` (the pending bias of the preceding linear layer as its bias) and every
+MLP's first layer MatMul + ``BiasGelu``; ONNX Runtime's own optimiser fuses neither in this
+layout. The ray attentions stay explicit: ``MultiHeadAttention``'s ``key_padding_mask`` cannot
+carry fractional validity weights.
 
-Graph sizes before the 2026-12-03 selection-matmul changes (random tiny / tiny-rgb models, opset
-20, nodes as exported -> after ONNX Runtime's ``ORT_ENABLE_ALL`` optimisations; counts, not
-times): reference 217 -> 206 / 249 -> 239 with 5 ``Where`` and 14 / 16 ``Transpose`` left;
-fast 186 -> 179 / 210 -> 204 with no ``Where`` and 2 ``Transpose`` (the head merges of the two ray
-blocks); fast-contrib (with MultiHeadAttention then) 177 -> 171 / 196 -> 192 with 1 / 0
-``Transpose``.
-
-``export_fast_renderer`` writes the graph with ``export_graph`` (same exporter, axis names, IR
-version and checks); ``export_model(..., renderer="fast" | "fast-contrib")`` /
-``iris-export --renderer ...`` ship it, validated against the torch reference ``RendererGraph``
-like the reference graph and recorded as ``export.renderer_graph`` in the manifest. "fast" is the
-default: measured faster per frame than "reference" and than "fast-contrib"
-(docs/PERFORMANCE.md).
+``renderer_wrapper(model, kind)`` builds the wrapper of each of ``RENDERER_KINDS``;
+``export_model(..., renderer=...)`` / ``iris-export --renderer`` ship it, validated against the
+torch reference ``RendererGraph`` like the reference graph and recorded as
+``export.renderer_graph`` in the manifest. "fast" is the default: the fastest per frame of the
+three (docs/PERFORMANCE.md).
 """
 from __future__ import annotations
-
-import collections
-from pathlib import Path
 
 import numpy as np
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from iris_train.layers import FADE_GAIN, MASK_FILL, sinusoidal_encoding
+from iris_train.layers import sinusoidal_encoding, validity_bias_where_free
 from iris_train.model import SAMPLERS as MODEL_SAMPLERS
-from iris_train.model import IrisModel, sampler_for
+from iris_train.model import IrisModel
 from iris_train.ray_renderer import BLEND_EPS
 
 from .errors import ExportArgumentError
+from .graphs import RendererGraph, resolve_sampler
 
 #: Renderer graph kinds of ``export_model(..., renderer=...)``: "reference" is ``RendererGraph``
 #: (the model's render_samples traced as is), "fast" (the default) this module's graph
@@ -145,7 +96,6 @@ RENDERER_KINDS = ("reference", "fast", "fast-contrib")
 #: quantize_int8`` leaves their MatMuls and Gemms in float (quantising them would quantise the
 #: tent weights, the coordinates and the attention weights they carry).
 SELECTION_PREFIX = "select_"
-SAMPLERS = ("auto", *MODEL_SAMPLERS)
 
 
 class FastRendererGraph(nn.Module):
@@ -167,10 +117,8 @@ class FastRendererGraph(nn.Module):
 
     def __init__(self, model: IrisModel, sampler: str = "auto", contrib: bool = False):
         super().__init__()
-        if sampler not in SAMPLERS:
-            raise ExportArgumentError(f"sampler: expected one of {SAMPLERS}, got {sampler!r}")
         self.model = model
-        self.sampler = sampler_for(*model.cfg.feature_grid) if sampler == "auto" else sampler
+        self.sampler = resolve_sampler(model, sampler)
         self.contrib = bool(contrib)
         if self.contrib:
             from . import ort_contrib
@@ -262,7 +210,7 @@ class FastRendererGraph(nn.Module):
 
             # q on y = [normed, 1] [W + 1]: its bias from the 1, no Add over [R, H, S, Dh]. (The
             # key mask stays an Add: an extra q . k component carrying it makes the projections
-            # 17 wide, which ONNX Runtime's kernels run at half speed, docs/PERFORMANCE.md.)
+            # 17 wide, which ONNX Runtime's kernels run slower than 16, docs/PERFORMANCE.md.)
             wq_aug = torch.cat([per_head(wq * scale), (bq * scale).reshape(H, 1, Dh)], dim=1)
             self._keep(f"ray{i}_wq", wq_aug)                                     # [H, W + 1, Dh]
             self._keep(f"ray{i}_wk", per_head(wk))
@@ -423,14 +371,14 @@ class FastRendererGraph(nn.Module):
         N = R * S
         W = cfg.field_width
         m = mask.to(dtype).reshape(V, N)                                     # [V, N] weights
-        bias = _validity_bias(m)                                             # 0 / -1e30 at 1 / 0
+        bias = validity_bias_where_free(m)                                   # 0 / -1e30 at 1 / 0
         s = m.amax(0)                                                        # [N] sample weights
         any_view = (s > 0).to(dtype)                                         # [N] 0 / 1
 
         renderer = self.model.renderer
         rt = renderer.ray_transformer
         sample_mask = s.reshape(R, S)
-        key_bias = _validity_bias(sample_mask)                                         # [R, S]
+        key_bias = validity_bias_where_free(sample_mask)                               # [R, S]
         no_key_bias = key_bias.min() == 0.0                 # every sample at full weight
         ones = torch.ones_like(key_bias).reshape(N, 1)
         unit_dir = directions / directions.norm(dim=-1, keepdim=True).clamp_min(1e-12)
@@ -518,12 +466,6 @@ class SelectedViewsRendererGraph(FastRendererGraph):
         return self._render(slots, field_maps.dtype, mask, positions, directions, slot_colours)
 
 
-def _validity_bias(w: torch.Tensor) -> torch.Tensor:
-    """``layers.validity_bias(w)``, the same values, as ``FADE_GAIN * (w - 1) + (w <= 0) *
-    MASK_FILL`` (no ``Where``: -100 - 1e30 rounds to -1e30 in float32)."""
-    return FADE_GAIN * (w - 1.0) + (w <= 0).to(w.dtype) * MASK_FILL
-
-
 def _key_softmax(scores: torch.Tensor, key_bias: torch.Tensor,
                  no_key_bias: torch.Tensor) -> torch.Tensor:
     """``softmax(scores + key_bias)`` over the last axis, with the Add over ``scores [R, H, S, S]``
@@ -542,8 +484,8 @@ def _key_softmax(scores: torch.Tensor, key_bias: torch.Tensor,
 
 def _sum_views(x: torch.Tensor) -> torch.Tensor:
     """``x.sum(0)`` of a view-major ``x [V, ...]`` as ``ones [1, V] @ x [V, -1]``: ONNX Runtime's
-    MatMul runs this reduction over the leading axis ~8x faster than its ReduceSum (0.28 vs
-    2.25 ms on [5, 6528, 64], docs/PERFORMANCE.md)."""
+    MatMul runs this reduction over the leading axis several times faster than its ReduceSum
+    (``benchmarks/ort_reductions.py``, docs/PERFORMANCE.md)."""
     V = x.shape[0]
     ones = torch.ones(1, V, dtype=x.dtype, device=x.device)
     return (ones @ x.reshape(V, -1)).reshape(x.shape[1:])
@@ -554,10 +496,10 @@ def views_max_as_scan(proto) -> int:
     (the fast graphs' reductions over views: the max-pool and the softmax maxima) as a ``Scan``
     whose body is one element-wise ``Max``, seeded with the first slice; -> the number rewritten.
 
-    Same values (max is exact, in any order). ONNX Runtime 1.32's ``ReduceMax`` over a leading
-    axis ran 1.93 ms on [5, 6528, 64] on one thread, the ``Scan`` 0.66 ms
-    (``benchmarks/ort_reductions.py``): it runs a vectorised same-shape ``Max`` per slice. The
-    view count is a dynamic axis, so a fixed-arity ``Max`` of slices cannot express it."""
+    Same values (max is exact, in any order). The ``Scan`` runs a vectorised same-shape ``Max``
+    per slice, several times faster than ONNX Runtime's ``ReduceMax`` over a leading axis
+    (``benchmarks/ort_reductions.py``, docs/PERFORMANCE.md). The view count is a dynamic axis, so
+    a fixed-arity ``Max`` of slices cannot express it."""
     import onnx
     from onnx import helper, numpy_helper
 
@@ -609,44 +551,8 @@ def renderer_wrapper(model: IrisModel, renderer: str = "reference") -> nn.Module
                                   f"{renderer!r}")
     if renderer in ("fast", "fast-contrib"):
         return FastRendererGraph(model, contrib=renderer == "fast-contrib")
-    from .graphs import RendererGraph
     return RendererGraph(model)
 
 
-def export_fast_renderer(model: IrisModel, path: str | Path, opset: int | None = None, *,
-                         contrib: bool = False):
-    """Export ``FastRendererGraph(model, contrib=contrib)`` to ``path`` with
-    ``export.graphs.export_graph`` (same exporter, axis names, IR version and checks as the
-    reference renderer) -> ``GraphFile``."""
-    from .graphs import DEFAULT_OPSET, export_graph
-    return export_graph(model, "renderer", path, DEFAULT_OPSET if opset is None else opset,
-                        wrapper=FastRendererGraph(model, contrib=contrib))
-
-
-def op_histogram(path: str | Path, optimized: bool = False) -> collections.Counter:
-    """Op-type counts of the ONNX graph at ``path``; ``optimized``: of the graph ONNX Runtime runs
-    after its ``ORT_ENABLE_ALL`` optimisations (what ``IrisRuntime`` loads), written to a temporary
-    file and read back (contrib ops counted as ``com.microsoft.<op>``)."""
-    import tempfile
-
-    import onnx
-
-    if optimized:
-        import onnxruntime as ort
-        with tempfile.TemporaryDirectory() as tmp:
-            opts = ort.SessionOptions()
-            opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-            opts.optimized_model_filepath = str(Path(tmp) / "optimized.onnx")
-            opts.intra_op_num_threads = 1
-            opts.log_severity_level = 3
-            ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
-            proto = onnx.load_model(opts.optimized_model_filepath)
-    else:
-        proto = onnx.load_model(str(path))
-    return collections.Counter((f"{n.domain}.{n.op_type}" if n.domain not in ("", "ai.onnx")
-                                else n.op_type) for n in proto.graph.node)
-
-
 __all__ = ["FastRendererGraph", "SelectedViewsRendererGraph", "RENDERER_KINDS", "renderer_wrapper",
-           "views_max_as_scan",
-           "export_fast_renderer", "op_histogram"]
+           "views_max_as_scan", "SELECTION_PREFIX"]

@@ -98,7 +98,17 @@ class EncoderGraph(nn.Module):
         return self.model.field.prepare(features[0]), world_from_cam[0], focal[0]
 
 
+#: Field-map samplers of the renderer graphs: the model's (``iris_train.model.SAMPLERS``), or
+#: "auto", the model's own choice for its feature grid (``resolve_sampler``).
 SAMPLERS = ("auto", *MODEL_SAMPLERS)
+
+
+def resolve_sampler(model: IrisModel, sampler: str) -> str:
+    """The field-map sampler a renderer graph of ``model`` uses for ``sampler`` (``SAMPLERS``), or
+    ``ExportArgumentError``."""
+    if sampler not in SAMPLERS:
+        raise ExportArgumentError(f"sampler: expected one of {SAMPLERS}, got {sampler!r}")
+    return sampler_for(*model.cfg.feature_grid) if sampler == "auto" else sampler
 
 
 class RendererGraph(nn.Module):
@@ -116,10 +126,8 @@ class RendererGraph(nn.Module):
 
     def __init__(self, model: IrisModel, sampler: str = "auto"):
         super().__init__()
-        if sampler not in SAMPLERS:
-            raise ExportArgumentError(f"sampler: expected one of {SAMPLERS}, got {sampler!r}")
         self.model = model
-        self.sampler = sampler_for(*model.cfg.feature_grid) if sampler == "auto" else sampler
+        self.sampler = resolve_sampler(model, sampler)
 
     def forward(self, field_maps: torch.Tensor, grid: torch.Tensor, cues: torch.Tensor,
                 mask: torch.Tensor, positions: torch.Tensor, directions: torch.Tensor,
@@ -307,11 +315,10 @@ def quantize_int8(src: str | Path, dst: str | Path) -> GraphFile:
             # contrib ops (export.fast_renderer's "fast-contrib" graph); float32 is every
             # tensor's type here. Graphs whose types are all inferred are unaffected.
             # reduce_range: 7-bit weights. Without AVX-512 VNNI, ORT's u8 x s8 kernels sum
-            # pairs of products in int16 and saturate with 8-bit weights: on an AVX2-only EPYC
-            # the shipped model's int8 renderer was 8.9e-2 off in rgb (tests/test_export.py
-            # bounds it at 5e-2; 7.4e-3 with 7-bit weights, export validation in iris.json).
+            # pairs of products in int16 and saturate with 8-bit weights (tests/test_export.py
+            # bounds the int8 error; the figures: docs/PERFORMANCE.md, "int8").
             # The fast graphs' 0/1 selection matmuls stay float: they carry the bilinear and
-            # attention weights, which 8 bits would round (rgb 0.16 off when they were quantised).
+            # attention weights, which 8 bits would round.
             from .fast_renderer import SELECTION_PREFIX
             exclude = [n.name for n in proto.graph.node
                        if any(i.startswith(SELECTION_PREFIX) for i in n.input)]
@@ -369,4 +376,5 @@ def toposort_with_subgraphs(graph) -> None:
 
 __all__ = ["EncoderGraph", "RendererGraph", "WRAPPERS", "DEFAULT_OPSET", "MIN_OPSET", "EXPORTER",
            "fixed_dims", "example_inputs", "export_graph", "quantize_int8", "check_opset",
-           "set_min_ir_version", "toposort_with_subgraphs", "GraphFile", "SAMPLERS"]
+           "set_min_ir_version", "toposort_with_subgraphs", "GraphFile", "SAMPLERS",
+           "resolve_sampler"]

@@ -7,8 +7,8 @@ per graph its file name, sha256, size and I/O spec (``iris_runtime.io_spec``), a
 report (max abs error of ONNX Runtime vs torch per output, tolerances, median times). Layout::
 
     {
-      "format": "iris-model", "version": 2, "io_spec_version": 3,
-      "created": "2025-01-01T00:00:00Z",
+      "format": "iris-model", "version": 2, "io_spec_version": 4,
+      "created": "YYYY-MM-DDThh:mm:ssZ",                 # UTC, when it was written
       "config": {...ModelConfig.to_dict()...},
       "image_size": [H, W], "patch_size": p, "feature_grid": [h, w], "field_channels": C',
       "near": 0.1, "far": 1.0, "samples": 64,
@@ -36,9 +36,12 @@ checkpoint's weights are unchanged; only the graph's contract is new).
 Explicit colour. Whether the model is an explicit-colour model is ``config.explicit_rgb`` (the
 one place it is recorded; absent in configs written before it = False). For such a model the
 renderer's ``inputs`` (here and in the graph) end with ``colours`` [V', R, S, 3]
-(``io_spec.EXPLICIT_RGB_INPUTS``); for every other model the renderer is the one of I/O spec 2.
-``io_spec_version`` 3 says so; the layout of this file is unchanged (still version 2), and the
-runtime reads I/O spec 2 manifests of models without explicit colour as before.
+(``io_spec.EXPLICIT_RGB_INPUTS``); other models' renderers have no such input.
+
+``io_spec_version`` is the version of the graphs' I/O (``io_spec.IO_SPEC_VERSION``, 4: the
+renderers' ``mask`` is float32 validity weights); the layout of this file is unchanged by it
+(still version 2). The runtime reads only the current I/O spec version and refuses older ones
+with a re-export hint.
 
 JSON turns the integer axis keys of ``dynamic_axes`` into strings ("0"); non-finite numbers in the
 validation report (an int8 error can be ``inf`` if it produced NaN) are written as strings.

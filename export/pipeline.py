@@ -19,6 +19,7 @@ from pathlib import Path
 import onnx
 
 from iris_runtime.fileio import sha256_file
+from iris_runtime.validation import check_integer
 from iris_train.model import CheckpointError, IrisModel, load_model, read_checkpoint, trained_cameras
 
 from . import io_spec
@@ -96,8 +97,7 @@ def export_model(model_or_ckpt: IrisModel | str | os.PathLike, out_dir: str | os
     if renderer not in RENDERER_KINDS:
         raise ExportArgumentError(f"renderer: expected one of {list(RENDERER_KINDS)}, got "
                                   f"{renderer!r}")
-    if threads is not None and (not isinstance(threads, int) or isinstance(threads, bool) or threads < 1):
-        raise ExportArgumentError(f"threads: expected a positive integer or None, got {threads!r}")
+    threads = check_integer(threads, "threads", allow_none=True, error=ExportArgumentError)
     if (out_dir.exists() or out_dir.is_symlink()) and not force:
         raise OutputExistsError(f"output {str(out_dir)!r} already exists (use --force to replace it)")
 

@@ -35,7 +35,7 @@
 3b. encoder isolation inside ONNX Runtime: for each probe with queries, the references' outputs
    (field maps, cameras, focal) with the queries present, with other query images, and with no
    queries at all; max abs difference against ``io_spec.ENCODER["isolation_tolerance"]`` (1e-6;
-   measured 0.0: the rows are computed identically).
+   the rows are computed identically, docs/PERFORMANCE.md "Reference isolation").
 4. the median time of each graph in ONNX Runtime and in torch on a fixed input (renderer: R=1024,
    S=cfg.samples, V'=4; ``quick`` shrinks probes and timing for tests).
 
@@ -406,7 +406,8 @@ def _check_isolation(graph: str, errors: dict[str, float], tolerance: float, enf
 
 
 def median_time(fn: Callable[[], object], runs: int) -> float:
-    """Median wall time of ``runs`` calls after one warm-up call (the first run is 1.3-3x slower)."""
+    """Median wall time of ``runs`` calls after one warm-up call (the first call also pays for
+    allocations and lazy initialisation)."""
     fn()
     times = []
     for _ in range(runs):
@@ -437,8 +438,7 @@ def validate(model: IrisModel, files: dict[str, str | Path], *, quick: bool = Fa
 
     ``threads``: intra-op threads of ONNX Runtime and torch while validating (default: each
     library's own default). On a machine shared with other jobs, 1 is much faster: both libraries
-    spin-wait for their worker threads, measured 10-50x slower torch eager at 2 threads on 2 busy
-    cores.
+    spin-wait for their worker threads (docs/PERFORMANCE.md, "Renderer and encoder graphs").
     """
     torch_threads, was_training = torch.get_num_threads(), model.training
     if threads:

@@ -36,7 +36,7 @@ import numpy as np
 
 from .errors import InputError
 from .validation import check_intrinsics, check_world_from_cam, snap_world_from_cam
-from .fileio import atomic_write_bytes, atomic_write_text, read_json, read_text  # noqa: F401  (writers re-exported)
+from .fileio import atomic_write_text, read_json, read_text
 
 __all__ = ["CameraSet", "GL_FROM_CV", "flip_opengl_opencv", "quaternion_from_rotation",
            "rotation_from_quaternion", "read_transforms_json", "write_transforms_json",

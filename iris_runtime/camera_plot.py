@@ -33,6 +33,7 @@ import cv2
 import numpy as np
 
 from .errors import InputError
+from .geometry import nearest_rotation
 
 __all__ = ["draw_cameras", "align_similarity", "apply_similarity", "align_poses",
            "PRED_COLOUR", "TRUE_COLOUR"]
@@ -54,16 +55,6 @@ _MIN_HALF_FOV = 0.02
 # Similarity alignment
 # ----------------------------------------------------------------------------------------------
 
-def _nearest_rotation(M: np.ndarray) -> np.ndarray:
-    """The rotation closest to ``M [..., 3, 3]`` in Frobenius norm (finite for any finite M)."""
-    U, _, Vt = np.linalg.svd(M)
-    d = np.sign(np.linalg.det(U @ Vt))
-    d = np.where(d == 0, 1.0, d)
-    U = U.copy()
-    U[..., :, 2] *= d[..., None]
-    return U @ Vt
-
-
 def _skew(a: np.ndarray) -> np.ndarray:
     return np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
 
@@ -83,7 +74,7 @@ def _check_rotation(R, name: str) -> np.ndarray | None:
     if R.shape != (3, 3) or not np.isfinite(R).all():
         raise InputError(f"{name}: expected a finite 3x3 rotation (or 4x4 pose), got shape "
                          f"{R.shape}")
-    return _nearest_rotation(R)
+    return nearest_rotation(R)
 
 
 def align_similarity(pred_centres, true_centres, *, pred_rotation=None, true_rotation=None
@@ -164,7 +155,7 @@ def _umeyama(P: np.ndarray, Q: np.ndarray, R0: np.ndarray) -> tuple[float, np.nd
         b = float(np.trace(_skew(a) @ M))
         if abs(b) + abs(c) > 0:
             R = _rodrigues(a, math.atan2(b, c)) @ R
-            R = _nearest_rotation(R)
+            R = nearest_rotation(R)
     t = mu_q - s * R @ mu_p
     return s, R, t
 
@@ -342,7 +333,7 @@ def draw_cameras(world_from_cam, focal=None, *, reference=None, reference_focal=
             M = T[idx, :3, :3]
             size_m = np.abs(M).max(axis=(1, 2), keepdims=True)
             M = np.where(size_m > 0, M / np.where(size_m > 0, size_m, 1.0), np.eye(3))
-            poses[:, :3, :3] = _nearest_rotation(M)
+            poses[:, :3, :3] = nearest_rotation(M)
         poses[:, :3, 3] = T[idx, :3, 3]
         poses[:, 3, 3] = 1.0
         kept[key] = (idx, poses, half[idx])

@@ -46,13 +46,20 @@ import argparse
 import json
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .quality import QUALITY_PRESETS
+from .manifest import CAMERAS
+from .quality import PRECISIONS, QUALITY_PRESETS
+
+if TYPE_CHECKING:
+    from .runtime import IrisRuntime
 
 EXIT_ERROR = 2
+VIDEO_NAME = "orbit.mp4"
 
 
 class _Parser(argparse.ArgumentParser):
@@ -121,7 +128,7 @@ def build_parser() -> argparse.ArgumentParser:
                              "the scene): printed, written to located_poses.json (4x4 "
                              "world_from_cam each) and rendered as located_NNN; give it after "
                              "IMAGES")
-    p.add_argument("--cameras", choices=["model", "epipolar"], default=None,
+    p.add_argument("--cameras", choices=list(CAMERAS), default=None,
                    help="cameras of the inputs: the model's prediction or the global epipolar "
                         "solve of the photos, scaled to the renderer's depth range (V (V - 1) / 2 "
                         "optical flows; views it cannot pose keep the model's camera). Default: "
@@ -136,7 +143,7 @@ def build_parser() -> argparse.ArgumentParser:
                      help="ONNX Runtime intra-op threads (default: one per physical core)")
     out.add_argument("--chunk-rays", type=_positive, default=None,
                      help="rays per renderer call (default: chosen from the number of views)")
-    out.add_argument("--precision", choices=["float32", "int8"], default="float32",
+    out.add_argument("--precision", choices=list(PRECISIONS), default="float32",
                      help="renderer graph: float32, or int8 if exported with --quantize int8")
     out.add_argument("--quality", choices=list(QUALITY_PRESETS), default="exact",
                      help="speed/error preset (measured in docs/PERFORMANCE.md): exact = the full "
@@ -214,45 +221,65 @@ def _write_depth(path_png: Path, path_npy: Path, depth: np.ndarray, far: float) 
     np.save(path_npy, depth.astype(np.float32))
 
 
-def run(args: argparse.Namespace) -> int:
-    from . import camera_io
-    from .camera_plot import draw_cameras
-    from .errors import InputError
-    from .images import fit_to_model, load_image
-    from .orbit import orbit_poses
-    from .runtime import MAX_CHUNK_SAMPLES, IrisRuntime
+@dataclass(frozen=True)
+class _Request:
+    """An ``iris-render`` invocation, checked before anything is written."""
+    rt: "IrisRuntime"
+    size: tuple[int, int]                     # output (height, width)
+    inputs: list[np.ndarray]                  # the input photos at the model's resolution
+    poses: list[np.ndarray]                   # from the --pose files
+    photos: list[np.ndarray]                  # the --locate photos
 
+
+def run(args: argparse.Namespace) -> int:
     say = (lambda *a: None) if args.quiet else (lambda *a: print("iris-render:", *a, flush=True))
     t_all = time.perf_counter()
-
-    # 1. Check everything before writing anything.
     t0 = time.perf_counter()
+    req = _check_request(args)                          # 1. everything, before writing anything
+    scene, located = _encode(req, args, say, time.perf_counter() - t0)       # 2. encode once
+    jobs, orbit = _jobs(req, args, scene, located)
+    out = _write_cameras(Path(args.out), req, scene, orbit, located)        # 3. the inputs' cameras
+    rendered = _render_jobs(req, args, scene, jobs, out, say)              # 4. render
+    _summary(req, args, jobs, out, orbit, located, rendered, say)
+    say(f"total {time.perf_counter() - t_all:.2f} s")
+    return 0
+
+
+def _check_request(args: argparse.Namespace) -> _Request:
+    """The model, the request limits (``iris_runtime.limits``, checked by the same functions
+    ``IrisRuntime`` uses), the images, view indices and pose files: every error before a file is
+    written."""
+    from . import limits as L
+    from .errors import InputError
+    from .images import fit_to_model, load_image
+    from .runtime import IrisRuntime
+
     rt = IrisRuntime(args.model_dir, threads=args.threads, precision=args.precision)
     H, W = rt.image_size
-    # Request limits (runtime.MAX_OUTPUT_PIXELS, max_views, MAX_CHUNK_SAMPLES) before any work.
     size = rt.check_output_size(*args.size) if args.size else (H, W)
-    if len(args.images) > rt.max_views:
-        raise InputError(f"IMAGES: {len(args.images)} images, at most {rt.max_views} for this "
-                         f"model (the encoder's memory grows with the square of the views)")
-    if args.chunk_rays and (min(args.chunk_rays, size[0] * size[1]) * rt.samples
-                            * len(args.images) > MAX_CHUNK_SAMPLES):
-        raise InputError(f"--chunk-rays {args.chunk_rays}: rays x samples x views per call exceeds "
-                         f"MAX_CHUNK_SAMPLES = {MAX_CHUNK_SAMPLES}")
+    if args.chunk_rays is not None:
+        samples = QUALITY_PRESETS[args.quality].samples or rt.samples
+        L.check_chunk_rays(args.chunk_rays, size[0] * size[1], samples, len(args.images),
+                           name="--chunk-rays")
     inputs = [fit_to_model(load_image(p, p), H, W)[0] for p in args.images]
     V = len(inputs)
     bad = [i for i in args.view if i >= V]
     if bad:
         raise InputError(f"--view {bad[0]}: out of range, {V} input image(s) give views 0..{V - 1}")
-    poses_from_files = [T for f in args.pose for T in _read_poses(f)]
+    poses = [T for f in args.pose for T in _read_poses(f)]
     photos = [load_image(p, f"--locate {p}") for p in args.locate]
-    t_load = time.perf_counter() - t0
+    return _Request(rt, size, inputs, poses, photos)
 
-    # 2. Encode once.
+
+def _encode(req: _Request, args: argparse.Namespace, say, t_load: float):
+    """The Scene of the inputs (``--cameras``) and the --locate photos' poses in its frame."""
+    rt = req.rt
     t0 = time.perf_counter()
-    scene = rt.encode(inputs, cameras=args.cameras)
-    t_encode = time.perf_counter() - t0
-    say(f"encoded {V} view(s) at {H}x{W} in {t_encode:.2f} s (model check + image loading "
-        f"{t_load:.2f} s); focal fx/W={scene.focal[0]:.4f} fy/H={scene.focal[1]:.4f}")
+    scene = rt.encode(req.inputs, cameras=args.cameras)   # too many images: refused here
+    H, W = rt.image_size
+    say(f"encoded {len(req.inputs)} view(s) at {H}x{W} in {time.perf_counter() - t0:.2f} s "
+        f"(model check + image loading {t_load:.2f} s); focal fx/W={scene.focal[0]:.4f} "
+        f"fy/H={scene.focal[1]:.4f}")
     if (args.cameras or rt.default_cameras) != "model":
         say(f"cameras of the inputs: {scene.camera_source}"
             + {"epipolar": " (every view from the epipolar solve)",
@@ -261,33 +288,47 @@ def run(args: argparse.Namespace) -> int:
             [scene.camera_source]
             + ("" if scene.encoder_focal is None else
                f"; the model's focal was fx/W={scene.encoder_focal[0]:.4f}"))
-    located = None
-    if photos:
-        t0 = time.perf_counter()
-        located = rt.locate(scene, photos)                       # [Q, 4, 4], scene unchanged
-        say(f"located {len(photos)} photo(s) in the inputs' frame in "
-            f"{time.perf_counter() - t0:.2f} s")
-        for path, T in zip(args.locate, located):
-            say(f"located {path}: world_from_cam {json.dumps(np.round(T, 6).tolist())}")
+    if not req.photos:
+        return scene, None
+    t0 = time.perf_counter()
+    located = rt.locate(scene, req.photos)                       # [Q, 4, 4], scene unchanged
+    say(f"located {len(req.photos)} photo(s) in the inputs' frame in "
+        f"{time.perf_counter() - t0:.2f} s")
+    for path, T in zip(args.locate, located):
+        say(f"located {path}: world_from_cam {json.dumps(np.round(T, 6).tolist())}")
+    return scene, located
+
+
+def _jobs(req: _Request, args: argparse.Namespace, scene, located):
+    """``[(name, pose or view index), ...]`` to render, and the orbit's poses (or None)."""
+    from .orbit import orbit_poses
 
     jobs: list[tuple[str, np.ndarray | int]] = []
     jobs += [(f"view_{i:03d}", i) for i in args.view]
-    jobs += [(f"pose_{k:03d}", T) for k, T in enumerate(poses_from_files)]
+    jobs += [(f"pose_{k:03d}", T) for k, T in enumerate(req.poses)]
     if located is not None:
         jobs += [(f"located_{k:03d}", T) for k, T in enumerate(located)]
     orbit = None
     if args.orbit:
-        orbit = orbit_poses(scene.world_from_cam, args.orbit, near=rt.near, far=rt.far)
+        orbit = orbit_poses(scene.world_from_cam, args.orbit, near=req.rt.near, far=req.rt.far)
         jobs += [(f"orbit_{k:04d}", T) for k, T in enumerate(orbit)]
     if not jobs:
-        jobs = [(f"view_{i:03d}", i) for i in range(V)]
+        jobs = [(f"view_{i:03d}", i) for i in range(len(req.inputs))]
+    return jobs, orbit
 
-    # 3. Cameras of the inputs (and the images they refer to).
-    out = Path(args.out)
+
+def _write_cameras(out: Path, req: _Request, scene, orbit, located) -> Path:
+    """The inputs as the model saw them, their cameras (nerfstudio, COLMAP, a picture) and the
+    orbit's and located poses, in ``out`` (created) -> ``out``."""
+    from . import camera_io
+    from .camera_plot import draw_cameras
+
+    H, W = req.rt.image_size
+    V = len(req.inputs)
     out.mkdir(parents=True, exist_ok=True)
     (out / "inputs").mkdir(exist_ok=True)
     names = [f"{i:03d}.png" for i in range(V)]
-    for name, rgb in zip(names, inputs, strict=True):
+    for name, rgb in zip(names, req.inputs, strict=True):
         _write_png(out / "inputs" / name, rgb)
     cams = scene.world_from_cam                 # rigid (checked by Scene): written as rendered
     camera_io.write_transforms_json(out / "transforms.json", cams, scene.K, (H, W),
@@ -300,28 +341,33 @@ def run(args: argparse.Namespace) -> int:
         (out / "orbit_poses.json").write_text(json.dumps(orbit.tolist()) + "\n")
     if located is not None:
         (out / "located_poses.json").write_text(json.dumps(located.tolist()) + "\n")
+    return out
 
-    # 4. Render.
-    progress = _Progress(total=len(jobs) * size[0] * size[1], enabled=not args.quiet)
+
+def _render_jobs(req: _Request, args: argparse.Namespace, scene, jobs, out: Path, say) -> dict:
+    """Render and write every job (PNG, depth, the orbit's video frames) -> seconds per stage
+    (``rays``, ``renderer``, ``write``, ``total``) and whether the video was written."""
+    height, width = req.size
+    progress = _Progress(total=len(jobs) * height * width, enabled=not args.quiet)
     totals = {"rays": 0.0, "renderer": 0.0, "write": 0.0}
     t_render = time.perf_counter()
     writer = None
-    video_path = out / "orbit.mp4"
     try:
         for k, (name, pose) in enumerate(jobs):
-            progress.frame(k * size[0] * size[1])
-            res = rt.render(scene, pose, height=size[0], width=size[1], depth=True,
-                            chunk_rays=args.chunk_rays, progress=progress, quality=args.quality)
+            progress.frame(k * height * width)
+            res = req.rt.render(scene, pose, height=height, width=width, depth=True,
+                                chunk_rays=args.chunk_rays, progress=progress,
+                                quality=args.quality)
             totals["rays"] += res.timings["rays"]
             totals["renderer"] += res.timings["renderer"]
             t0 = time.perf_counter()
             _write_png(out / f"{name}.png", res.image)
             if not args.no_depth:
                 _write_depth(out / f"{name}_depth.png", out / f"{name}_depth.npy", res.depth,
-                             rt.far)
+                             req.rt.far)
             if name.startswith("orbit_"):
                 if writer is None:
-                    writer = _open_video(video_path, args.fps, size)
+                    writer = _open_video(out / VIDEO_NAME, args.fps, req.size)
                 if writer is not None:
                     writer.write(res.image[..., ::-1].copy())         # OpenCV wants BGR
             totals["write"] += time.perf_counter() - t0
@@ -329,17 +375,20 @@ def run(args: argparse.Namespace) -> int:
         progress.close()
         if writer is not None:
             writer.release()
-    t_render = time.perf_counter() - t_render
+    return {**totals, "total": time.perf_counter() - t_render, "video": writer is not None}
 
-    say(f"rendered {len(jobs)} view(s) at {size[0]}x{size[1]} in {t_render:.2f} s "
-        f"(rays {totals['rays']:.2f} s, renderer {totals['renderer']:.2f} s, "
-        f"writing {totals['write']:.2f} s)")
+
+def _summary(req: _Request, args, jobs, out: Path, orbit, located, rendered: dict, say) -> None:
+    """What was written where, and how long it took."""
+    say(f"rendered {len(jobs)} view(s) at {req.size[0]}x{req.size[1]} in "
+        f"{rendered['total']:.2f} s (rays {rendered['rays']:.2f} s, renderer "
+        f"{rendered['renderer']:.2f} s, writing {rendered['write']:.2f} s)")
     first, last = jobs[0][0], jobs[-1][0]
     say(f"images: {out}/{first}.png" + (f" ... {last}.png" if len(jobs) > 1 else "")
         + ("" if args.no_depth else f", depth in NAME_depth.png (16-bit, depth / far * 65535, "
-                                    f"far = {rt.far:g}) and NAME_depth.npy (float32)"))
-    if writer is not None:
-        say(f"video: {video_path} ({len(orbit)} frames at {args.fps} fps)")
+                                    f"far = {req.rt.far:g}) and NAME_depth.npy (float32)"))
+    if rendered["video"]:
+        say(f"video: {out / VIDEO_NAME} ({len(orbit)} frames at {args.fps} fps)")
     elif orbit is not None:
         say(f"video: not written (OpenCV has no mp4v encoder here); frames are in {out}")
     say(f"cameras of the inputs: {out / 'transforms.json'}, {out / 'colmap'} "
@@ -347,8 +396,6 @@ def run(args: argparse.Namespace) -> int:
     if located is not None:
         say(f"located poses: {out / 'located_poses.json'} (one 4x4 world_from_cam per --locate "
             f"photo, usable with --pose)")
-    say(f"total {time.perf_counter() - t_all:.2f} s")
-    return 0
 
 
 def _open_video(path: Path, fps: int, size: tuple[int, int]):

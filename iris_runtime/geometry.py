@@ -14,17 +14,17 @@ from __future__ import annotations
 
 import numpy as np
 
-from .validation import RIGID_ATOL, rigidity_error
+# The rigid-transform maths of the boundary checks, here under their geometric names.
+from .validation import RIGID_ATOL, nearest_rotation, rigidity_error  # noqa: F401
 
 #: A point is valid in a view only when its camera depth exceeds this (model units). Keeps
 #: ``u = x / z`` finite and excludes points on or behind the camera plane.
 DEPTH_EPS = 1e-6
 #: A sample's validity in a view fades from 1 at the image's edge to 0 at this many pixels outside
-#: it (``validity``), so that the render is continuous in the cameras: a hard edge moved one
-#: pixel's colour by ~3e-4 when float32 cameras differing in the last bits put a sample on either
-#: side of it (STABILITY.md). One pixel, outside the image: samples of the image keep weight 1
-#: exactly; float32 rounding of the cameras moves the render by 3e-6 to 6e-6 on three of four
-#: held-out scenes (docs/PERFORMANCE.md, "Continuous validity").
+#: it (``validity``), so that the render is continuous in the cameras: with a hard edge, float32
+#: cameras differing in the last bits put a sample on either side of it and the colour jumps.
+#: Outside the image, so that samples of the image keep weight 1 exactly (STABILITY.md; figures:
+#: docs/PERFORMANCE.md, "Continuous validity").
 EDGE_FADE = 1.0
 #: Normalised grid coordinates are clipped to this range so that masked points never carry inf
 #: or NaN into the feature sampler; any |g| > 1 is outside the image and masked anyway.
@@ -34,16 +34,18 @@ NORM_EPS = 1e-12
 #: Norm floor of (t - s) in the geometric cue. The direction of t - s is undefined where target and
 #: source directions coincide (e.g. rendering exactly at an input camera); below this norm the cue's
 #: first three entries shrink linearly to 0 instead of jumping between unit vectors, so the cue is
-#: Lipschitz with constant 1/CUE_EPS (a pose moved by 1e-8 moved rgb by 4e-3 with a 1e-12 floor).
+#: Lipschitz with constant 1/CUE_EPS (STABILITY.md, "Target centre = reference centre").
 CUE_EPS = 1e-4
 
 
-def intrinsics_from_focal(focal: np.ndarray, height: int, width: int) -> np.ndarray:
-    """``K [3, 3]`` in pixels from the model's normalised focal ``[fx/W, fy/H]``; centred principal point."""
+def intrinsics_from_focal(focal, height: int, width: int) -> np.ndarray:
+    """``K [3, 3]`` in pixels from a normalised focal, principal point at the image centre: the
+    model's ``[fx/W, fy/H]``, or one number fx/W for square pixels (fy = fx in pixels, the focal
+    of the epipolar solve)."""
     focal = np.asarray(focal)
     K = np.zeros((3, 3), dtype=np.result_type(focal.dtype, np.float32))
-    K[0, 0] = focal[0] * width
-    K[1, 1] = focal[1] * height
+    K[0, 0] = focal[0] * width if focal.ndim else focal * width
+    K[1, 1] = focal[1] * height if focal.ndim else focal * width
     K[0, 2] = width / 2.0
     K[1, 2] = height / 2.0
     K[2, 2] = 1.0
@@ -211,9 +213,9 @@ def sample_taps(taps: np.ndarray, size: tuple[int, int], grid: np.ndarray,
 
     One gather of a cell's four taps per sample, channel-major (the weights broadcast along
     contiguous rows), instead of four gathers of C-value rows and arithmetic on ``[N, C]`` with a
-    trailing broadcast: 5.63 -> 1.88 ms on the explicit-colour photos of one renderer call (C = 3,
-    64x64, 5 views x 6528 samples; ``benchmarks/call_numpy.py``, one run). The weights
-    ``g - floor(g)`` are exact in the grid's dtype, the same values ``sample_bilinear`` computes.
+    trailing broadcast, which numpy runs several times slower (``benchmarks/call_numpy.py``,
+    docs/PERFORMANCE.md). The weights ``g - floor(g)`` are exact in the grid's dtype, the same
+    values ``sample_bilinear`` computes.
     """
     h, w = size
     C = taps.shape[2]

@@ -38,7 +38,7 @@ import numpy as np
 from PIL import Image, ImageOps, UnidentifiedImageError
 
 from .errors import ImageError
-from .validation import check_images
+from .validation import check_images, check_integer
 
 ImageLike = Union[str, os.PathLike, Image.Image, np.ndarray]
 
@@ -215,8 +215,7 @@ class CropResize:
 def plan_crop_resize(src_h: int, src_w: int, height: int, width: int) -> CropResize:
     """The centre crop (largest box of the target aspect ratio) and resize for one image size."""
     for arg, v in (("src_h", src_h), ("src_w", src_w), ("height", height), ("width", width)):
-        if not isinstance(v, (int, np.integer)) or v <= 0:
-            raise ImageError(f"{arg}: expected a positive integer, got {v!r}")
+        check_integer(v, arg, error=ImageError)
     # Keep the full height when the source is wider than the target, else the full width.
     if src_w * height >= src_h * width:
         crop_h = src_h

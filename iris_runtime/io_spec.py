@@ -24,32 +24,38 @@ FORMAT_VERSION = 2
 #: takes ``colours``; for every other model the two graphs are those of 2), 4 (the renderers'
 #: ``mask`` is float32 validity weights, ``geometry.validity``, not bool).
 IO_SPEC_VERSION = 4
-#: Older I/O spec versions this runtime reads as ``IO_SPEC_VERSION``: none (2 and 3 take a bool
-#: mask; the manifest check refuses them with a re-export hint).
-IO_SPEC_COMPATIBLE: tuple[int, ...] = ()
-#: I/O spec versions whose renderers take a bool ``mask`` (refused: re-export).
+#: I/O spec versions whose renderers take a bool ``mask``: the manifest reader refuses them with
+#: a re-export hint (it reads ``IO_SPEC_VERSION`` only).
 IO_SPEC_BOOL_MASK = (2, 3)
+
+# The graphs' input and output names: the keys of the specs below, and what the runtime feeds and
+# reads (``IrisRuntime``, ``raymarch``).
+IMAGES, IS_REFERENCE = "images", "is_reference"
+FIELD_MAPS, WORLD_FROM_CAM, FOCAL = "field_maps", "world_from_cam", "focal"
+GRID, CUES, MASK, POSITIONS, DIRECTIONS = "grid", "cues", "mask", "positions", "directions"
+COLOURS, GROUPS, PAIRS = "colours", "groups", "pairs"
+RGB, WEIGHTS = "rgb", "weights"
 
 ENCODER = {
     "file": "encoder.onnx",
     "inputs": {
         # RGB in [0, 1] at the model's resolution (H, W fixed, recorded in the manifest).
-        "images": {"dtype": "float32", "shape": ["V", 3, "H", "W"]},
+        IMAGES: {"dtype": "float32", "shape": ["V", 3, "H", "W"]},
         # True: a reference (its tokens attend to references only, so its outputs never depend on
         # the queries); False: a query (attends to the references and to itself; its pose comes
         # out in the references' frame). View 0 must be a reference. All True = encode a scene.
-        "is_reference": {"dtype": "bool", "shape": ["V"]},
+        IS_REFERENCE: {"dtype": "bool", "shape": ["V"]},
     },
     "outputs": {
         # Per-scene field maps (LatentField.prepare of the encoder features): what the renderer samples.
-        "field_maps": {"dtype": "float32", "shape": ["V", "C'", "h", "w"]},
-        "world_from_cam": {"dtype": "float32", "shape": ["V", 4, 4]},    # view 0 = I
-        "focal": {"dtype": "float32", "shape": [2]},                    # (fx/W, fy/H)
+        FIELD_MAPS: {"dtype": "float32", "shape": ["V", "C'", "h", "w"]},
+        WORLD_FROM_CAM: {"dtype": "float32", "shape": ["V", 4, 4]},      # view 0 = I
+        FOCAL: {"dtype": "float32", "shape": [2]},                       # (fx/W, fy/H)
     },
-    "dynamic_axes": {"images": {0: "V"}, "is_reference": {0: "V"}, "field_maps": {0: "V"},
-                     "world_from_cam": {0: "V"}},
+    "dynamic_axes": {IMAGES: {0: "V"}, IS_REFERENCE: {0: "V"}, FIELD_MAPS: {0: "V"},
+                     WORLD_FROM_CAM: {0: "V"}},
     # Max abs error of ONNX Runtime vs torch on the probe inputs.
-    "tolerance": {"field_maps": 1e-4, "world_from_cam": 1e-5, "focal": 1e-5},
+    "tolerance": {FIELD_MAPS: 1e-4, WORLD_FROM_CAM: 1e-5, FOCAL: 1e-5},
     # Max abs change of the references' outputs in ONNX Runtime when queries are added, changed or
     # removed (export.validate.isolation_errors).
     "isolation_tolerance": 1e-6,
@@ -58,26 +64,26 @@ ENCODER = {
 RENDERER = {
     "file": "renderer.onnx",
     "inputs": {
-        "field_maps": {"dtype": "float32", "shape": ["V", "C'", "h", "w"]},
+        FIELD_MAPS: {"dtype": "float32", "shape": ["V", "C'", "h", "w"]},
         # Normalised sample positions in each view, grid_sample convention (align_corners=False).
-        "grid": {"dtype": "float32", "shape": ["V", "R", "S", 2]},
-        "cues": {"dtype": "float32", "shape": ["V", "R", "S", 4]},         # geometric cue Δ
+        GRID: {"dtype": "float32", "shape": ["V", "R", "S", 2]},
+        CUES: {"dtype": "float32", "shape": ["V", "R", "S", 4]},         # geometric cue Δ
         # Validity weight of each sample in each view, in [0, 1] (geometry.validity: 1 in the
         # image, fading to 0 within EDGE_FADE pixels outside it; 0 masks the pair out).
-        "mask": {"dtype": "float32", "shape": ["V", "R", "S"]},
-        "positions": {"dtype": "float32", "shape": ["R", "S", 3]},
-        "directions": {"dtype": "float32", "shape": ["R", 3]},
+        MASK: {"dtype": "float32", "shape": ["V", "R", "S"]},
+        POSITIONS: {"dtype": "float32", "shape": ["R", "S", 3]},
+        DIRECTIONS: {"dtype": "float32", "shape": ["R", 3]},
     },
     "outputs": {
-        "rgb": {"dtype": "float32", "shape": ["R", 3]},
-        "weights": {"dtype": "float32", "shape": ["R", "S"]},
+        RGB: {"dtype": "float32", "shape": ["R", 3]},
+        WEIGHTS: {"dtype": "float32", "shape": ["R", "S"]},
     },
     "dynamic_axes": {
-        "field_maps": {0: "V"}, "grid": {0: "V", 1: "R", 2: "S"}, "cues": {0: "V", 1: "R", 2: "S"},
-        "mask": {0: "V", 1: "R", 2: "S"}, "positions": {0: "R", 1: "S"}, "directions": {0: "R"},
-        "rgb": {0: "R"}, "weights": {0: "R", 1: "S"},
+        FIELD_MAPS: {0: "V"}, GRID: {0: "V", 1: "R", 2: "S"}, CUES: {0: "V", 1: "R", 2: "S"},
+        MASK: {0: "V", 1: "R", 2: "S"}, POSITIONS: {0: "R", 1: "S"}, DIRECTIONS: {0: "R"},
+        RGB: {0: "R"}, WEIGHTS: {0: "R", 1: "S"},
     },
-    "tolerance": {"rgb": 1e-4, "weights": 1e-4},
+    "tolerance": {RGB: 1e-4, WEIGHTS: 1e-4},
 }
 
 #: The renderer's extra input for explicit-colour models (``ModelConfig.explicit_rgb``), listed in
@@ -93,9 +99,9 @@ RENDERER = {
 #: than a dense weight matrix over the full-resolution image, keeps every graph input per sample
 #: and reuses the runtime's tested sampler (docs/PERFORMANCE.md, "Renderer and encoder graphs").
 EXPLICIT_RGB_INPUTS = {
-    "colours": {"dtype": "float32", "shape": ["V", "R", "S", 3]},
+    COLOURS: {"dtype": "float32", "shape": ["V", "R", "S", 3]},
 }
-EXPLICIT_RGB_AXES = {"colours": {0: "V", 1: "R", 2: "S"}}
+EXPLICIT_RGB_AXES = {COLOURS: {0: "V", 1: "R", 2: "S"}}
 
 #: The renderer on per-point pre-selected views (optional: iris-export writes it with the "fast"
 #: renderer graphs; the runtime renders per-point top-k with it). The caller passes the (view,
@@ -109,21 +115,21 @@ EXPLICIT_RGB_AXES = {"colours": {0: "V", 1: "R", 2: "S"}}
 RENDERER_VIEWS = {
     "file": "renderer_views.onnx",
     "inputs": {
-        "field_maps": {"dtype": "float32", "shape": ["V", "C'", "h", "w"]},
-        "groups": {"dtype": "int64", "shape": ["P"]},                      # in [0, V)
-        "grid": {"dtype": "float32", "shape": ["P", "G", 2]},
-        "cues": {"dtype": "float32", "shape": ["P", "G", 4]},
-        "pairs": {"dtype": "int64", "shape": ["K", "R", "S"]},             # in [0, P * G)
-        "mask": {"dtype": "float32", "shape": ["K", "R", "S"]},        # slot's weight, 0: empty
-        "positions": {"dtype": "float32", "shape": ["R", "S", 3]},
-        "directions": {"dtype": "float32", "shape": ["R", 3]},
+        FIELD_MAPS: {"dtype": "float32", "shape": ["V", "C'", "h", "w"]},
+        GROUPS: {"dtype": "int64", "shape": ["P"]},                      # in [0, V)
+        GRID: {"dtype": "float32", "shape": ["P", "G", 2]},
+        CUES: {"dtype": "float32", "shape": ["P", "G", 4]},
+        PAIRS: {"dtype": "int64", "shape": ["K", "R", "S"]},             # in [0, P * G)
+        MASK: {"dtype": "float32", "shape": ["K", "R", "S"]},            # slot's weight, 0: empty
+        POSITIONS: {"dtype": "float32", "shape": ["R", "S", 3]},
+        DIRECTIONS: {"dtype": "float32", "shape": ["R", 3]},
     },
     "outputs": RENDERER["outputs"],
     "dynamic_axes": {
-        "field_maps": {0: "V"}, "groups": {0: "P"}, "grid": {0: "P", 1: "G"},
-        "cues": {0: "P", 1: "G"}, "pairs": {0: "K", 1: "R", 2: "S"},
-        "mask": {0: "K", 1: "R", 2: "S"}, "positions": {0: "R", 1: "S"}, "directions": {0: "R"},
-        "rgb": {0: "R"}, "weights": {0: "R", 1: "S"},
+        FIELD_MAPS: {0: "V"}, GROUPS: {0: "P"}, GRID: {0: "P", 1: "G"},
+        CUES: {0: "P", 1: "G"}, PAIRS: {0: "K", 1: "R", 2: "S"},
+        MASK: {0: "K", 1: "R", 2: "S"}, POSITIONS: {0: "R", 1: "S"}, DIRECTIONS: {0: "R"},
+        RGB: {0: "R"}, WEIGHTS: {0: "R", 1: "S"},
     },
     "tolerance": RENDERER["tolerance"],
 }
@@ -145,9 +151,9 @@ def spec_for(graph: str, explicit_rgb: bool = False) -> dict:
     if graph == "renderer_views":            # colours per kept pair, like grid and cues
         shape, axes = ["P", "G", 3], {0: "P", 1: "G"}
     else:
-        shape, axes = EXPLICIT_RGB_INPUTS["colours"]["shape"], EXPLICIT_RGB_AXES["colours"]
-    return {**spec, "inputs": {**spec["inputs"], "colours": {"dtype": "float32", "shape": shape}},
-            "dynamic_axes": {**spec["dynamic_axes"], "colours": axes}}
+        shape, axes = EXPLICIT_RGB_INPUTS[COLOURS]["shape"], EXPLICIT_RGB_AXES[COLOURS]
+    return {**spec, "inputs": {**spec["inputs"], COLOURS: {"dtype": "float32", "shape": shape}},
+            "dynamic_axes": {**spec["dynamic_axes"], COLOURS: axes}}
 
 
 def required_dtypes(graph: str, explicit_rgb: bool = False) -> dict[str, dict[str, str]]:
@@ -158,8 +164,8 @@ def required_dtypes(graph: str, explicit_rgb: bool = False) -> dict[str, dict[st
             for kind in ("inputs", "outputs")}
 
 
-__all__ = ["MANIFEST_NAME", "FORMAT_NAME", "FORMAT_VERSION", "IO_SPEC_VERSION", "IO_SPEC_COMPATIBLE",
-           "IO_SPEC_BOOL_MASK",
+__all__ = ["MANIFEST_NAME", "FORMAT_NAME", "FORMAT_VERSION", "IO_SPEC_VERSION", "IO_SPEC_BOOL_MASK",
            "ENCODER", "RENDERER", "RENDERER_VIEWS", "EXPLICIT_RGB_INPUTS", "EXPLICIT_RGB_AXES",
-           "GRAPHS", "OPTIONAL_GRAPHS", "spec_for",
-           "required_dtypes"]
+           "GRAPHS", "OPTIONAL_GRAPHS", "spec_for", "required_dtypes",
+           "IMAGES", "IS_REFERENCE", "FIELD_MAPS", "WORLD_FROM_CAM", "FOCAL", "GRID", "CUES", "MASK",
+           "POSITIONS", "DIRECTIONS", "COLOURS", "GROUPS", "PAIRS", "RGB", "WEIGHTS"]

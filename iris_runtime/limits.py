@@ -7,13 +7,12 @@ the argument. ``IrisRuntime`` exposes them as ``max_views``, ``default_chunk_ray
 """
 from __future__ import annotations
 
-import numpy as np
-
 from .errors import InputError
+from .validation import check_integer
 
 __all__ = ["RENDER_BUDGET", "MAX_CHUNK_RAYS", "MAX_OUTPUT_PIXELS", "MAX_ENCODER_TOKENS",
            "MAX_CHUNK_SAMPLES", "MAX_LOCATE_CALLS", "render_memory_bound", "default_chunk_rays",
-           "max_views", "check_output_size", "check_chunk_rays"]
+           "max_views", "check_output_size", "check_chunk_rays", "chunk_rays_for"]
 
 #: Rays x samples x views per renderer call by default: ``default_chunk_rays`` gives
 #: ``min(MAX_CHUNK_RAYS, RENDER_BUDGET // (S * V))`` rays (256 for 1-2 views, 128 for 4, 64 for 8
@@ -69,10 +68,8 @@ def check_output_size(image_size: tuple[int, int], height=None, width=None) -> t
     model's, or the model's aspect for one given side), or ``InputError`` for non-positive /
     non-integer sizes and for more than ``MAX_OUTPUT_PIXELS`` pixels. Allocates nothing."""
     Hm, Wm = image_size
-    for name, v in (("height", height), ("width", width)):
-        if v is not None and (isinstance(v, bool) or not isinstance(v, (int, np.integer))
-                              or v < 1):
-            raise InputError(f"{name}: expected a positive integer or None, got {v!r}")
+    height = check_integer(height, "height", allow_none=True)
+    width = check_integer(width, "width", allow_none=True)
     if height is None and width is None:
         h, w = Hm, Wm
     elif height is None:
@@ -88,15 +85,26 @@ def check_output_size(image_size: tuple[int, int], height=None, width=None) -> t
     return h, w
 
 
-def check_chunk_rays(chunk_rays, pixels: int, samples: int, num_views: int) -> int:
-    """An explicit ``chunk_rays`` as an int, or ``InputError`` when it is not a positive integer
-    or when ``min(chunk_rays, pixels) * samples * num_views`` exceeds ``MAX_CHUNK_SAMPLES``."""
-    if isinstance(chunk_rays, bool) or not isinstance(chunk_rays, (int, np.integer)) \
-            or chunk_rays < 1:
-        raise InputError(f"chunk_rays: expected a positive integer, got {chunk_rays!r}")
-    if min(int(chunk_rays), pixels) * samples * num_views > MAX_CHUNK_SAMPLES:
-        raise InputError(f"chunk_rays: {int(chunk_rays)} rays x {samples} samples x "
+def chunk_rays_for(chunk_rays, *, pixels: int, samples: int, num_views: int,
+                   views_per_call: int) -> int:
+    """Rays per renderer call of a render of ``pixels`` pixels, ``samples`` samples per ray and
+    ``num_views`` reference views: ``chunk_rays`` checked (``check_chunk_rays``), or when None
+    ``default_chunk_rays`` of the views a call feeds per point (``views_per_call``: fewer than
+    ``num_views`` when the calls shrink to a top-k of them)."""
+    if chunk_rays is None:
+        return default_chunk_rays(views_per_call, samples)
+    return check_chunk_rays(chunk_rays, pixels, samples, num_views)
+
+
+def check_chunk_rays(chunk_rays, pixels: int, samples: int, num_views: int,
+                     name: str = "chunk_rays") -> int:
+    """An explicit ``chunk_rays`` as an int, or ``InputError`` naming ``name`` when it is not a
+    positive integer or when ``min(chunk_rays, pixels) * samples * num_views`` exceeds
+    ``MAX_CHUNK_SAMPLES``."""
+    chunk_rays = check_integer(chunk_rays, name)
+    if min(chunk_rays, pixels) * samples * num_views > MAX_CHUNK_SAMPLES:
+        raise InputError(f"{name}: {chunk_rays} rays x {samples} samples x "
                          f"{num_views} views per renderer call exceeds "
                          f"MAX_CHUNK_SAMPLES = {MAX_CHUNK_SAMPLES} (memory grows with it); "
                          f"use at most {max(1, MAX_CHUNK_SAMPLES // (samples * num_views))}")
-    return int(chunk_rays)
+    return chunk_rays

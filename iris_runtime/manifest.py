@@ -14,9 +14,8 @@ Checks, each failing with a typed ``ModelFileError`` that names the file and wha
   directory, or an I/O spec that lacks a name the runtime feeds or reads;
 - ``ModelFormatError``: format name other than ``"iris-model"`` or a version other than 2
   (version 1, written before the encoder isolated its references, says to re-export with
-  iris-export); an ``io_spec_version`` other than 3 and 2 (2, written before explicit-colour
-  models could be exported, has exactly 3's graphs for every other model and is read as such; a
-  version 2 manifest of an explicit-colour model is refused);
+  iris-export); an ``io_spec_version`` other than ``IO_SPEC_VERSION`` (4; versions 2 and 3,
+  whose renderers take a bool mask, say to re-export with iris-export);
 - explicit colour: ``config.explicit_rgb`` (a bool; absent = False) says whether the renderer
   takes ``colours`` (``EXPLICIT_RGB_INPUTS``); a renderer spec that lists ``colours`` for a model
   without it, or lacks it for a model with it, is a ``ManifestError``;
@@ -41,8 +40,7 @@ from typing import Any, Mapping
 from .errors import ManifestError, ModelFileError, ModelFormatError, ModelIntegrityError
 from .fileio import read_json, sha256_bytes
 from .io_spec import (EXPLICIT_RGB_INPUTS, FORMAT_NAME, FORMAT_VERSION, GRAPHS, IO_SPEC_BOOL_MASK,
-                      IO_SPEC_COMPATIBLE, IO_SPEC_VERSION, MANIFEST_NAME, OPTIONAL_GRAPHS,
-                      required_dtypes)
+                      IO_SPEC_VERSION, MANIFEST_NAME, OPTIONAL_GRAPHS, required_dtypes)
 
 
 def required_io_for(explicit_rgb: bool) -> dict[str, dict[str, dict[str, str]]]:
@@ -262,7 +260,7 @@ def read_manifest(model_dir: str | os.PathLike, *, verify_hashes: bool = True) -
                                f"weights (its renderer takes a bool mask); this runtime feeds "
                                f"I/O spec version {IO_SPEC_VERSION}: re-export with iris-export "
                                f"(the checkpoint still loads: iris-export CKPT OUT)")
-    if isinstance(io_version, bool) or io_version not in (IO_SPEC_VERSION, *IO_SPEC_COMPATIBLE):
+    if isinstance(io_version, bool) or io_version != IO_SPEC_VERSION:
         raise ModelFormatError(f"{path}: I/O spec version {io_version!r}; this runtime feeds I/O "
                                f"spec version {IO_SPEC_VERSION} (re-export with iris-export, or "
                                f"upgrade iris_runtime)")
@@ -274,10 +272,6 @@ def read_manifest(model_dir: str | os.PathLike, *, verify_hashes: bool = True) -
     if not isinstance(explicit_rgb, bool):
         raise ManifestError(f"{path}: config.explicit_rgb must be true or false, got "
                             f"{explicit_rgb!r}")
-    if explicit_rgb and io_version != IO_SPEC_VERSION:
-        raise ModelFormatError(f"{path}: an explicit-colour model (config.explicit_rgb) under I/O "
-                               f"spec version {io_version!r}, which has no 'colours' input; this "
-                               f"runtime feeds version {IO_SPEC_VERSION}: re-export with iris-export")
 
     def number(key, kind=float):
         value = doc.get(key)

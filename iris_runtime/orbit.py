@@ -27,6 +27,7 @@ from __future__ import annotations
 import numpy as np
 
 from .errors import InputError
+from .validation import check_integer
 
 __all__ = ["orbit_poses", "look_at", "scene_centre"]
 
@@ -36,9 +37,11 @@ def _unit(v: np.ndarray, eps: float = 1e-12) -> np.ndarray:
 
 
 def look_at(centre: np.ndarray, target: np.ndarray, down: np.ndarray,
-            right_hint: np.ndarray | None = None) -> np.ndarray:
+            right_hint: np.ndarray | None = None, roll: float = 0.0) -> np.ndarray:
     """``world_from_cam [4, 4]`` of a camera at ``centre`` whose z axis points at ``target`` and
-    whose y axis is as close as possible to ``down`` (OpenCV: y points down in the image)."""
+    whose y axis is as close as possible to ``down`` (OpenCV: y points down in the image), then
+    turned by ``roll`` radians about its optical axis. ``right_hint``: the x axis to aim for when
+    z is parallel to ``down``."""
     z = _unit(np.asarray(target, float) - np.asarray(centre, float))
     x = np.cross(down, z)
     if np.linalg.norm(x) < 1e-6:               # looking along the vertical: use the right hint
@@ -48,6 +51,9 @@ def look_at(centre: np.ndarray, target: np.ndarray, down: np.ndarray,
             x = np.cross(z, [0.0, 0.0, 1.0]) if abs(z[2]) < 0.9 else np.cross(z, [1.0, 0.0, 0.0])
     x = _unit(x)
     y = np.cross(z, x)
+    if roll:
+        c, s = np.cos(roll), np.sin(roll)
+        x, y = c * x + s * y, -s * x + c * y
     T = np.eye(4)
     T[:3, 0], T[:3, 1], T[:3, 2], T[:3, 3] = x, y, z, centre
     return T
@@ -78,8 +84,7 @@ def orbit_poses(world_from_cam, n: int, *, near: float, far: float,
     T = np.asarray(world_from_cam, dtype=np.float64)
     if T.ndim != 3 or T.shape[1:] != (4, 4) or len(T) == 0 or not np.all(np.isfinite(T)):
         raise InputError(f"world_from_cam: expected finite [V, 4, 4] poses, got shape {T.shape}")
-    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
-        raise InputError(f"n: expected a positive number of frames, got {n!r}")
+    n = check_integer(n, "n")
     centres = T[:, :3, 3]
     target = scene_centre(T, near, far)
     m = centres.mean(0)

@@ -55,6 +55,8 @@ import numpy as np
 
 from . import geometry as G
 from . import quality as Q
+from .io_spec import (COLOURS, CUES, DIRECTIONS, FIELD_MAPS, GRID, GROUPS, MASK, PAIRS, POSITIONS,
+                      RGB, WEIGHTS)
 from .scene import Scene
 
 __all__ = ["MarchPlan", "Block", "Call", "MarchStats", "MarchResult", "march", "trace_block",
@@ -328,7 +330,7 @@ def _march_block(plan: MarchPlan, session, start: int, rgb: np.ndarray, depth: n
                 else np.ascontiguousarray(plan.field_maps[views])
         feed, z = call_feed(plan, block, call, maps)
         t1 = time.perf_counter()
-        out_rgb, weights = session.run(["rgb", "weights"], feed)
+        out_rgb, weights = session.run([RGB, WEIGHTS], feed)
         t2 = time.perf_counter()
         rows = block.rows[call.rays]
         rgb[rows] = out_rgb
@@ -341,7 +343,7 @@ def _march_block(plan: MarchPlan, session, start: int, rgb: np.ndarray, depth: n
         t3 = time.perf_counter()
         stats.rays_s += (t1 - t0) + (t3 - t2)
         stats.renderer_s += t2 - t1
-        stats.count_call(*feed["mask"].shape)
+        stats.count_call(*feed[MASK].shape)
     return stats
 
 
@@ -397,8 +399,8 @@ def plan_calls(plan: MarchPlan, block: Block) -> list[Call]:
 
     With culling, the rays whose every sample has full weight in its best view go to calls of
     their own: such a call has no masked or fading key, so the renderer graph skips its ray
-    attentions' key-bias Add (``export.fast_renderer._key_softmax``): 91.5 % of the rays of four
-    held-out scenes' targets (``benchmarks/call_ab.py``)."""
+    attentions' key-bias Add (``export.fast_renderer._key_softmax``). Most rays of a render are
+    such rays (docs/PERFORMANCE.md, "The fast renderer graph")."""
     if not plan.cull:
         return [Call(np.arange(len(block.rows)), np.arange(len(block.views)))]
     if len(block.views) == 0:                            # nothing of the scene on these rays
@@ -440,11 +442,11 @@ def call_feed(plan: MarchPlan, block: Block, call: Call,
             mask = np.take_along_axis(mask, order[None], axis=2)
             z = np.take_along_axis(z, order, axis=1)
     grid = G.pixels_to_grid(uv, H, W)
-    feed = {"field_maps": field_maps, "grid": grid, "cues": np.ascontiguousarray(cue),
-            "mask": np.ascontiguousarray(mask), "positions": points,
-            "directions": block.directions[call.rays]}
+    feed = {FIELD_MAPS: field_maps, GRID: grid, CUES: np.ascontiguousarray(cue),
+            MASK: np.ascontiguousarray(mask), POSITIONS: points,
+            DIRECTIONS: block.directions[call.rays]}
     if plan.photo_taps is not None:    # explicit colour: the photos at the same grid
-        feed["colours"] = G.sample_taps(plan.photo_taps, plan.image_size, grid,
+        feed[COLOURS] = G.sample_taps(plan.photo_taps, plan.image_size, grid,
                                         block.views[call.views])
     return (select_point_views(feed) if plan.select_views else feed), z
 
@@ -462,7 +464,7 @@ def select_point_views(feed: dict[str, np.ndarray], group: int = PAIR_GROUP
     per point its kept views, in view order, in slots 0 .. K - 1 with their weights (K: the most
     any point keeps; the rest weight 0). Same result as ``feed``: the renderer pools and attends
     over the valid views of each point."""
-    mask = feed["mask"]
+    mask = feed[MASK]
     v = mask.shape[0]
     weights = mask.reshape(v, -1)                                            # [v, r*s]
     flat = weights > 0
@@ -486,12 +488,12 @@ def select_point_views(feed: dict[str, np.ndarray], group: int = PAIR_GROUP
     pairs[slot, point] = row
     slots = np.zeros((K, flat.shape[1]), weights.dtype)
     slots[slot, point] = weights[view, point]
-    out = {"field_maps": feed["field_maps"], "groups": groups.astype(np.int64),
-           "grid": compact(feed["grid"]), "cues": compact(feed["cues"]),
-           "pairs": pairs.reshape(K, *mask.shape[1:]), "mask": slots.reshape(K, *mask.shape[1:]),
-           "positions": feed["positions"], "directions": feed["directions"]}
-    if "colours" in feed:
-        out["colours"] = compact(feed["colours"])
+    out = {FIELD_MAPS: feed[FIELD_MAPS], GROUPS: groups.astype(np.int64),
+           GRID: compact(feed[GRID]), CUES: compact(feed[CUES]),
+           PAIRS: pairs.reshape(K, *mask.shape[1:]), MASK: slots.reshape(K, *mask.shape[1:]),
+           POSITIONS: feed[POSITIONS], DIRECTIONS: feed[DIRECTIONS]}
+    if COLOURS in feed:
+        out[COLOURS] = compact(feed[COLOURS])
     return out
 
 
@@ -499,14 +501,14 @@ def empty_ray_rgb(session, field_maps_shape: tuple[int, ...], explicit_rgb: bool
     """The renderer's colour for a ray with no valid sample, float32 [3], read-only (a constant
     of the model: every input is masked, so nothing of the scene reaches it)."""
     _, C, h, w = field_maps_shape
-    feed = {"field_maps": np.zeros((1, C, h, w), f32),
-            "grid": np.zeros((1, 1, 1, 2), f32),
-            "cues": np.zeros((1, 1, 1, 4), f32),
-            "mask": np.zeros((1, 1, 1), f32),
-            "positions": np.zeros((1, 1, 3), f32),
-            "directions": np.array([[0, 0, 1]], f32)}
+    feed = {FIELD_MAPS: np.zeros((1, C, h, w), f32),
+            GRID: np.zeros((1, 1, 1, 2), f32),
+            CUES: np.zeros((1, 1, 1, 4), f32),
+            MASK: np.zeros((1, 1, 1), f32),
+            POSITIONS: np.zeros((1, 1, 3), f32),
+            DIRECTIONS: np.array([[0, 0, 1]], f32)}
     if explicit_rgb:                   # masked: the blend of nothing, whatever colour
-        feed["colours"] = np.zeros((1, 1, 1, 3), f32)
-    rgb = session.run(["rgb"], feed)[0][0]
+        feed[COLOURS] = np.zeros((1, 1, 1, 3), f32)
+    rgb = session.run([RGB], feed)[0][0]
     rgb.setflags(write=False)
     return rgb

@@ -26,9 +26,11 @@ intrinsics in pixels with pixel centres at (j + 0.5, i + 0.5).
 """
 from __future__ import annotations
 
+import functools
 import os
 import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
@@ -42,6 +44,7 @@ from . import quality as Q
 from . import raymarch
 from .errors import InputError, ManifestError, ModelFileError
 from .images import fit_to_model, load_image
+from .io_spec import FIELD_MAPS, FOCAL, IMAGES, IS_REFERENCE, WORLD_FROM_CAM
 from .limits import (MAX_CHUNK_RAYS, MAX_CHUNK_SAMPLES, MAX_ENCODER_TOKENS, MAX_LOCATE_CALLS,
                      MAX_OUTPUT_PIXELS, RENDER_BUDGET, render_memory_bound)
 from .manifest import CAMERAS, MANIFEST_NAME, Manifest, read_graph_bytes, read_manifest
@@ -55,6 +58,35 @@ __all__ = ["IrisRuntime", "Scene", "RenderResult", "check_pose", "CAMERAS", "CAM
            "render_memory_bound",
            "PRECISIONS", "RenderSettings", "QUALITY_PRESETS"]
 
+
+
+@dataclass(frozen=True, eq=False)
+class _RenderJob:
+    """One ``render`` call, checked: what its ray march needs (arrays as the checks returned them).
+
+    scene:          the Scene rendered from (encoded by the call when it was given images)
+    world_from_cam: float64 [4, 4]   target pose
+    K:              [3, 3]           target intrinsics in pixels of ``march_size``
+    size:           (H, W)           the output's pixels
+    march_size:     (h, w)           the pixels marched (``RenderSettings.march_size``)
+    settings:       RenderSettings   the knobs, resolved
+    samples:        int              samples per ray
+    chunk_rays:     int              rays per renderer call
+    graph:          str              the renderer graph of the call's precision
+    select_views:   bool             per-point top-k on ``renderer_views``
+    photos:         float32 [V, 3, H, W] or None   each view's photo (explicit colour)
+    """
+    scene: Scene
+    world_from_cam: np.ndarray
+    K: np.ndarray
+    size: tuple[int, int]
+    march_size: tuple[int, int]
+    settings: RenderSettings
+    samples: int
+    chunk_rays: int
+    graph: str
+    select_views: bool
+    photos: np.ndarray | None
 
 
 def _is_single_image(x) -> bool:
@@ -228,8 +260,8 @@ class IrisRuntime:
         """The encoder graph on ``batch [V, 3, H, W]`` with ``is_reference`` bool [V] -> field_maps
         float32 [V, C', h, w], world_from_cam float32 [V, 4, 4], focal float32 [2], checked."""
         maps, world_from_cam, focal = self._session("encoder").run(
-            ["field_maps", "world_from_cam", "focal"],
-            {"images": batch, "is_reference": np.ascontiguousarray(is_reference, dtype=bool)})
+            [FIELD_MAPS, WORLD_FROM_CAM, FOCAL],
+            {IMAGES: batch, IS_REFERENCE: np.ascontiguousarray(is_reference, dtype=bool)})
         V = batch.shape[0]
         channels = self.manifest.field_channels
         if (maps.ndim != 4 or maps.shape[0] != V or (channels and maps.shape[1] != channels)
@@ -270,10 +302,10 @@ class IrisRuntime:
                  focal becomes the Scene's ``focal`` and ``K`` (rendering uses the focal the
                  poses were solved at); the encoder's is kept in ``Scene.encoder_focal``. Views
                  that view 0 does not reach through trusted pairs keep the encoder's camera
-                 (``Scene.camera_source`` "mixed"; "model" if none is reached). Costs 8.5 s for 8
-                 views at 64x64 on one core against 0.03 s with the encoder's cameras
-                 (``benchmarks/epipolar_cost.py``).
-                 Held-out figures: README, "Epipolar cameras".
+                 (``Scene.camera_source`` "mixed"; "model" if none is reached). Costs
+                 V (V - 1) / 2 optical flows and the solve, far more than the encoder
+                 (``benchmarks/epipolar_cost.py``). How it works and its held-out figures:
+                 docs/CAMERAS.md.
         """
         return self._encode(images, {}, self._check_cameras(
             self.default_cameras if cameras is None else cameras))
@@ -374,12 +406,7 @@ class IrisRuntime:
     def render(self, images_or_scene, pose, *, height: int | None = None, width: int | None = None,
                intrinsics=None, depth: bool = False, chunk_rays: int | None = None,
                progress: Callable[[int, int], None] | None = None,
-               quality: "str | RenderSettings | None" = None, samples: int | None = None,
-               top_k: int | None = None, top_k_by: str | None = None,
-               scale: float | None = None, upsample: str | None = None,
-               precision: str | None = None, coarse: float | None = None,
-               refine: float | None = None, refine_budget: float | None = None,
-               depth_window: int | None = None, depth_mass: float | None = None):
+               quality: "str | RenderSettings | None" = None, **knobs):
         """Render one view.
 
         images_or_scene: a ``Scene`` from ``encode`` or the reference images (encoded first).
@@ -392,38 +419,47 @@ class IrisRuntime:
                     the output) is given.
         depth:      return a ``RenderResult`` (image, float image, depth, timings) instead of the
                     uint8 image alone.
-        chunk_rays: rays per renderer call (default ``default_chunk_rays(V)``); peak memory is
-                    bounded by it whatever the output size.
+        chunk_rays: rays per renderer call (default ``default_chunk_rays`` of the views a call
+                    feeds); peak memory is bounded by it whatever the output size.
         progress:   called as ``progress(rays_done, rays_total)`` after each chunk.
 
         Speed/quality (``iris_runtime.quality``; measured error and time in docs/PERFORMANCE.md):
         quality:    a preset, "exact" (default: the full render), "balanced", "fast" or
-                    "adaptive" (``QUALITY_PRESETS``), or a ``RenderSettings``; the keywords below
-                    override single fields of it.
-        samples:    samples per ray (default the model's, 64): bin centres in [near, far].
-        top_k:      keep at most this many reference views per point (largest cue t.s among the
-                    valid views); ``top_k_by`` "ray" (one set of views per ray, so renderer calls
-                    shrink to top_k views) or "point".
-        scale:      render at (H, W) * scale and resize to (H, W) (``upsample`` "linear"/"cubic").
-        precision:  "float32" or "int8" renderer for this call (default: the runtime's).
-        refine:     adaptive refinement: render at ``coarse`` x the resolution, upsample, and
-                    render again exactly the pixels whose coarse neighbourhood varies by at least
-                    ``refine`` (colour; depth in units of far - near), at most ``refine_budget``
-                    of them (``iris_runtime.adaptive``).
-        depth_window: depth-guided samples: after the coarse pass, keep the samples within this
-                    many bins of the coarse soft-depth modes, every sample where the coarse rays
-                    held less than ``depth_mass`` of their weight there.
+                    "adaptive" (``QUALITY_PRESETS``), or a ``RenderSettings``, passed whole.
+        **knobs:    single ``RenderSettings`` fields overriding the preset's (documented there):
+                    ``samples``, ``top_k``, ``top_k_by``, ``scale``, ``upsample``, ``precision``
+                    (default: the runtime's), ``coarse``, ``refine``, ``refine_budget``,
+                    ``depth_window``, ``depth_mass``; any other name is an ``InputError``.
 
         Returns uint8 [H, W, 3] RGB, or a ``RenderResult`` with ``depth=True``.
         """
         t_start = time.perf_counter()
         timings: dict[str, float] = {}
-        settings = Q.resolve_settings(quality, samples=samples, top_k=top_k, top_k_by=top_k_by,
-                                      scale=scale, upsample=upsample, precision=precision,
-                                      coarse=coarse, refine=refine, refine_budget=refine_budget,
-                                      depth_window=depth_window, depth_mass=depth_mass)
+        job = self._render_job(images_or_scene, pose, Q.resolve_settings(quality, **knobs),
+                               height, width, intrinsics, chunk_rays, progress, timings)
+        march = functools.partial(self._march_at, job)
+        if job.settings.refine is None and job.settings.depth_window is None:
+            marched, work = march(*job.march_size, progress=progress), {}
+        else:
+            marched = adaptive.render(job.settings, march, *job.march_size, near=self.near,
+                                      far=self.far, samples=job.samples, progress=progress)
+            timings["coarse"], work = marched.coarse_s, marched.work
+        timings["rays"] = marched.stats.rays_s        # summed over blocks (thread time)
+        timings["renderer"] = marched.stats.renderer_s
+        image_float, z = self._to_output_size(job, marched, timings)
+        image = np.rint(np.clip(image_float, 0.0, 1.0) * 255.0).astype(np.uint8)
+        timings["total"] = time.perf_counter() - t_start
+        if not depth:
+            return image
+        return RenderResult(image, image_float, z, timings, {**marched.stats.work(), **work},
+                            job.settings)
+
+    def _render_job(self, images_or_scene, pose, settings: RenderSettings, height, width,
+                    intrinsics, chunk_rays, progress, timings: dict) -> "_RenderJob":
+        """Every argument of ``render`` checked, in the order its errors are documented (size and
+        limits before encoding or allocating), and what the march needs derived once."""
         graph = self._renderer_graph(settings.precision or self.precision)
-        height, width = self.check_output_size(height, width)  # before encoding or allocating
+        size = self.check_output_size(height, width)
         if progress is not None and not callable(progress):
             raise InputError(f"progress: expected a callable progress(done, total) or None, got "
                              f"{type(progress).__name__}")
@@ -434,64 +470,59 @@ class IrisRuntime:
             scene = self._encode(images_or_scene, timings, self.default_cameras)
         photos = self._view_images(scene)             # explicit colour: the photos are there
         world_from_cam = self._check_pose(pose, scene)
-        K = self._check_intrinsics(intrinsics, scene, height, width)
-        S = settings.samples or self.samples
+        K = self._check_intrinsics(intrinsics, scene, *size)
+        samples = settings.samples or self.samples
         V = scene.num_views
         # Per-point top-k on the renderer that takes each point's own views (float32 only).
         select_views = (settings.top_k is not None and settings.top_k < V
                         and settings.top_k_by == "point" and graph == "renderer"
                         and "renderer_views" in self.manifest.graphs)
-        if chunk_rays is None:
-            # A call's work and memory grow with the views it feeds per point: top_k of them when
-            # the calls shrink to them (by ray, or per point on renderer_views).
-            by_ray = settings.top_k is not None and settings.top_k_by == "ray"
-            chunk_rays = self.default_chunk_rays(
-                min(V, settings.top_k) if by_ray or select_views else V, S)
-        else:
-            chunk_rays = L.check_chunk_rays(chunk_rays, height * width, S, V)
-        h, w = height, width
-        if settings.scale != 1.0:                     # (0, 1]: never more pixels than the output
-            h = max(1, int(round(height * settings.scale)))
-            w = max(1, int(round(width * settings.scale)))
-            K = G.scale_intrinsics(K, (height, width), (h, w))
-        session = self._session("renderer_views" if select_views else graph)
-        empty_rgb = self._empty_ray_rgb(scene, graph) if self.cull else None
+        # A call's work and memory grow with the views it feeds per point: top_k of them when
+        # the calls shrink to them (by ray, or per point on renderer_views).
+        shrinks = settings.top_k is not None and (settings.top_k_by == "ray" or select_views)
+        chunk_rays = L.chunk_rays_for(chunk_rays, pixels=size[0] * size[1], samples=samples,
+                                      num_views=V,
+                                      views_per_call=min(V, settings.top_k) if shrinks else V)
+        march_size = settings.march_size(*size)
+        if march_size != size:
+            K = G.scale_intrinsics(K, size, march_size)
+        return _RenderJob(scene=scene, world_from_cam=world_from_cam, K=K, size=size,
+                          march_size=march_size, settings=settings, samples=samples,
+                          chunk_rays=chunk_rays, graph=graph, select_views=select_views,
+                          photos=photos)
 
-        def march_at(mh: int, mw: int, progress=None, **subset) -> raymarch.MarchResult:
-            """The ray march at mh x mw pixels (h x w: the render's), on ``subset``
-            (``MarchPlan``'s pixel_index, sample_window, mode_radius)."""
-            plan = raymarch.MarchPlan.build(
-                scene, world_from_cam,
-                K if (mh, mw) == (h, w) else G.scale_intrinsics(K, (h, w), (mh, mw)), mh, mw,
-                samples=S, near=self.near, far=self.far, top_k=settings.top_k,
-                top_k_by=settings.top_k_by, chunk_rays=chunk_rays, cull=self.cull,
-                photos=photos, empty_rgb=empty_rgb, select_views=select_views, **subset)
-            return raymarch.march(plan, session, workers=self.workers, progress=progress)
+    def _march_at(self, job: "_RenderJob", mh: int, mw: int, progress=None,
+                  **subset) -> raymarch.MarchResult:
+        """The ray march of ``job`` at mh x mw pixels (``job.march_size``, or the coarse pass's),
+        on ``subset`` (``MarchPlan``'s pixel_index, sample_window, mode_radius)."""
+        K = job.K if (mh, mw) == job.march_size else G.scale_intrinsics(job.K, job.march_size,
+                                                                          (mh, mw))
+        plan = raymarch.MarchPlan.build(
+            job.scene, job.world_from_cam, K, mh, mw, samples=job.samples, near=self.near,
+            far=self.far, top_k=job.settings.top_k, top_k_by=job.settings.top_k_by,
+            chunk_rays=job.chunk_rays, cull=self.cull, photos=job.photos,
+            empty_rgb=self._empty_ray_rgb(job.scene, job.graph) if self.cull else None,
+            select_views=job.select_views, **subset)
+        session = self._session("renderer_views" if job.select_views else job.graph)
+        return raymarch.march(plan, session, workers=self.workers, progress=progress)
 
-        if settings.refine is None and settings.depth_window is None:
-            marched, work = march_at(h, w, progress), {}
-        else:
-            marched = adaptive.render(settings, march_at, h, w, near=self.near, far=self.far,
-                                      samples=S, progress=progress)
-            timings["coarse"], work = marched.coarse_s, marched.work
-        timings["rays"] = marched.stats.rays_s        # summed over blocks (thread time)
-        timings["renderer"] = marched.stats.renderer_s
+    @staticmethod
+    def _to_output_size(job: "_RenderJob", marched, timings: dict):
+        """The march's colour and depth at the output size: float32 [H, W, 3] and [H, W] (resized
+        with OpenCV when ``scale`` < 1: ``upsample`` for the colour, linear for the depth)."""
+        h, w = job.march_size
         image_float = marched.rgb.reshape(h, w, 3)
         z = marched.depth.reshape(h, w)
-        if (h, w) != (height, width):
+        if job.march_size != job.size:
             t0 = time.perf_counter()
             import cv2                         # only needed for scale < 1
-            interp = cv2.INTER_CUBIC if settings.upsample == "cubic" else cv2.INTER_LINEAR
+            height, width = job.size
+            interp = cv2.INTER_CUBIC if job.settings.upsample == "cubic" else cv2.INTER_LINEAR
             image_float = np.clip(cv2.resize(image_float, (width, height), interpolation=interp),
                                   0.0, 1.0)
             z = cv2.resize(z, (width, height), interpolation=cv2.INTER_LINEAR)
             timings["upsample"] = time.perf_counter() - t0
-        image = np.rint(np.clip(image_float, 0.0, 1.0) * 255.0).astype(np.uint8)
-        timings["total"] = time.perf_counter() - t_start
-        if not depth:
-            return image
-        return RenderResult(image, image_float, z, timings, {**marched.stats.work(), **work},
-                            settings)
+        return image_float, z
 
     # .. argument checks ......................................................................
     def _check_scene(self, scene: Scene, name: str = "images_or_scene") -> None:

@@ -13,6 +13,8 @@ behind them trusts what they return and checks nothing again.
 
 Every failure is a typed error (``InputError`` for cameras, ``ImageError`` for images) whose
 message starts with the argument's name and says what was expected and what was found.
+``check_integer`` is the one check of a count (sizes, samples, views, threads, frames) for every
+caller, with the caller's error type.
 
 Rigidity policy
 ---------------
@@ -28,7 +30,7 @@ is orthonormal only to ~1e-3. So the readers of text camera files (``camera_io``
 ``transforms.json`` reader, ``iris-render --pose`` JSON) call ``snap_world_from_cam``: a matrix
 that passes the strict check is returned as is (IRIS's own files round-trip bit for bit); one
 rigid only to ``SNAP_ATOL = 1e-3`` is replaced by the nearest rigid transform (rotation block by
-its polar factor ``U V^T``, the translation kept, last row set to [0, 0, 0, 1]); beyond, the same
+``nearest_rotation``, the translation kept, last row set to [0, 0, 0, 1]); beyond, the same
 ``InputError`` as the strict check. That is the only place a pose is changed, and everything it
 returns passes the strict check. COLMAP's quaternions need neither: a normalised quaternion is a
 rotation by construction.
@@ -40,7 +42,8 @@ import numpy as np
 from .errors import ImageError, InputError
 
 __all__ = ["RIGID_ATOL", "SNAP_ATOL", "INTRINSICS_ATOL", "FLOAT_IMAGE_ATOL", "rigidity_error",
-           "check_world_from_cam", "snap_world_from_cam", "check_intrinsics", "check_images"]
+           "nearest_rotation", "check_world_from_cam", "snap_world_from_cam", "check_intrinsics",
+           "check_images", "check_integer"]
 
 #: The one tolerance of a rigid ``world_from_cam``: max of |R^T R - I|, |det R - 1| and
 #: |last row - [0, 0, 0, 1]| (see the module docstring for why 1e-4).
@@ -72,6 +75,18 @@ def rigidity_error(T: np.ndarray) -> np.ndarray:
     det = np.abs(np.linalg.det(R) - 1.0)
     bottom = np.abs(T[..., 3, :] - [0.0, 0.0, 0.0, 1.0]).max(axis=-1)
     return np.maximum(np.maximum(ortho, det), bottom)
+
+
+def nearest_rotation(M: np.ndarray) -> np.ndarray:
+    """The rotation closest to ``M [..., 3, 3]`` in Frobenius norm: ``U D V^T`` of the SVD
+    ``M = U S V^T`` with ``D = diag(1, 1, sign det(U V^T))`` (det +1 also for a mirrored ``M``;
+    finite for any finite ``M``). ``geometry.nearest_rotation`` is this function."""
+    U, _, Vt = np.linalg.svd(M)
+    d = np.sign(np.linalg.det(U @ Vt))
+    d = np.where(d == 0, 1.0, d)
+    U = U.copy()
+    U[..., :, 2] *= d[..., None]
+    return U @ Vt
 
 
 def _pose_array(value, name: str, batch: bool) -> np.ndarray:
@@ -132,16 +147,15 @@ def check_world_from_cam(value, name: str = "pose", *, batch: bool = False) -> n
 def snap_world_from_cam(value, name: str) -> np.ndarray:
     """For readers of text camera files only: ``value [4, 4]`` (numbers from a file) as a rigid
     float64 ``world_from_cam``. Rigid to ``RIGID_ATOL``: returned unchanged. Rigid to
-    ``SNAP_ATOL`` (rounded decimals): the nearest rigid transform (rotation ``U V^T`` of the SVD
-    ``R = U S V^T``, translation kept, last row [0, 0, 0, 1]). Otherwise ``InputError``."""
+    ``SNAP_ATOL`` (rounded decimals): the nearest rigid transform (rotation ``nearest_rotation(R)``,
+    translation kept, last row [0, 0, 0, 1]). Otherwise ``InputError``."""
     T = _pose_array(value, name, batch=False)
     err = float(rigidity_error(T))
     if err <= RIGID_ATOL:
         return T
     if err > SNAP_ATOL:
         raise _not_rigid(T, name, SNAP_ATOL)
-    U, _, Vt = np.linalg.svd(T[:3, :3])
-    T[:3, :3] = U @ Vt                        # det +1: det R is within SNAP_ATOL of 1
+    T[:3, :3] = nearest_rotation(T[:3, :3])
     T[3] = [0.0, 0.0, 0.0, 1.0]
     return T
 
@@ -237,3 +251,23 @@ def check_images(value, name: str = "image", *, batch: bool = False) -> np.ndarr
         raise ImageError(f"{name}: float image values must lie in [0, 1], got [{lo:.4g}, "
                          f"{hi:.4g}]; {_range_hint(lo, hi)}")
     return a
+
+
+# ----------------------------------------------------------------------------------------------
+# Counts
+# ----------------------------------------------------------------------------------------------
+
+def check_integer(value, name: str, *, minimum: int = 1, allow_none: bool = False,
+                  error: type[Exception] = InputError) -> int | None:
+    """``value`` as a Python int ``>= minimum`` (numpy integers accepted, bools refused), or
+    ``error`` naming ``name``: "expected a positive integer" (``minimum`` 1), "a non-negative
+    integer" (0), "an integer >= minimum" otherwise, "or None" with ``allow_none`` (None is then
+    returned as is)."""
+    if value is None and allow_none:
+        return None
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)) \
+            or value < minimum:
+        what = {1: "a positive integer", 0: "a non-negative integer"}.get(
+            minimum, f"an integer >= {minimum}")
+        raise error(f"{name}: expected {what}{' or None' if allow_none else ''}, got {value!r}")
+    return int(value)

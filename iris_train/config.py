@@ -28,7 +28,7 @@ class ModelConfig:
     field_heads: int = 4
     pos_freqs: int = 6                # sinusoidal frequencies for sample positions
     dir_freqs: int = 4                # ... and for ray directions
-    # Explicit colour (issue 10): the field also gets the reference RGB sampled at full resolution
+    # Explicit colour: the field also gets the reference RGB sampled at full resolution
     # where each sample projects, and the ray's colour is a learned blend of it over samples (a
     # per-sample logit) plus a bounded learned residual; the blend weights give the soft depth.
     # False: the paper's renderer (colour from the rgb head alone, depth from the last ray

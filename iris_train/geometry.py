@@ -29,12 +29,15 @@ def pixel_centres(height: int, width: int, dtype=torch.float32, device=None) -> 
 
 
 def intrinsics_from_focal(focal: torch.Tensor, height: int, width: int) -> torch.Tensor:
-    """``K [3, 3]`` in pixels from the normalised focal ``[fx/W, fy/H]``; centred principal point."""
+    """``K [3, 3]`` in pixels from the normalised focal ``[fx/W, fy/H]`` (or one number fx/W for
+    square pixels); centred principal point."""
     zero = torch.zeros((), dtype=focal.dtype, device=focal.device)
     one = torch.ones((), dtype=focal.dtype, device=focal.device)
+    fx = focal[0] * width if focal.ndim else focal * width
+    fy = focal[1] * height if focal.ndim else focal * width
     return torch.stack([
-        torch.stack([focal[0] * width, zero, zero + width / 2.0]),
-        torch.stack([zero, focal[1] * height, zero + height / 2.0]),
+        torch.stack([fx, zero, zero + width / 2.0]),
+        torch.stack([zero, fy, zero + height / 2.0]),
         torch.stack([zero, zero, one]),
     ])
 

@@ -14,10 +14,8 @@ these affine maps: sampling [u, W_k u + b_k, W_v u + b_v] equals projecting the 
 order of Algorithm 1. The per-sample work left is the query path, the cue's 4 -> 2W map, the
 attention itself and the MLP.
 
-Measured effect (``python benchmarks/field_precompute.py``, tiny preset, 4 reference views,
-4096 rays x 64 samples, torch eager, 2 threads; benchmarks/results/field_precompute.md): getting
-the view transformer's inputs takes 0.165 s per-scene vs 0.512 s per-sample (3.1x), with a max abs
-difference of 2e-6 between the two orders (float32 rounding).
+The two orders agree up to float32 rounding; what the precompute saves:
+``python benchmarks/field_precompute.py`` (results in benchmarks/results/field_precompute.md).
 """
 from __future__ import annotations
 

@@ -38,6 +38,14 @@ def validity_bias(weight: torch.Tensor) -> torch.Tensor:
     return torch.where(weight > 0, FADE_GAIN * (weight - 1.0), torch.full_like(weight, MASK_FILL))
 
 
+def validity_bias_where_free(weight: torch.Tensor) -> torch.Tensor:
+    """``validity_bias(weight)``, bit for bit, without a ``Where`` (for ONNX graphs laid out
+    without one, ``export.fast_renderer``): ``FADE_GAIN * (w - 1) + (w <= 0) * MASK_FILL``. At
+    w = 0 that is ``MASK_FILL - FADE_GAIN``, which rounds to ``MASK_FILL`` in float32 and float64;
+    elsewhere the added term is a signed zero."""
+    return FADE_GAIN * (weight - 1.0) + (weight <= 0).to(weight.dtype) * MASK_FILL
+
+
 def masked_softmax(logits: torch.Tensor, mask: torch.Tensor, dim: int = -1) -> torch.Tensor:
     """Softmax over ``dim`` restricted to ``mask`` (validity weights in [0, 1] or bool,
     broadcastable; ``validity_bias``); all-masked rows give 0."""

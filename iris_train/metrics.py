@@ -33,8 +33,12 @@ import math
 import cv2
 import numpy as np
 
-__all__ = ["psnr", "ssim", "relative_pose_errors", "rpa", "depth_spearman", "RPA_THRESHOLDS",
-           "ZERO_TRANSLATION_RTOL", "DEPTH_SPEARMAN_MIN_PIXELS"]
+__all__ = ["psnr", "capped_psnr", "ssim", "relative_pose_errors", "rpa", "depth_spearman",
+           "PSNR_CAP", "RPA_THRESHOLDS", "ZERO_TRANSLATION_RTOL", "DEPTH_SPEARMAN_MIN_PIXELS"]
+
+#: Reported PSNRs are capped at this (dB): identical images have an infinite PSNR, which a mean
+#: over images or a JSON report cannot hold (``capped_psnr``).
+PSNR_CAP = 100.0
 
 #: Default RPA thresholds in degrees (the paper's RPA@5/15/30).
 RPA_THRESHOLDS = (5, 15, 30)
@@ -69,6 +73,11 @@ def psnr(pred: np.ndarray, gt: np.ndarray, data_range: float = 1.0) -> float:
     if mse == 0:
         return float("inf")
     return float(10.0 * np.log10(data_range ** 2 / mse))
+
+
+def capped_psnr(pred: np.ndarray, gt: np.ndarray, data_range: float = 1.0) -> float:
+    """``psnr`` capped at ``PSNR_CAP`` dB (finite for identical images)."""
+    return min(psnr(pred, gt, data_range), PSNR_CAP)
 
 
 def ssim(pred: np.ndarray, gt: np.ndarray, data_range: float = 1.0) -> float:

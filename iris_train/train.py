@@ -210,7 +210,8 @@ class PhotometricLoss(nn.Module):
 
 #: Translations shorter than this (model units; scene baselines are ~0.1-0.5) count as "no
 #: direction yet": unit(t) = t / sqrt(|t|^2 + floor^2) keeps the direction loss's gradient bounded
-#: while the cameras sit near one point (with a 1e-3 floor it was 50x the rotation term's, R3).
+#: while the cameras sit near one point (a smaller floor let it dwarf the rotation term's:
+#: docs/TRAINING.md, "Diagnosis of R3").
 DIRECTION_FLOOR = 0.05
 
 

@@ -50,10 +50,11 @@ from pathlib import Path
 
 import numpy as np
 
+from iris_runtime.geometry import nearest_rotation
+
 DEFAULT_ALPHAS = (0.0, 0.25, 0.5, 0.75, 1.0)
 VIEWS = 8
 CHUNK_RAYS = 256          # rays per renderer call (memory: 256 x 64 samples x 5 views x 192 ch)
-PSNR_CAP = 100.0
 
 
 # ----------------------------------------------------------------------------------------------
@@ -62,8 +63,7 @@ PSNR_CAP = 100.0
 
 def _axis_angle(R: np.ndarray) -> tuple[np.ndarray, float]:
     """Unit axis and angle in [0, pi] of a rotation (via its quaternion: robust near 0 and pi)."""
-    U, _, Vt = np.linalg.svd(R)
-    R = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt)) or 1.0]) @ Vt
+    R = nearest_rotation(R)
     tr = np.trace(R)
     # Shepperd: build the quaternion from its largest component.
     cands = np.array([tr, R[0, 0], R[1, 1], R[2, 2]])
@@ -109,6 +109,7 @@ def interpolate_poses(world_from_cam: np.ndarray, alpha: float) -> np.ndarray:
 # ----------------------------------------------------------------------------------------------
 
 def _psnr(mse: float) -> float:
+    from iris_train.metrics import PSNR_CAP
     if not np.isfinite(mse):
         return float("nan")
     return PSNR_CAP if mse <= 0 else min(PSNR_CAP, 10.0 * math.log10(1.0 / mse))

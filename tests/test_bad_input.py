@@ -337,6 +337,7 @@ def test_render_accepts_nested_lists_and_float32(rt, scene):
     ({"intrinsics": [[0, 0, 2], [0, 4, 2], [0, 0, 1]]}, "intrinsics"),      # zero focal
     ({"chunk_rays": 2.0}, "chunk_rays"), ({"chunk_rays": "64"}, "chunk_rays"),
     ({"progress": "yes"}, "progress"),
+    ({"sample": 32}, "sample"),                     # not a RenderSettings field: named, typed
 ])
 def test_render_bad_arguments(rt, scene, kwargs, name):
     kwargs = {"height": 4, "width": 4, **kwargs}

@@ -22,7 +22,7 @@ def committed() -> dict:
 
 
 def test_report_reproduces_committed_markdown(committed):
-    # README.md and docs/PERFORMANCE.md quote this file: its layout is part of the contract.
+    # docs/PERFORMANCE.md quotes this file: its layout is part of the contract.
     assert report.markdown(committed) == (RESULTS / report.MARKDOWN_NAME).read_text()
 
 

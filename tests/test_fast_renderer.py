@@ -21,6 +21,10 @@ torch renderer, laid out for ONNX Runtime's CPU kernels.
 """
 from __future__ import annotations
 
+import collections
+import tempfile
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -36,9 +40,8 @@ from iris_train.model import build_model                                    # no
 from export import io_spec                                                  # noqa: E402
 from export.errors import ExportArgumentError                               # noqa: E402
 from export.fast_renderer import (FastRendererGraph, SelectedViewsRendererGraph,  # noqa: E402
-                                  export_fast_renderer, op_histogram, renderer_wrapper)
-from export.graphs import RendererGraph                                     # noqa: E402
-from export.graphs import export_graph                                      # noqa: E402
+                                  renderer_wrapper)
+from export.graphs import DEFAULT_OPSET, RendererGraph, export_graph        # noqa: E402
 from export.validate import (random_renderer_inputs, renderer_inputs,      # noqa: E402
                              scene_images, scene_rays, selected_view_inputs)
 
@@ -49,6 +52,33 @@ pytestmark = pytest.mark.torch
 TOL = 1e-5
 PRESETS = ("tiny", "tiny-rgb")
 SHAPES = [(1, 1, 1), (1, 9, 17), (3, 9, 64), (8, 5, 23)]        # (V', R, S)
+
+
+def export_fast_renderer(model, path, *, contrib: bool = False):
+    """``FastRendererGraph(model, contrib=contrib)`` exported to ``path`` by
+    ``export.graphs.export_graph`` (the exporter, axis names, IR version and checks of the
+    reference renderer) -> ``GraphFile``."""
+    return export_graph(model, "renderer", path, DEFAULT_OPSET,
+                        wrapper=FastRendererGraph(model, contrib=contrib))
+
+
+def op_histogram(path, optimized: bool = False) -> collections.Counter:
+    """Op-type counts of the ONNX graph at ``path``; ``optimized``: of the graph ONNX Runtime runs
+    after its ``ORT_ENABLE_ALL`` optimisations (what ``IrisRuntime`` loads), written to a temporary
+    file and read back (contrib ops counted as ``com.microsoft.<op>``)."""
+    if optimized:
+        with tempfile.TemporaryDirectory() as tmp:
+            opts = ort.SessionOptions()
+            opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+            opts.optimized_model_filepath = str(Path(tmp) / "optimized.onnx")
+            opts.intra_op_num_threads = 1
+            opts.log_severity_level = 3
+            ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+            proto = onnx.load_model(opts.optimized_model_filepath)
+    else:
+        proto = onnx.load_model(str(path))
+    return collections.Counter((f"{n.domain}.{n.op_type}" if n.domain not in ("", "ai.onnx")
+                                else n.op_type) for n in proto.graph.node)
 
 
 @pytest.fixture(scope="module", autouse=True)

@@ -151,6 +151,12 @@ def test_twin_intrinsics_and_scale(seed):
     np.testing.assert_allclose(Ks, n(TG.scale_intrinsics(t64(K), (H, W), to_hw)), atol=TWIN_ATOL, rtol=0)
     # A resize of a centred camera keeps the normalised focal and the centred principal point.
     np.testing.assert_allclose(Ks, NG.intrinsics_from_focal(focal, *to_hw), atol=1e-9, rtol=0)
+    # One number: fx/W with square pixels (the epipolar solve's focal), bit for bit its K.
+    f = float(focal[0])
+    square = NG.intrinsics_from_focal(f, H, W)
+    np.testing.assert_array_equal(square, [[f * W, 0, W / 2], [0, f * W, H / 2], [0, 0, 1]])
+    twin = TG.intrinsics_from_focal(torch.tensor(f, dtype=torch.float64), H, W)
+    np.testing.assert_allclose(square, n(twin), atol=TWIN_ATOL, rtol=0)
 
 
 @needs_torch
@@ -590,6 +596,26 @@ def test_is_rigid():
     inf[1, 1] = np.inf
     for bad in (reflect, scaled, bottom, nan, inf, T[:3], np.eye(3)):
         assert not NG.is_rigid(bad)
+
+
+def test_nearest_rotation_matches_scipy_and_keeps_det_one():
+    """``nearest_rotation`` (the one SVD projection of the runtime: validation's snap, the camera
+    pictures, the epipolar solve) against SciPy's ``Rotation.from_matrix`` (Markley's nearest
+    orthonormal matrix), batched, and a proper rotation for mirrored and singular input."""
+    Rotation = pytest.importorskip("scipy.spatial.transform").Rotation
+    rng = np.random.default_rng(12)
+    R = Rotation.random(16, random_state=3).as_matrix()
+    M = R + rng.normal(0.0, 0.05, R.shape)
+    got = NG.nearest_rotation(M)
+    np.testing.assert_allclose(got, Rotation.from_matrix(M).as_matrix(), atol=1e-10)
+    np.testing.assert_allclose(NG.nearest_rotation(R), R, atol=1e-12)
+    np.testing.assert_allclose(got[3], NG.nearest_rotation(M[3]), atol=0)
+    mirrored = R[0] @ np.diag([1.0, 1.0, -1.0])
+    for odd in (mirrored, np.zeros((3, 3)), np.diag([1.0, 1.0, 0.0])):
+        out = NG.nearest_rotation(odd)
+        assert np.all(np.isfinite(out))
+        np.testing.assert_allclose(out.T @ out, np.eye(3), atol=1e-12)
+        assert abs(np.linalg.det(out) - 1.0) < 1e-12
 
 
 # -- geometric cue ---------------------------------------------------------------------------

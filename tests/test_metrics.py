@@ -10,7 +10,7 @@ import sys
 import numpy as np
 import pytest
 
-from iris_train.metrics import psnr, relative_pose_errors, rpa, ssim
+from iris_train.metrics import PSNR_CAP, capped_psnr, psnr, relative_pose_errors, rpa, ssim
 
 skm = pytest.importorskip("skimage.metrics")
 
@@ -58,6 +58,9 @@ def test_image_metric_edge_cases():
         psnr(a, a[:8])
     with pytest.raises(ValueError, match="at least 11x11"):
         ssim(a[:10, :10], a[:10, :10])
+    assert capped_psnr(a, a) == PSNR_CAP == 100.0
+    b = np.clip(a + 0.01, 0, 1)
+    assert capped_psnr(a, b) == psnr(a, b) < PSNR_CAP
 
 
 # ----------------------------------------------------------------------------------------------

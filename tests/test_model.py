@@ -26,7 +26,8 @@ torch = pytest.importorskip("torch")
 
 from iris_train import geometry as G                                       # noqa: E402
 from iris_train.config import PRESETS, ModelConfig, preset                  # noqa: E402
-from iris_train.layers import MASK_FILL, masked_max, masked_softmax          # noqa: E402
+from iris_train.layers import (MASK_FILL, masked_max, masked_softmax, validity_bias,  # noqa: E402
+                               validity_bias_where_free)
 from iris_train.model import (CHECKPOINT_FORMAT, CHECKPOINT_VERSION, CheckpointError,  # noqa: E402
                               Scene, build_model, load_model, read_checkpoint, save_checkpoint)
 
@@ -350,6 +351,22 @@ def test_masked_max():
     y = torch.full((1, 3, 1), -1e20)
     assert masked_max(y, torch.tensor([[[False], [True], [False]]]), dim=1).item() == y[0, 0, 0].item()
     assert MASK_FILL < -1e20
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_validity_bias_where_free_form_is_bit_for_bit_the_same(dtype):
+    """The fast renderer graph's Where-free bias (``layers.validity_bias_where_free``) has the
+    values of ``layers.validity_bias``: 0 at weight 1, MASK_FILL at 0, FADE_GAIN * (w - 1)
+    between, bit for bit (signs of zero included)."""
+    tiny = torch.finfo(dtype).tiny
+    w = torch.cat([torch.tensor([0.0, tiny, 1e-7, 0.25, 0.5, 1.0 - 1e-7, 1.0], dtype=dtype),
+                   torch.rand(4096, generator=torch.Generator().manual_seed(3), dtype=dtype),
+                   torch.zeros(16, dtype=dtype), torch.ones(16, dtype=dtype)])
+    want, got = validity_bias(w), validity_bias_where_free(w)
+    assert want.dtype == got.dtype == dtype
+    assert torch.equal(want.view(torch.int32 if dtype == torch.float32 else torch.int64),
+                       got.view(torch.int32 if dtype == torch.float32 else torch.int64))
+    assert torch.all(got[w == 0] == MASK_FILL) and torch.all(got[w == 1] == 0)
 
 
 def test_latent_field_with_fully_masked_points(model):

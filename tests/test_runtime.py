@@ -667,6 +667,31 @@ def test_orbit_is_closed_smooth_and_looks_at_the_scene():
     assert dist.max() < 0.05
 
 
+def test_look_at_with_roll_is_the_synthetic_cameras_rule():
+    """``orbit.look_at`` with ``roll`` is the one look-at of the project: the synthetic data's
+    cameras (z-up world, ``roll`` about the optical axis) are ``look_at(eye, target, down=-z,
+    roll=roll)``, equal value for value to that rule written out."""
+    from iris_runtime.orbit import look_at
+
+    def by_hand(eye, target, roll):
+        z = (target - eye) / np.linalg.norm(target - eye)
+        x = np.cross(z, [0.0, 0.0, 1.0])
+        x /= np.linalg.norm(x)
+        y = np.cross(z, x)
+        c, s = np.cos(roll), np.sin(roll)
+        T = np.eye(4)
+        T[:3, 0], T[:3, 1], T[:3, 2], T[:3, 3] = c * x + s * y, -s * x + c * y, z, eye
+        return T
+
+    rng = np.random.default_rng(4)
+    for _ in range(200):
+        eye, target = rng.normal(size=3), rng.normal(0, 0.1, size=3)
+        roll = float(rng.normal(0, 0.03)) if rng.random() < 0.8 else 0.0
+        T = look_at(eye, target, np.array([0.0, 0.0, -1.0]), roll=roll)
+        np.testing.assert_array_equal(T, by_hand(eye, target, roll))
+        assert G.is_rigid(T)
+
+
 # ----------------------------------------------------------------------------------------------
 # Packaging and CLI (subprocesses with torch blocked)
 # ----------------------------------------------------------------------------------------------

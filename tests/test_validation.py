@@ -9,8 +9,8 @@ import pytest
 from iris_runtime import geometry as G
 from iris_runtime.errors import ImageError, InputError, IrisError
 from iris_runtime.validation import (FLOAT_IMAGE_ATOL, INTRINSICS_ATOL, RIGID_ATOL, SNAP_ATOL,
-                                     check_images, check_intrinsics, check_world_from_cam,
-                                     rigidity_error, snap_world_from_cam)
+                                     check_images, check_integer, check_intrinsics,
+                                     check_world_from_cam, rigidity_error, snap_world_from_cam)
 
 
 def _pose(angle=0.7, t=(1.0, -2.0, 0.5)) -> np.ndarray:
@@ -182,3 +182,20 @@ def test_image_errors_name_the_argument(value, batch, match):
         check_images(value, "images[1]", batch=batch)
     assert str(e.value).startswith("images[1]: ")
     assert isinstance(e.value, IrisError) and isinstance(e.value, ValueError)
+
+
+def test_integer_check_names_the_argument_and_keeps_the_callers_error_type():
+    assert check_integer(3, "samples") == 3 and type(check_integer(np.int64(3), "n")) is int
+    assert check_integer(None, "top_k", allow_none=True) is None
+    assert check_integer(0, "depth_window", minimum=0) == 0
+    for bad, match in ((0, "positive integer, got 0"), (True, "True"), (2.0, "2.0"), ("3", "'3'"),
+                       (None, "None"), (np.bool_(True), "True")):
+        with pytest.raises(InputError, match=match) as e:
+            check_integer(bad, "samples")
+        assert str(e.value).startswith("samples: expected a positive integer, got")
+    with pytest.raises(InputError, match="non-negative integer or None, got -1"):
+        check_integer(-1, "depth_window", minimum=0, allow_none=True)
+    with pytest.raises(InputError, match=r"an integer >= 4, got 3"):
+        check_integer(3, "k", minimum=4)
+    with pytest.raises(ImageError, match="height: expected a positive integer"):
+        check_integer(-2, "height", error=ImageError)

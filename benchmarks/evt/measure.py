@@ -35,9 +35,9 @@ def timed(fn, runs: int):
 
 
 def psnr(a, b) -> float:
-    """PSNR in dB, capped at 100 (identical images)."""
-    from iris_train.metrics import psnr
-    return min(psnr(a, b), 100.0)
+    """PSNR in dB, capped at ``metrics.PSNR_CAP`` (identical images)."""
+    from iris_train.metrics import capped_psnr
+    return capped_psnr(a, b)
 
 
 def ssim(a, b) -> float:

@@ -1,6 +1,6 @@
 """The results files of the error-against-time benchmark: JSON, markdown table, plot.
 
-The markdown layout is quoted by README.md and docs/PERFORMANCE.md (the committed
+The markdown layout is quoted by docs/PERFORMANCE.md (the committed
 benchmarks/results/error_vs_time.md): change its rows and columns only together with them.
 """
 from __future__ import annotations
