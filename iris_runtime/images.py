@@ -42,7 +42,12 @@ from .validation import check_images
 
 ImageLike = Union[str, os.PathLike, Image.Image, np.ndarray]
 
-__all__ = ["ImageLike", "load_image", "to_rgb_uint8", "CropResize", "plan_crop_resize", "fit_to_model"]
+__all__ = ["ImageLike", "load_image", "to_rgb_uint8", "CropResize", "plan_crop_resize", "fit_to_model",
+           "fit_to_working_size", "CAMERA_WORKING_SIZE"]
+
+#: Longer side of the copy of a photo the camera solve works on (``fit_to_working_size``): the
+#: cameras are solved on the photos near their own resolution, the encoder gets the model's.
+CAMERA_WORKING_SIZE = 512
 
 
 # ----------------------------------------------------------------------------------------------
@@ -251,3 +256,24 @@ def fit_to_model(image: np.ndarray, height: int, width: int) -> tuple[np.ndarray
     interp = cv2.INTER_AREA if shrinking else cv2.INTER_LINEAR
     out = cv2.resize(np.ascontiguousarray(crop), (width, height), interpolation=interp)
     return out, plan
+
+
+def fit_to_working_size(image: np.ndarray, max_side: int = CAMERA_WORKING_SIZE
+                        ) -> tuple[np.ndarray, CropResize]:
+    """``image uint8 [H, W, 3]`` no longer than ``max_side`` on either side: shrunk as a whole
+    (no crop, ``cv2.INTER_AREA``, each side rounded to whole pixels), or a copy when it already
+    fits. Returns ``(out, CropResize)`` (its crop is the whole image)."""
+    if not isinstance(image, np.ndarray) or image.dtype != np.uint8 or image.ndim != 3 \
+            or image.shape[2] != 3 or min(image.shape[:2]) == 0:
+        raise ImageError(f"image: expected a non-empty uint8 [H, W, 3] array, got "
+                         f"{getattr(image, 'dtype', type(image).__name__)} "
+                         f"{getattr(image, 'shape', '')}")
+    if isinstance(max_side, bool) or not isinstance(max_side, (int, np.integer)) or max_side < 1:
+        raise ImageError(f"max_side: expected a positive integer, got {max_side!r}")
+    H, W = image.shape[:2]
+    s = min(1.0, max_side / max(H, W))
+    h, w = max(1, int(round(H * s))), max(1, int(round(W * s)))
+    plan = CropResize(H, W, 0, 0, W, H, h, w)
+    if (h, w) == (H, W):
+        return np.array(image, copy=True, order="C"), plan
+    return cv2.resize(np.ascontiguousarray(image), (w, h), interpolation=cv2.INTER_AREA), plan

@@ -1,0 +1,128 @@
+"""Step 6 of the camera solve: the pose of a photo from its matches to known 3D points (PnP).
+
+The mapper registers each new view this way, and ``locate_photos`` poses photos that were not
+part of the solve against its points, which stay fixed (``IrisRuntime.locate``, the targets of
+``iris-eval``). Matching a photo against every solved view's keypoints that see a point gives
+2D-3D correspondences; OpenCV's PnP RANSAC (SQPnP on minimal samples) then Levenberg-Marquardt
+on the inliers gives the pose. Conventions: OpenCV axes, ``cam_from_world`` (R, t) internally,
+pixels centred at +0.5 (DESIGN.md).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from .features import Features, extract_features, match_features
+from .two_view import CONFIDENCE, intrinsics, pixel_scale
+
+__all__ = ["PointMap", "pose_from_points", "locate_photos", "PNP_ERROR", "PNP_MIN_INLIERS",
+           "PNP_MIN_INLIER_RATIO", "PNP_ITERATIONS"]
+
+#: Reprojection threshold of a registration (pixels at ``two_view.REFERENCE_SIZE``).
+PNP_ERROR = 4.0
+#: Fewest 2D-3D inliers a posed view needs (COLMAP's relaxed ``abs_pose_min_num_inliers``).
+PNP_MIN_INLIERS = 15
+#: ... and the fraction of its 2D-3D correspondences they must be (COLMAP's default).
+PNP_MIN_INLIER_RATIO = 0.25
+#: RANSAC iterations of the PnP.
+PNP_ITERATIONS = 1000
+
+
+@dataclass(frozen=True)
+class PointMap:
+    """The solved scene's 3D points and the keypoints that see them, what a new photo is matched
+    against: ``points`` float64 [P, 3] (the world frame and unit of the cameras), and per
+    observation ``view`` int64 [N], ``point`` int64 [N] (row of ``points``) and ``descriptors``
+    uint8 [N, 128] (RootSIFT x 512, ``features.Features``)."""
+    points: np.ndarray
+    view: np.ndarray
+    point: np.ndarray
+    descriptors: np.ndarray
+
+    def transformed(self, world_from_old: np.ndarray, scale: float = 1.0) -> "PointMap":
+        """The same map with points x -> world_from_old (scale x) (a rigid map and a scale)."""
+        X = scale * self.points @ world_from_old[:3, :3].T + world_from_old[:3, 3]
+        return PointMap(X, self.view, self.point, self.descriptors)
+
+
+def pose_from_points(points: np.ndarray, uv: np.ndarray, focal: float,
+                     image_size: tuple[int, int], *, max_error: float,
+                     min_inliers: int = PNP_MIN_INLIERS,
+                     min_inlier_ratio: float = PNP_MIN_INLIER_RATIO):
+    """cam_from_world ``(R [3, 3], t [3], inliers bool [N])`` of a photo whose pixels ``uv [N, 2]``
+    see ``points [N, 3]``, or None when fewer than ``min_inliers`` (or ``min_inlier_ratio`` of
+    them) reproject within ``max_error`` pixels. Deterministic (OpenCV's RNG seeded with 0)."""
+    N = len(points)
+    if N < max(min_inliers, 6):
+        return None
+    K = intrinsics(focal, image_size)
+    obj, img = np.ascontiguousarray(points, np.float64), np.ascontiguousarray(uv, np.float64)
+    cv2.setRNGSeed(0)
+    try:
+        ok, rvec, tvec, inl = cv2.solvePnPRansac(obj, img, K, None, iterationsCount=PNP_ITERATIONS,
+                                                 reprojectionError=max_error,
+                                                 confidence=CONFIDENCE, flags=cv2.SOLVEPNP_SQPNP)
+    except cv2.error:
+        return None
+    if not ok or inl is None or len(inl) < min_inliers:
+        return None
+    inl = inl.ravel()
+    rvec, tvec = cv2.solvePnPRefineLM(obj[inl], img[inl], K, None, rvec, tvec)
+    R, t = cv2.Rodrigues(rvec)[0], tvec.ravel()
+    Y = obj @ R.T + t
+    with np.errstate(divide="ignore", invalid="ignore"):
+        err = np.linalg.norm(focal * Y[:, :2] / Y[:, 2:] + K[:2, 2] - img, axis=1)
+    inliers = (Y[:, 2] > 0) & (err <= max_error)
+    if inliers.sum() < max(min_inliers, min_inlier_ratio * N):
+        return None
+    return R, t, inliers
+
+
+def correspondences(point_map: PointMap, features: Features) -> tuple[np.ndarray, np.ndarray]:
+    """2D-3D correspondences of a photo's ``features`` against ``point_map``: ``(keypoint int64
+    [N], point int64 [N])``, from its matches with each solved view's keypoints (ratio test and
+    mutual check per view); a keypoint matched to several points keeps the one most views agree
+    on (ties: the lowest point index)."""
+    kps, pts = [], []
+    for v in np.unique(point_map.view):
+        rows = np.flatnonzero(point_map.view == v)
+        ref = Features(np.zeros((len(rows), 2)), point_map.descriptors[rows], features.image_size)
+        m = match_features(features, ref)
+        kps.append(m[:, 0])
+        pts.append(point_map.point[rows[m[:, 1]]])
+    if not kps:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    kp, pt = np.concatenate(kps), np.concatenate(pts)
+    pairs, votes = np.unique(np.stack([kp, pt], 1), axis=0, return_counts=True)
+    order = np.lexsort((pairs[:, 1], -votes, pairs[:, 0]))     # per keypoint: most votes first
+    pairs = pairs[order]
+    first = np.r_[True, pairs[1:, 0] != pairs[:-1, 0]]
+    return pairs[first, 0], pairs[first, 1]
+
+
+def locate_photos(point_map: PointMap, focal: float, image_size: tuple[int, int], photos
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """Poses of ``photos`` (uint8 [H, W, 3] or [H, W] of ``image_size``, taken with the solved
+    camera: ``focal`` pixels, principal point centred) against the fixed ``point_map``.
+
+    Returns ``(world_from_cam float64 [Q, 4, 4]`` (NaN for a photo that cannot be posed),
+    ``located bool [Q])``. Each photo is posed on its own, so the order of the photos does not
+    matter."""
+    Q = len(photos)
+    max_error = PNP_ERROR * pixel_scale(image_size)
+    out = np.full((Q, 4, 4), np.nan)
+    ok = np.zeros(Q, bool)
+    for q, photo in enumerate(photos):
+        feats = extract_features(photo)
+        kp, pt = correspondences(point_map, feats)
+        pose = pose_from_points(point_map.points[pt], feats.uv[kp], focal, image_size,
+                                max_error=max_error)
+        if pose is None:
+            continue
+        R, t, _ = pose
+        out[q] = np.eye(4)
+        out[q, :3, :3], out[q, :3, 3] = R.T, -R.T @ t
+        ok[q] = True
+    return out, ok
