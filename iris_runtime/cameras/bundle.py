@@ -62,6 +62,14 @@ class _Problem:
         self.starts = np.flatnonzero(np.r_[True, self.p[1:] != self.p[:-1]])
         self.centre = centre
         self.s2 = float(loss_scale) ** 2
+        # Every ordered pair (a, b) of observations of one point: the blocks of the Schur
+        # complement (a point seen by views i and j couples cameras i and j).
+        counts = np.diff(np.r_[self.starts, len(self.p)])
+        first = np.repeat(self.starts, counts)                     # first observation of its point
+        rep = np.repeat(counts, counts)                            # observations of its point
+        self.pair_a = np.repeat(np.arange(len(self.p)), rep)
+        offset = np.arange(len(self.pair_a)) - np.repeat(np.cumsum(rep) - rep, rep)
+        self.pair_b = np.repeat(first, rep) + offset
 
     def camera_coords(self, R, t, X):
         """Y [n, 3]: each observed point in its observing camera."""
@@ -81,8 +89,9 @@ class _Problem:
     def per_view(self, x):
         """Sum of x [n, ...] per view -> [V, ...]."""
         flat = x.reshape(len(x), -1)
-        out = np.stack([np.bincount(self.v, flat[:, k], minlength=self.V)
-                        for k in range(flat.shape[1])], 1)
+        k = flat.shape[1]
+        out = np.bincount((self.v[:, None] * k + np.arange(k)).ravel(), flat.ravel(),
+                          minlength=self.V * k)
         return out.reshape((self.V,) + x.shape[1:])
 
     def per_point(self, x):
@@ -156,24 +165,26 @@ def bundle_adjust(R, t, focal, centre, points, uv, active, *, fixed_view: int, s
         for v in range(V):
             U[7 * v:7 * v + 7, 7 * v:7 * v + 7] = U7[v]
         Ur, gr = M.T @ U @ M, M.T @ g7.ravel()
+        a, b = prob.pair_a, prob.pair_b
+        block = (prob.v[a] * V + prob.v[b])[:, None] * 49 + np.arange(49)   # (view a, view b)
         done = False
         while True:
             Vinv = np.linalg.inv(Vp + lam * Vp * np.eye(3) + 1e-9 * np.eye(3))
-            Z1 = np.zeros((P, V, 7, 3))
-            Z2 = np.zeros((P, V, 7, 3))
-            Z1[prob.p, prob.v] = Wo @ Vinv[prob.p]                          # W V^-1 per observation
-            Z2[prob.p, prob.v] = Wo
-            Z1, Z2 = Z1.reshape(P, 7 * V, 3), Z2.reshape(P, 7 * V, 3)
-            schur = Z1.transpose(1, 0, 2).reshape(7 * V, -1) @ Z2.transpose(1, 0, 2).reshape(7 * V, -1).T
+            WV = Wo @ Vinv[prob.p]                                          # [n, 7, 3]
+            pairs = (WV[a] @ Wo[b].transpose(0, 2, 1)).reshape(len(a), 49)
+            schur = np.bincount(block.ravel(), pairs.ravel(), minlength=V * V * 49)
+            schur = schur.reshape(V, V, 7, 7).transpose(0, 2, 1, 3).reshape(7 * V, 7 * V)
             S = Ur + lam * np.diag(np.diag(Ur)) - M.T @ schur @ M
-            b = gr - M.T @ np.einsum("pki,pi->k", Z1, gp)
+            b_c = prob.per_view((WV @ gp[prob.p][:, :, None])[:, :, 0])   # [V, 7]
+            rhs = gr - M.T @ b_c.ravel()
             try:
-                dc = -np.linalg.solve(S + 1e-12 * np.eye(len(S)), b) if n else np.zeros(1)
+                dc = -np.linalg.solve(S + 1e-12 * np.eye(len(S)), rhs) if n else np.zeros(1)
             except np.linalg.LinAlgError:
                 dc = np.full(len(S), np.nan)
             if np.all(np.isfinite(dc)):
                 d7 = (M @ dc).reshape(V, 7) if n else np.zeros((V, 7))
-                dp = -(Vinv @ (gp + np.einsum("pki,k->pi", Z2, d7.ravel()))[:, :, None])[:, :, 0]
+                WTd = (Wo.transpose(0, 2, 1) @ d7[prob.v][:, :, None])[:, :, 0]   # [n, 3]
+                dp = -(Vinv @ (gp + prob.per_point(WTd))[:, :, None])[:, :, 0]
                 R2 = np.stack([cv2.Rodrigues(d7[v, :3])[0] @ R[v] for v in range(V)])
                 t2, f2, X2 = t + d7[:, 3:6], f + d7[0, 6], X + dp
                 new = prob.cost(R2, t2, f2, X2)

@@ -14,11 +14,15 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from .features import Features, extract_features, match_features
-from .two_view import CONFIDENCE, intrinsics, pixel_scale
+from ..errors import InputError
+from .features import Features, canonical_order, extract_features, match_features
+from .tracks import build_tracks
+from .triangulation import triangulate
+from .two_view import CONFIDENCE, MAX_ERROR, intrinsics, pixel_scale
 
-__all__ = ["PointMap", "pose_from_points", "locate_photos", "PNP_ERROR", "PNP_MIN_INLIERS",
-           "PNP_MIN_INLIER_RATIO", "PNP_ITERATIONS"]
+__all__ = ["PointMap", "pose_from_points", "locate_photos", "point_map_from_cameras",
+           "locate_views", "PNP_ERROR", "PNP_MIN_INLIERS", "PNP_MIN_INLIER_RATIO",
+           "PNP_ITERATIONS", "MIN_TRIANGULATION_ANGLE"]
 
 #: Reprojection threshold of a registration (pixels at ``two_view.REFERENCE_SIZE``).
 PNP_ERROR = 4.0
@@ -28,6 +32,8 @@ PNP_MIN_INLIERS = 15
 PNP_MIN_INLIER_RATIO = 0.25
 #: RANSAC iterations of the PnP.
 PNP_ITERATIONS = 1000
+#: Points of known cameras seen under a narrower angle (degrees) carry no depth.
+MIN_TRIANGULATION_ANGLE = 1.5
 
 
 @dataclass(frozen=True)
@@ -126,3 +132,70 @@ def locate_photos(point_map: PointMap, focal: float, image_size: tuple[int, int]
         out[q, :3, :3], out[q, :3, 3] = R.T, -R.T @ t
         ok[q] = True
     return out, ok
+
+
+def _sampson(p, q, F):
+    """Sampson distance (pixels) of matches p -> q [N, 2] to the fundamental matrix F."""
+    ph, qh = np.c_[p, np.ones(len(p))], np.c_[q, np.ones(len(q))]
+    Fp, Ftq = ph @ F.T, qh @ F
+    num = np.sum(qh * Fp, axis=1) ** 2
+    den = Fp[:, 0] ** 2 + Fp[:, 1] ** 2 + Ftq[:, 0] ** 2 + Ftq[:, 1] ** 2
+    return np.sqrt(num / np.maximum(den, 1e-300))
+
+
+def point_map_from_cameras(photos, world_from_cam: np.ndarray, focal: float) -> PointMap:
+    """The 3D points of ``photos`` (V uint8 photos of one size) whose cameras are known
+    (``world_from_cam [V, 4, 4]``, ``focal`` pixels, principal point centred): their matches
+    kept where the known epipolar geometry explains them, tracked across views and
+    triangulated. The photos are matched in ``canonical_order``, so their order does not
+    matter."""
+    photos = [np.asarray(p) for p in photos]
+    V = len(photos)
+    size = photos[0].shape[:2]
+    T = np.asarray(world_from_cam, dtype=np.float64)
+    if T.shape != (V, 4, 4) or not np.isfinite(T).all():
+        raise InputError(f"world_from_cam: expected finite [{V}, 4, 4], got {T.shape}")
+    perm = canonical_order(photos)
+    feats = [extract_features(photos[k]) for k in perm]
+    cam_from_world = np.linalg.inv(T[perm])
+    R, t = cam_from_world[:, :3, :3], cam_from_world[:, :3, 3]
+    K = intrinsics(focal, size)
+    Kinv = np.linalg.inv(K)
+    max_error = MAX_ERROR * pixel_scale(size)
+    matches = {}
+    for a in range(V):
+        for b in range(a + 1, V):
+            m = match_features(feats[a], feats[b])
+            rel = cam_from_world[b] @ T[perm[a]]                       # cam_b from cam_a
+            tx = np.array([[0, -rel[2, 3], rel[1, 3]], [rel[2, 3], 0, -rel[0, 3]],
+                           [-rel[1, 3], rel[0, 3], 0]])
+            F = Kinv.T @ tx @ rel[:3, :3] @ Kinv
+            keep = _sampson(feats[a].uv[m[:, 0]], feats[b].uv[m[:, 1]], F) <= max_error
+            matches[a, b] = m[keep]
+    tracks = build_tracks(feats, matches)
+    X, ok = triangulate(R, t, focal, K[:2, 2], tracks.uv, tracks.observed,
+                        max_error=PNP_ERROR * pixel_scale(size),
+                        min_angle=MIN_TRIANGULATION_ANGLE)
+    rows = np.flatnonzero(ok)
+    t_idx, v_idx = np.nonzero(tracks.observed[rows])
+    desc = (np.stack([feats[v].descriptors[tracks.keypoint[rows[i], v]]
+                      for i, v in zip(t_idx, v_idx)]) if len(t_idx)
+            else np.zeros((0, 128), np.uint8))
+    return PointMap(X[rows], perm[v_idx], t_idx.astype(np.int64), desc)
+
+
+def locate_views(reference_photos, reference_world_from_cam, focal: float, query_photos
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Poses of ``query_photos`` against reference photos whose cameras are known
+    (``reference_world_from_cam [V, 4, 4]``, ``focal`` fx/W, square pixels, principal point
+    centred; all photos of one size), those cameras held fixed: ``point_map_from_cameras`` of
+    the references, then ``locate_photos``. Returns ``(world_from_cam [Q, 4, 4]`` (NaN where a
+    query cannot be posed), ``located bool [Q])``, in the references' frame and unit."""
+    refs = [np.asarray(p) for p in reference_photos]
+    queries = [np.asarray(p) for p in query_photos]
+    size = refs[0].shape[:2]
+    if any(p.shape[:2] != size for p in refs + queries):
+        raise InputError(f"query_photos: expected photos of the references' size {size}")
+    f = float(focal) * size[1]
+    pm = point_map_from_cameras(refs, reference_world_from_cam, f)
+    return locate_photos(pm, f, size, queries)

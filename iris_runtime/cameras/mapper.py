@@ -39,6 +39,8 @@ class MapperOptions:
     loss_scale:         Cauchy scale of the bundle adjustment
     min_focal_views:    the focal is refined once this many views are registered
     ba_iterations:      Levenberg-Marquardt iterations after each registration / at the end
+    ba_points:          points adjusted after each registration (the most observed; the end
+                        adjusts all)
     """
     init_min_inliers: int = 30
     init_trials: int = 2
@@ -50,8 +52,10 @@ class MapperOptions:
     min_angle: float = 1.5
     loss_scale: float = 1.0
     min_focal_views: int = 3
-    ba_iterations: int = 20
-    final_ba_iterations: int = 100
+    ba_iterations: int = 10
+    ba_points: int = 400
+    final_ba_points: int = 1500
+    final_ba_iterations: int = 50
 
 
 @dataclass
@@ -103,22 +107,37 @@ def _triangulate_missing(rec: Reconstruction, tracks: Tracks, centre, opts: Mapp
 
 
 def _adjust(rec: Reconstruction, tracks: Tracks, centre, opts: MapperOptions, iterations: int,
-            refine_focal: bool | None = None):
+            refine_focal: bool | None = None, max_points: int | None = None):
     """Bundle-adjust the registered views and valid points, then drop observations that
     reproject beyond ``max_error`` (or behind the camera) and points left with fewer than two
-    observations or too narrow an angle."""
+    observations or too narrow an angle. With ``max_points``, the adjustment sees only the
+    points with the most observations (the cameras need no more), and the others are
+    triangulated again on the adjusted cameras."""
     active = rec.active(tracks)
     keep = active.sum(1) >= 2
     rec.point_ok &= keep
     active &= keep[:, None]
+    adjusted = keep.copy()
+    if max_points is not None and keep.sum() > max_points:
+        order = np.lexsort((np.arange(len(keep)), -active.sum(1)))     # most observed first
+        adjusted = np.zeros_like(keep)
+        adjusted[order[:max_points]] = True
+        adjusted &= keep
     i, j = rec.first
     refine = int(rec.registered.sum()) >= opts.min_focal_views if refine_focal is None \
         else refine_focal
-    res = bundle_adjust(rec.R, rec.t, rec.focal, centre, rec.points[keep], tracks.uv[keep],
-                        active[keep], fixed_view=i, scale_view=j, refine_focal=refine,
-                        loss_scale=opts.loss_scale, max_iterations=iterations)
+    res = bundle_adjust(rec.R, rec.t, rec.focal, centre, rec.points[adjusted],
+                        tracks.uv[adjusted], active[adjusted], fixed_view=i, scale_view=j,
+                        refine_focal=refine, loss_scale=opts.loss_scale,
+                        max_iterations=iterations)
     rec.R, rec.t, rec.focal = res.R, res.t, res.focal
-    rec.points[keep] = res.points
+    rec.points[adjusted] = res.points
+    rest = keep & ~adjusted
+    if rest.any():
+        X, ok = triangulate(rec.R, rec.t, rec.focal, centre, tracks.uv[rest], active[rest],
+                            max_error=np.inf, min_angle=0.0)
+        rec.points[rest] = X
+        rec.point_ok[np.flatnonzero(rest)[~ok]] = False
     rec.history.append((int(rec.registered.sum()), res.iterations, res.cost, res.focal))
     err, z = reprojection_errors(rec.R, rec.t, rec.focal, centre, rec.points, tracks.uv)
     rec.rejected |= active & ((err > opts.max_error) | (z <= 0))
@@ -180,10 +199,11 @@ def _grow(rec: Reconstruction, tracks: Tracks, centre, image_size, opts: MapperO
             failed_at[v] = seen[v]
             continue
         _triangulate_missing(rec, tracks, centre, opts)
-        _adjust(rec, tracks, centre, opts, opts.ba_iterations)
+        _adjust(rec, tracks, centre, opts, opts.ba_iterations, max_points=opts.ba_points)
     for _ in range(2):
         _triangulate_missing(rec, tracks, centre, opts)
-        _adjust(rec, tracks, centre, opts, opts.final_ba_iterations, refine_focal=True)
+        _adjust(rec, tracks, centre, opts, opts.final_ba_iterations, refine_focal=True,
+                max_points=opts.final_ba_points)
     return rec
 
 
@@ -208,7 +228,7 @@ def incremental_mapping(features, tracks: Tracks,
     ``geometries``), or None when no pair can start one.
 
     Each starting focal of ``focals`` (pixels) is tried, and for each up to ``init_trials``
-    starting pairs, best first, until one registers every view (pairs with fewer than
+    starting pairs, best first, until one registers every view that could be (pairs with fewer than
     ``init_min_inliers`` inliers start only when no pair has as many). The reconstruction kept
     registers the most views and, among those, has the lowest ``_score``: a wrong focal can
     lead the bundle adjustment into a consistent but wrong reconstruction that explains fewer
@@ -218,6 +238,9 @@ def incremental_mapping(features, tracks: Tracks,
     centre = np.array([W / 2.0, H / 2.0])
     starts = _init_pairs(geometries, opts) or _init_pairs(
         geometries, MapperOptions(**{**opts.__dict__, "init_min_inliers": MIN_INLIERS}))
+    # A view with fewer track observations than a registration needs can never be registered:
+    # a reconstruction holding every other view is as complete as this data allows.
+    possible = tracks.observed.sum(0) >= opts.pnp_min_inliers
     best, best_key = None, None
     for focal in focals:
         for pair in starts[:opts.init_trials]:
@@ -228,6 +251,6 @@ def incremental_mapping(features, tracks: Tracks,
             key = (int(rec.registered.sum()), -_score(rec, tracks, centre, opts))
             if best_key is None or key > best_key:
                 best, best_key = rec, key
-            if rec.registered.all():
+            if rec.registered[possible].all():
                 break
     return best
