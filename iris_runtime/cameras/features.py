@@ -15,7 +15,8 @@ import numpy as np
 from ..errors import InputError
 
 __all__ = ["Features", "extract_features", "match_features", "canonical_order", "grey",
-           "MAX_FEATURES", "CONTRAST_THRESHOLD", "MAX_RATIO", "MAX_DISTANCE"]
+           "enlargement", "enlarge", "MAX_FEATURES", "CONTRAST_THRESHOLD", "MAX_RATIO",
+           "MAX_DISTANCE", "MIN_SIZE"]
 
 #: Keypoints kept per photo (the strongest by SIFT response); matching costs grow with the square.
 MAX_FEATURES = 2048
@@ -25,6 +26,9 @@ CONTRAST_THRESHOLD = 0.02
 MAX_RATIO = 0.8
 #: Largest accepted descriptor distance between unit RootSIFT vectors (COLMAP's default).
 MAX_DISTANCE = 0.7
+#: Photos shorter than this on their longer side are enlarged by a whole factor (cubic) before
+#: the solve: SIFT finds few keypoints in small photos (docs/CAMERAS.md, "Small photos").
+MIN_SIZE = 256
 #: RootSIFT descriptors are stored as uint8 round(512 x), the scale COLMAP uses (entries <= 0.5).
 _DESCRIPTOR_SCALE = 512.0
 
@@ -55,8 +59,25 @@ def grey(photo: np.ndarray) -> np.ndarray:
     return cv2.cvtColor(photo, cv2.COLOR_RGB2GRAY)
 
 
-def extract_features(photo: np.ndarray, max_features: int = MAX_FEATURES) -> Features:
-    """SIFT keypoints of a uint8 photo ([H, W, 3] RGB or [H, W] grey), at most ``max_features``.
+def enlargement(image_size: tuple[int, int]) -> int:
+    """The whole factor k >= 1 by which photos of ``image_size`` (H, W) are enlarged for the
+    solve: the smallest with k * max(H, W) >= ``MIN_SIZE``. Pixel coordinates map as u -> k u
+    (pixel edges at whole numbers, centres at +0.5), so cameras solved on the enlarged photos
+    hold for the photos with the focal divided by k."""
+    return max(1, -(-MIN_SIZE // max(image_size)))
+
+
+def enlarge(photo: np.ndarray, k: int) -> np.ndarray:
+    """``photo`` enlarged k times on each side (cubic), or itself when k == 1."""
+    if k == 1:
+        return photo
+    return cv2.resize(photo, (photo.shape[1] * k, photo.shape[0] * k),
+                      interpolation=cv2.INTER_CUBIC)
+
+
+def extract_features(photo: np.ndarray, max_features: int | None = None) -> Features:
+    """SIFT keypoints of a uint8 photo ([H, W, 3] RGB or [H, W] grey), at most ``max_features``
+    (default ``MAX_FEATURES``).
 
     The keypoints are sorted by a key of their own values (response, position, scale, angle),
     not by the order OpenCV's threads found them in, so the same photo gives the same features.
@@ -68,7 +89,7 @@ def extract_features(photo: np.ndarray, max_features: int = MAX_FEATURES) -> Fea
     if desc is None or len(keypoints) == 0:
         return Features(np.zeros((0, 2)), np.zeros((0, 128), np.uint8), (H, W))
     kp = np.array([(k.response, k.pt[0], k.pt[1], k.size, k.angle) for k in keypoints])
-    order = np.lexsort(kp.T[::-1])[::-1][:max_features]          # strongest first
+    order = np.lexsort(kp.T[::-1])[::-1][:max_features or MAX_FEATURES]   # strongest first
     desc = desc[order].astype(np.float64)
     desc /= np.maximum(desc.sum(axis=1, keepdims=True), 1e-12)   # RootSIFT: L1, then sqrt
     desc = np.clip(np.rint(np.sqrt(desc) * _DESCRIPTOR_SCALE), 0, 255).astype(np.uint8)

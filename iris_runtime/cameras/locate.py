@@ -15,7 +15,8 @@ import cv2
 import numpy as np
 
 from ..errors import InputError
-from .features import Features, canonical_order, extract_features, match_features
+from .features import (Features, canonical_order, enlarge, enlargement, extract_features,
+                       match_features)
 from .tracks import build_tracks
 from .triangulation import triangulate
 from .two_view import CONFIDENCE, MAX_ERROR, intrinsics, pixel_scale
@@ -98,9 +99,10 @@ def correspondences(point_map: PointMap, features: Features) -> tuple[np.ndarray
         m = match_features(features, ref)
         kps.append(m[:, 0])
         pts.append(point_map.point[rows[m[:, 1]]])
-    if not kps:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    kp, pt = np.concatenate(kps), np.concatenate(pts)
+    kp = np.concatenate(kps) if kps else np.zeros(0, np.int64)
+    pt = np.concatenate(pts) if pts else np.zeros(0, np.int64)
+    if len(kp) == 0:
+        return kp, pt
     pairs, votes = np.unique(np.stack([kp, pt], 1), axis=0, return_counts=True)
     order = np.lexsort((pairs[:, 1], -votes, pairs[:, 0]))     # per keypoint: most votes first
     pairs = pairs[order]
@@ -117,13 +119,15 @@ def locate_photos(point_map: PointMap, focal: float, image_size: tuple[int, int]
     ``located bool [Q])``. Each photo is posed on its own, so the order of the photos does not
     matter."""
     Q = len(photos)
-    max_error = PNP_ERROR * pixel_scale(image_size)
+    k = enlargement(image_size)                   # as the solve saw photos of this size
+    size = (image_size[0] * k, image_size[1] * k)
+    max_error = PNP_ERROR * pixel_scale(size)
     out = np.full((Q, 4, 4), np.nan)
     ok = np.zeros(Q, bool)
     for q, photo in enumerate(photos):
-        feats = extract_features(photo)
+        feats = extract_features(enlarge(np.asarray(photo), k))
         kp, pt = correspondences(point_map, feats)
-        pose = pose_from_points(point_map.points[pt], feats.uv[kp], focal, image_size,
+        pose = pose_from_points(point_map.points[pt], feats.uv[kp], focal * k, size,
                                 max_error=max_error)
         if pose is None:
             continue
@@ -149,7 +153,9 @@ def point_map_from_cameras(photos, world_from_cam: np.ndarray, focal: float) -> 
     kept where the known epipolar geometry explains them, tracked across views and
     triangulated. The photos are matched in ``canonical_order``, so their order does not
     matter."""
-    photos = [np.asarray(p) for p in photos]
+    k = enlargement(np.asarray(photos[0]).shape[:2])        # as the solve sees such photos
+    photos = [enlarge(np.asarray(p), k) for p in photos]
+    focal = focal * k
     V = len(photos)
     size = photos[0].shape[:2]
     T = np.asarray(world_from_cam, dtype=np.float64)

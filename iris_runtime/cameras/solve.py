@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import InputError
-from .features import canonical_order, extract_features, match_features
+from .features import canonical_order, enlarge, enlargement, extract_features, match_features
 from .locate import PointMap, pose_from_points
 from .mapper import MapperOptions, Reconstruction, incremental_mapping
 from .tracks import Tracks, build_tracks
@@ -117,11 +117,12 @@ def solve_cameras(photos, depth_range: tuple[float, float], *, focal: float | No
 
     depth_range: the renderer's (near, far): the cameras' unit puts the scene's median point
                  depth ``DEPTH_TARGET`` of the way into it
-    focal:       a known focal in pixels to start from (default: each of ``FOCAL_PRIORS`` x
+    focal:       a known focal in pixels of the photos to start from (default: each of ``FOCAL_PRIORS`` x
                  the longer side); the bundle adjustment refines it either way
     options:     the mapper's thresholds (pixels at ``two_view.REFERENCE_SIZE``) (default ``MapperOptions()``)
 
-    Steps: SIFT features of each photo and their matches across every pair (``features``); per
+    Photos under ``features.MIN_SIZE`` pixels are solved enlarged (``features.enlargement``);
+    the cameras are reported for the photos as given. Steps: SIFT features of each photo and their matches across every pair (``features``); per
     pair F, H and the relative pose (``two_view``); tracks (``tracks``); the incremental mapper
     with bundle adjustment (``mapper``, ``triangulation``, ``bundle``); views it could not
     register posed against its points (``locate``). Deterministic and order-free.
@@ -133,7 +134,9 @@ def solve_cameras(photos, depth_range: tuple[float, float], *, focal: float | No
         raise InputError(f"depth_range: expected (near, far) with 0 <= near < far, got "
                          f"{depth_range!r}")
     V = len(photos)
-    H, W = photos[0].shape[:2]
+    size = photos[0].shape[:2]
+    k = enlargement(size)                         # small photos: solved enlarged k times
+    H, W = size[0] * k, size[1] * k
     px = pixel_scale((H, W))
     opts = options or MapperOptions()
     opts = MapperOptions(**{**opts.__dict__, "two_view_error": opts.two_view_error * px,
@@ -141,11 +144,12 @@ def solve_cameras(photos, depth_range: tuple[float, float], *, focal: float | No
                             "max_error": opts.max_error * px, "loss_scale": opts.loss_scale * px})
     if focal is not None and not (np.isfinite(focal) and focal > 0):
         raise InputError(f"focal: expected a positive number of pixels, got {focal!r}")
-    focals = (float(focal),) if focal is not None else tuple(k * max(H, W) for k in FOCAL_PRIORS)
+    focals = ((k * float(focal),) if focal is not None
+              else tuple(prior * max(H, W) for prior in FOCAL_PRIORS))
     f0 = focals[0]
 
     perm = canonical_order(photos)
-    features = [extract_features(photos[k]) for k in perm]
+    features = [extract_features(enlarge(photos[v], k)) for v in perm]
     geometries, inliers = {}, {}
     for a in range(V):
         for b in range(a + 1, V):
@@ -163,7 +167,7 @@ def solve_cameras(photos, depth_range: tuple[float, float], *, focal: float | No
     if rec is None:
         empty = PointMap(np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros(0, np.int64),
                          np.zeros((0, 128), np.uint8))
-        return CameraSolve(np.full((V, 4, 4), np.nan), f0, (H, W), tuple(status), -1, 1.0, empty)
+        return CameraSolve(np.full((V, 4, 4), np.nan), f0 / k, size, tuple(status), -1, 1.0, empty)
     status[perm[rec.registered]] = "solved"
     cam_from_world = np.full((V, 4, 4), np.nan)          # canonical numbering
     for v in np.flatnonzero(rec.registered):
@@ -192,5 +196,5 @@ def solve_cameras(photos, depth_range: tuple[float, float], *, focal: float | No
     world_from_cam[status == "unposed"] = np.nan
     point_map = _point_map(rec, tracks, features, perm)
     point_map = point_map.transformed(root_from_old).transformed(np.eye(4), scale)
-    return CameraSolve(world_from_cam, rec.focal, (H, W), tuple(status.tolist()), root, scale,
+    return CameraSolve(world_from_cam, rec.focal / k, size, tuple(status.tolist()), root, scale,
                        point_map)
