@@ -83,13 +83,16 @@ def extract_features(photo: np.ndarray, max_features: int | None = None) -> Feat
     not by the order OpenCV's threads found them in, so the same photo gives the same features.
     """
     image = grey(photo)
-    sift = cv2.SIFT_create(contrastThreshold=CONTRAST_THRESHOLD)
+    n = max_features or MAX_FEATURES
+    # OpenCV keeps every keypoint whose response reaches the n-th largest (a set, not an order)
+    # before computing descriptors; the order is then fixed below.
+    sift = cv2.SIFT_create(nfeatures=n, contrastThreshold=CONTRAST_THRESHOLD)
     keypoints, desc = sift.detectAndCompute(image, None)
     H, W = image.shape
     if desc is None or len(keypoints) == 0:
         return Features(np.zeros((0, 2)), np.zeros((0, 128), np.uint8), (H, W))
     kp = np.array([(k.response, k.pt[0], k.pt[1], k.size, k.angle) for k in keypoints])
-    order = np.lexsort(kp.T[::-1])[::-1][:max_features or MAX_FEATURES]   # strongest first
+    order = np.lexsort(kp.T[::-1])[::-1][:n]                    # strongest first
     desc = desc[order].astype(np.float64)
     desc /= np.maximum(desc.sum(axis=1, keepdims=True), 1e-12)   # RootSIFT: L1, then sqrt
     desc = np.clip(np.rint(np.sqrt(desc) * _DESCRIPTOR_SCALE), 0, 255).astype(np.uint8)

@@ -30,7 +30,7 @@ DEPTH_TARGET = 0.5
 #: Starting focals, in units of the photo's longer side (the first is COLMAP's default prior);
 #: the bundle adjustment refines each, the mapper keeps the reconstruction that explains the
 #: observations best.
-FOCAL_PRIORS = (1.2, 0.8, 1.8)
+FOCAL_PRIORS = (1.2, 0.8)
 #: A view the mapper could not register is still posed against the finished points when this
 #: many correspondences agree (status "located").
 LOCATE_MIN_INLIERS = 10
