@@ -155,18 +155,20 @@ def _train_size(scenes, index: int) -> tuple[int, int]:
     return tuple(int(x) for x in size) if size is not None else scenes[index].images.shape[1:3]
 
 
-def cache_path(cache_dir: Path, seed: int, n_views: int) -> Path:
-    return Path(cache_dir) / f"pseudo_{seed:07d}_v{n_views}.npz"
+def cache_path(cache_dir: Path, seed: int, n_views: int, train_size: tuple[int, int]) -> Path:
+    """One file per training size: a render cache serves models of several sizes."""
+    return Path(cache_dir) / f"pseudo_{seed:07d}_v{n_views}_{train_size[0]}x{train_size[1]}.npz"
 
 
-def solved_cache_path(cache_dir: Path, seed: int, n_views: int) -> Path:
-    return Path(cache_dir) / f"solved_{seed:07d}_v{n_views}.npz"
+def solved_cache_path(cache_dir: Path, seed: int, n_views: int, train_size: tuple[int, int]
+                      ) -> Path:
+    return Path(cache_dir) / f"solved_{seed:07d}_v{n_views}_{train_size[0]}x{train_size[1]}.npz"
 
 
 def load_or_estimate(scenes, index: int) -> PseudoPoses:
     """``PseudoPoses`` of ``scenes[index]`` (a ``SyntheticScenes``), from the cache or computed."""
-    path = cache_path(scenes.cache_dir, scenes.seeds[index], scenes.n_views)
     size = _train_size(scenes, index)
+    path = cache_path(scenes.cache_dir, scenes.seeds[index], scenes.n_views, size)
     key = {"version": TEACHER_VERSION, "train_size": np.asarray(size)}
     z = _read_cache(path, **key)
     if z is not None:
@@ -179,8 +181,8 @@ def load_or_estimate(scenes, index: int) -> PseudoPoses:
 
 def load_or_solve(scenes, index: int, depth_range: tuple[float, float]) -> SolvedCameras:
     """``SolvedCameras`` of ``scenes[index]`` (a ``SyntheticScenes``), from the cache or solved."""
-    path = solved_cache_path(scenes.cache_dir, scenes.seeds[index], scenes.n_views)
     size = _train_size(scenes, index)
+    path = solved_cache_path(scenes.cache_dir, scenes.seeds[index], scenes.n_views, size)
     key = {"version": SOLVE_VERSION, "depth_range": np.asarray(depth_range, np.float64),
            "train_size": np.asarray(size)}
     z = _read_cache(path, **key)
