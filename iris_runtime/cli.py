@@ -14,12 +14,14 @@ A thin command line over ``IrisRuntime``. It encodes the input images once, then
   written to ``located_poses.json`` and rendered from the inputs as ``located_NNN``;
 - nothing of the above: every input view (``--view`` 0..V-1).
 
-``--cameras epipolar`` replaces the model's predicted cameras of the inputs by the global epipolar
-solve of the photos (``IrisRuntime.encode(images, cameras="epipolar")``: optical flow, essential
-matrices at a grid-searched focal, rotation averaging, translation averaging with baselines tied
-by triangulated depth, the scene's median depth put in the middle of the renderer's depth range);
-every output (renders, ``--view`` poses, orbit, camera files) then uses those cameras and that
-focal, and ``--locate`` poses the photo against them (PnP on the inputs' triangulated pixels).
+``--cameras epipolar`` replaces the model's predicted cameras of the inputs by the camera solve of
+the photos at their own resolution (``IrisRuntime.encode(images, cameras="epipolar")``,
+``iris_runtime.cameras``: SIFT matches, two-view model selection, incremental mapping with bundle
+adjustment of poses and focal, the scene's median depth put in the middle of the renderer's depth
+range); every output (renders, ``--view`` poses, orbit, camera files) then uses those cameras and
+that focal, and ``--locate`` poses the photo against them (PnP on the inputs' points). The
+resolution the cameras were solved at and how each view was posed are printed and written to
+``cameras.json``.
 
 Written to OUT (created if needed; files of the same name are replaced):
 
@@ -35,7 +37,11 @@ Written to OUT (created if needed; files of the same name are replaced):
   ``colmap/{cameras,images,points3D}.txt`` (COLMAP text; image folder ``inputs/``). The
   intrinsics are in pixels of these model-resolution images;
 - ``cameras.png``: a picture of those predicted cameras (frustums with their view indices, from
-  above; ``iris_runtime.camera_plot.draw_cameras``), written whenever the inputs are encoded.
+  above; ``iris_runtime.camera_plot.draw_cameras``), written whenever the inputs are encoded;
+- ``cameras.json``: where the cameras come from (``source``: "model", "epipolar" or "mixed"),
+  ``solved_at`` [H, W] the resolution of the photos they were solved at (null for the model's),
+  ``status`` per view ("solved", "located", "unposed"; null for the model's), ``focal`` [fx/W,
+  fy/H] at the model's resolution and the model's own ``encoder_focal``.
 
 Everything is checked (model, images, poses, view indices) before anything is written. Errors
 print one line on stderr and exit with code 2, without a traceback.
@@ -129,10 +135,10 @@ def build_parser() -> argparse.ArgumentParser:
                              "world_from_cam each) and rendered as located_NNN; give it after "
                              "IMAGES")
     p.add_argument("--cameras", choices=list(CAMERAS), default=None,
-                   help="cameras of the inputs: the model's prediction or the global epipolar "
-                        "solve of the photos, scaled to the renderer's depth range (V (V - 1) / 2 "
-                        "optical flows; views it cannot pose keep the model's camera). Default: "
-                        "the cameras the model was trained with (its manifest's 'cameras')")
+                   help="cameras of the inputs: the model's prediction or the camera solve of "
+                        "the photos at their own resolution, scaled to the renderer's depth range "
+                        "(views it cannot pose keep the model's camera, reported). Default: the "
+                        "cameras the model was trained with (its manifest's 'cameras')")
     out = p.add_argument_group("output and speed")
     out.add_argument("--size", metavar="HxW", type=_size,
                      help="output size (default: the model's resolution)")
@@ -227,6 +233,7 @@ class _Request:
     rt: "IrisRuntime"
     size: tuple[int, int]                     # output (height, width)
     inputs: list[np.ndarray]                  # the input photos at the model's resolution
+    originals: list[np.ndarray]               # ... at their own (the camera solve's)
     poses: list[np.ndarray]                   # from the --pose files
     photos: list[np.ndarray]                  # the --locate photos
 
@@ -261,30 +268,33 @@ def _check_request(args: argparse.Namespace) -> _Request:
         samples = QUALITY_PRESETS[args.quality].samples or rt.samples
         L.check_chunk_rays(args.chunk_rays, size[0] * size[1], samples, len(args.images),
                            name="--chunk-rays")
-    inputs = [fit_to_model(load_image(p, p), H, W)[0] for p in args.images]
+    originals = [load_image(p, p) for p in args.images]          # own resolution: the solve's
+    inputs = [fit_to_model(photo, H, W)[0] for photo in originals]
     V = len(inputs)
     bad = [i for i in args.view if i >= V]
     if bad:
         raise InputError(f"--view {bad[0]}: out of range, {V} input image(s) give views 0..{V - 1}")
     poses = [T for f in args.pose for T in _read_poses(f)]
     photos = [load_image(p, f"--locate {p}") for p in args.locate]
-    return _Request(rt, size, inputs, poses, photos)
+    return _Request(rt, size, inputs, originals, poses, photos)
 
 
 def _encode(req: _Request, args: argparse.Namespace, say, t_load: float):
     """The Scene of the inputs (``--cameras``) and the --locate photos' poses in its frame."""
     rt = req.rt
     t0 = time.perf_counter()
-    scene = rt.encode(req.inputs, cameras=args.cameras)   # too many images: refused here
+    scene = rt.encode(req.originals, cameras=args.cameras)   # too many images: refused here
     H, W = rt.image_size
     say(f"encoded {len(req.inputs)} view(s) at {H}x{W} in {time.perf_counter() - t0:.2f} s "
         f"(model check + image loading {t_load:.2f} s); focal fx/W={scene.focal[0]:.4f} "
         f"fy/H={scene.focal[1]:.4f}")
     if (args.cameras or rt.default_cameras) != "model":
+        unposed = [i for i, st in enumerate(scene.camera_status or ()) if st == "unposed"]
         say(f"cameras of the inputs: {scene.camera_source}"
-            + {"epipolar": " (every view from the epipolar solve)",
-               "mixed": " (views the epipolar solve could not reach keep the model's camera)",
-               "model": " (the epipolar solve reached no view: the model's cameras)"}
+            + {"epipolar": f" (every view solved from the photos at {_hw_text(scene.camera_size)})",
+               "mixed": f" (solved at {_hw_text(scene.camera_size)}; views {unposed} could not be "
+                        f"posed and keep the model's camera)",
+               "model": " (the solve could not pose view 0: the model's cameras)"}
             [scene.camera_source]
             + ("" if scene.encoder_focal is None else
                f"; the model's focal was fx/W={scene.encoder_focal[0]:.4f}"))
@@ -334,6 +344,13 @@ def _write_cameras(out: Path, req: _Request, scene, orbit, located) -> Path:
     camera_io.write_transforms_json(out / "transforms.json", cams, scene.K, (H, W),
                                     [f"inputs/{n}" for n in names])
     camera_io.write_colmap_text(out / "colmap", cams, scene.K, (H, W), names)
+    (out / "cameras.json").write_text(json.dumps({
+        "source": scene.camera_source,
+        "solved_at": None if scene.camera_size is None else list(scene.camera_size),
+        "status": None if scene.camera_status is None else list(scene.camera_status),
+        "focal": scene.focal.tolist(),
+        "encoder_focal": (scene.focal if scene.encoder_focal is None
+                          else scene.encoder_focal).tolist()}, indent=1) + "\n")
     what = "predicted" if scene.camera_source == "model" else scene.camera_source
     _write_png(out / "cameras.png", draw_cameras(cams, scene.K, size=(480, 640),
                                                  title=f"{what} cameras of the {V} input(s)"))
@@ -396,6 +413,10 @@ def _summary(req: _Request, args, jobs, out: Path, orbit, located, rendered: dic
     if located is not None:
         say(f"located poses: {out / 'located_poses.json'} (one 4x4 world_from_cam per --locate "
             f"photo, usable with --pose)")
+
+
+def _hw_text(hw) -> str:
+    return "?" if hw is None else f"{hw[1]}x{hw[0]}"
 
 
 def _open_video(path: Path, fps: int, size: tuple[int, int]):

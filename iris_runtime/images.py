@@ -42,7 +42,12 @@ from .validation import check_images, check_integer
 
 ImageLike = Union[str, os.PathLike, Image.Image, np.ndarray]
 
-__all__ = ["ImageLike", "load_image", "to_rgb_uint8", "CropResize", "plan_crop_resize", "fit_to_model"]
+__all__ = ["ImageLike", "load_image", "to_rgb_uint8", "CropResize", "plan_crop_resize", "fit_to_model",
+           "fit_to_working_size", "camera_copies", "CAMERA_WORKING_SIZE"]
+
+#: Longer side of the copy of a photo the camera solve works on (``fit_to_working_size``): the
+#: cameras are solved on the photos near their own resolution, the encoder gets the model's.
+CAMERA_WORKING_SIZE = 512
 
 
 # ----------------------------------------------------------------------------------------------
@@ -250,3 +255,49 @@ def fit_to_model(image: np.ndarray, height: int, width: int) -> tuple[np.ndarray
     interp = cv2.INTER_AREA if shrinking else cv2.INTER_LINEAR
     out = cv2.resize(np.ascontiguousarray(crop), (width, height), interpolation=interp)
     return out, plan
+
+
+def fit_to_working_size(image: np.ndarray, max_side: int = CAMERA_WORKING_SIZE
+                        ) -> tuple[np.ndarray, CropResize]:
+    """``image uint8 [H, W, 3]`` no longer than ``max_side`` on either side: shrunk as a whole
+    (no crop, ``cv2.INTER_AREA``, each side rounded to whole pixels), or a copy when it already
+    fits. Returns ``(out, CropResize)`` (its crop is the whole image)."""
+    if not isinstance(image, np.ndarray) or image.dtype != np.uint8 or image.ndim != 3 \
+            or image.shape[2] != 3 or min(image.shape[:2]) == 0:
+        raise ImageError(f"image: expected a non-empty uint8 [H, W, 3] array, got "
+                         f"{getattr(image, 'dtype', type(image).__name__)} "
+                         f"{getattr(image, 'shape', '')}")
+    if isinstance(max_side, bool) or not isinstance(max_side, (int, np.integer)) or max_side < 1:
+        raise ImageError(f"max_side: expected a positive integer, got {max_side!r}")
+    H, W = image.shape[:2]
+    s = min(1.0, max_side / max(H, W))
+    h, w = max(1, int(round(H * s))), max(1, int(round(W * s)))
+    plan = CropResize(H, W, 0, 0, W, H, h, w)
+    if (h, w) == (H, W):
+        return np.array(image, copy=True, order="C"), plan
+    return cv2.resize(np.ascontiguousarray(image), (w, h), interpolation=cv2.INTER_AREA), plan
+
+
+def camera_copies(photos: list[np.ndarray], model_size: tuple[int, int],
+                  max_side: int = CAMERA_WORKING_SIZE) -> tuple[list[np.ndarray], np.ndarray]:
+    """The copies of ``photos`` (uint8 [H, W, 3] each) the camera solve works on, and
+    ``model_from_camera [3, 3]``: the affine map from their pixel coordinates to those of the
+    model's images (``fit_to_model`` of the same photos to ``model_size`` (H, W)), so that the
+    solved ``K`` becomes the model's ``model_from_camera @ K``.
+
+    Photos of one size are shrunk as a whole (``fit_to_working_size``: the solve sees their
+    full field of view). Photos of different sizes are first centre-cropped to the model's
+    aspect, as ``fit_to_model`` does, at one size (longer side ``max_side`` or the smallest
+    photo's crop, whichever is smaller), so that one camera can explain them all; the map is
+    then photo 0's (the others differ by the rounding of their crop, under a pixel)."""
+    H, W = model_size
+    if all(p.shape == photos[0].shape for p in photos):
+        copies = [fit_to_working_size(p, max_side) for p in photos]
+    else:
+        crops = [plan_crop_resize(p.shape[0], p.shape[1], H, W) for p in photos]
+        side = min(max_side, min(max(c.crop_h, c.crop_w) for c in crops))
+        s = side / max(H, W)
+        size = (max(1, int(round(H * s))), max(1, int(round(W * s))))
+        copies = [fit_to_model(p, *size) for p in photos]
+    model = plan_crop_resize(photos[0].shape[0], photos[0].shape[1], H, W)
+    return [c for c, _ in copies], model.matrix @ np.linalg.inv(copies[0][1].matrix)

@@ -81,8 +81,8 @@ class Manifest:
     cameras: str = "model"
 
 
-#: The cameras a renderer can be given: the encoder's ("model") or the global epipolar solve of
-#: the images ("epipolar", ``iris_runtime.epipolar.refine_cameras``). The values of the manifest's
+#: The cameras a renderer can be given: the encoder's ("model") or the camera solve of the photos
+#: ("epipolar", ``iris_runtime.cameras.replace_model_cameras``). The values of the manifest's
 #: optional "cameras" (``Manifest.cameras``), of ``IrisRuntime.encode(cameras=...)`` and of
 #: ``iris-train --render-cameras``.
 CAMERAS = ("model", "epipolar")

@@ -224,9 +224,9 @@ class IrisRuntime:
         return session
 
     # -- encoding ---------------------------------------------------------------------------
-    def _load_images(self, images, name: str = "images", limit: int | None = None,
-                     single: bool = False) -> np.ndarray:
-        """Images -> float32 [V, 3, H, W] in [0, 1] at the model's resolution (``name``: the
+    def _load_photos(self, images, name: str = "images", limit: int | None = None,
+                     single: bool = False) -> list[np.ndarray]:
+        """Images -> uint8 RGB photos [H_i, W_i, 3] at their own resolution (``name``: the
         argument in messages; ``limit``: most images accepted, default ``max_views``; ``single``:
         ``images`` is a one-element list made from one image called ``name``)."""
         if _is_single_image(images):
@@ -248,13 +248,23 @@ class IrisRuntime:
             raise InputError(f"{name}: {len(items)} images, at most {limit} per locate for this "
                              f"scene and model (MAX_LOCATE_CALLS = {MAX_LOCATE_CALLS} encoder calls "
                              f"of up to {self.max_views} views, the scene's references included)")
+        return [load_image(item, name if single else f"{name}[{i}]") for i, item in enumerate(items)]
+
+    def _model_batch(self, photos: list[np.ndarray]) -> np.ndarray:
+        """uint8 photos -> float32 [V, 3, H, W] in [0, 1] at the model's resolution
+        (``fit_to_model``: centre crop to the model's aspect, resize)."""
         H, W = self.image_size
-        batch = np.empty((len(items), 3, H, W), dtype=np.float32)
-        for i, item in enumerate(items):
-            rgb, _ = fit_to_model(load_image(item, name if single else f"{name}[{i}]"), H, W)
-            batch[i] = rgb.transpose(2, 0, 1)
+        batch = np.empty((len(photos), 3, H, W), dtype=np.float32)
+        for i, photo in enumerate(photos):
+            batch[i] = fit_to_model(photo, H, W)[0].transpose(2, 0, 1)
         batch *= np.float32(1.0 / 255.0)
         return batch
+
+    def _load_images(self, images, name: str = "images", limit: int | None = None,
+                     single: bool = False) -> np.ndarray:
+        """Images -> float32 [V, 3, H, W] in [0, 1] at the model's resolution (arguments as
+        ``_load_photos``)."""
+        return self._model_batch(self._load_photos(images, name, limit, single))
 
     def _run_encoder(self, batch: np.ndarray, is_reference: np.ndarray):
         """The encoder graph on ``batch [V, 3, H, W]`` with ``is_reference`` bool [V] -> field_maps
@@ -292,20 +302,21 @@ class IrisRuntime:
         cameras: None (default): ``default_cameras``, the cameras this model's renderer was
                  trained with (the manifest's "cameras").
                  "model": the encoder's predicted cameras and focal.
-                 "epipolar": the field maps are the encoder's as always, but the poses are the
-                 global epipolar solve of the model-resolution images
-                 (``iris_runtime.epipolar.refine_cameras``: DIS flow, an essential matrix per
-                 pair at the grid-searched focal, rotation averaging, translation averaging
-                 with the baselines tied by triangulated depth), with the centres scaled so
-                 that the scene's median triangulated depth lies ``epipolar.DEPTH_TARGET`` of
-                 the way into the renderer's depth range [near, far]. The grid-searched
-                 focal becomes the Scene's ``focal`` and ``K`` (rendering uses the focal the
-                 poses were solved at); the encoder's is kept in ``Scene.encoder_focal``. Views
-                 that view 0 does not reach through trusted pairs keep the encoder's camera
-                 (``Scene.camera_source`` "mixed"; "model" if none is reached). Costs
-                 V (V - 1) / 2 optical flows and the solve, far more than the encoder
-                 (``benchmarks/epipolar_cost.py``). How it works and its held-out figures:
-                 docs/CAMERAS.md.
+                 "epipolar": the field maps are the encoder's as always, but the cameras are
+                 solved from the photos themselves at their own resolution (a copy at most
+                 ``images.CAMERA_WORKING_SIZE`` on the longer side, ``images.camera_copies``)
+                 by ``iris_runtime.cameras.solve_cameras``: SIFT matches across every pair,
+                 two-view model selection, incremental mapping with bundle adjustment of the
+                 poses and the focal; the centres scaled so that the scene's median point
+                 depth lies ``cameras.DEPTH_TARGET`` of the way into the renderer's depth range
+                 [near, far]. The solved focal, carried through the crop and resize to the
+                 model's resolution, becomes the Scene's ``focal`` and ``K`` (the encoder's is
+                 kept in ``Scene.encoder_focal``); ``Scene.camera_size`` says the resolution
+                 the cameras were solved at and ``Scene.camera_status`` how each view was
+                 posed. A view the solve cannot pose keeps the encoder's camera
+                 (``camera_status`` "unposed", ``camera_source`` "mixed"; all of them, and
+                 ``camera_source`` "model", when view 0 is not posed, since it defines the
+                 frame). Cost and accuracy: docs/CAMERAS.md.
         """
         return self._encode(images, {}, self._check_cameras(
             self.default_cameras if cameras is None else cameras))
@@ -318,7 +329,8 @@ class IrisRuntime:
 
     def _encode(self, images, timings: dict, cameras: str = "model") -> Scene:
         t0 = time.perf_counter()
-        batch = self._load_images(images)
+        photos = self._load_photos(images)
+        batch = self._model_batch(photos)
         t1 = time.perf_counter()
         maps, world_from_cam, focal = self._run_encoder(batch, np.ones(batch.shape[0], bool))
         t2 = time.perf_counter()
@@ -328,21 +340,20 @@ class IrisRuntime:
         focal64 = focal.astype(np.float64)
         poses64 = world_from_cam.astype(np.float64)
         model_id = self.manifest.graphs["encoder"].sha256
+        model_K = G.intrinsics_from_focal(focal64, H, W)
         if cameras == "model":
-            return Scene(maps, poses64, focal64, G.intrinsics_from_focal(focal64, H, W), (H, W),
-                         model_id, batch)
-        from . import epipolar
-        # The batch is uint8 / 255 in float32: rint(x * 255) gives the uint8 pixels back exactly.
-        pixels = np.rint(batch * 255.0).astype(np.uint8).transpose(0, 2, 3, 1)
-        ref = epipolar.refine_cameras(pixels, poses64, focal64, depth_range=(self.near, self.far))
+            return Scene(maps, poses64, focal64, model_K, (H, W), model_id, batch)
+        from .cameras import replace_model_cameras
+        cams = replace_model_cameras(photos, poses64, focal64, (H, W), (self.near, self.far))
         timings["cameras"] = timings.get("cameras", 0.0) + (time.perf_counter() - t2)
-        same_focal = bool(np.array_equal(ref.focal, focal64))
-        return Scene(maps, ref.world_from_cam, ref.focal,
-                     G.intrinsics_from_focal(ref.focal, H, W), (H, W), model_id, batch,
-                     camera_source=ref.source, encoder_focal=None if same_focal else focal64)
+        return Scene(maps, cams.world_from_cam, cams.focal, cams.K, (H, W), model_id, batch,
+                     camera_source=cams.source,
+                     encoder_focal=None if cams.source == "model" else focal64,
+                     camera_size=cams.camera_size, camera_status=cams.status,
+                     camera_solve=cams.solve)
 
     # -- locating ---------------------------------------------------------------------------
-    def locate(self, scene: Scene, image) -> np.ndarray:
+    def locate(self, scene: Scene, image, *, with_status: bool = False):
         """Pose of a new photo in ``scene``'s frame, without changing the scene.
 
         scene:  a ``Scene`` from ``encode`` of this model (or its ``subset``: same frame).
@@ -357,13 +368,17 @@ class IrisRuntime:
         for one photo, ``[Q, 4, 4]`` for a sequence (OpenCV axes, the scene's canonical frame:
         its first reference is the identity; the scene's shared focal applies).
 
-        For a Scene encoded with ``cameras="epipolar"`` (``camera_source`` "epipolar" or
-        "mixed") the pose is the epipolar one with the scene's cameras held fixed
-        (``iris_runtime.epipolar.locate_views``: PnP on the references' triangulated pixels, or
-        the intersection of the pairwise directions), in the scene's frame and unit; a photo it
-        cannot pose (too few trusted links or inliers) gets the model's prediction, which lies in
-        the frame of the encoder's reference cameras (same view 0 and, through the scale, unit,
-        but not the other views' rotations). Otherwise the pose is the model's prediction.
+        For a Scene whose cameras were solved from its photos (``Scene.camera_solve``, from
+        ``cameras="epipolar"``) the pose is solved the same way, with the scene's cameras held
+        fixed: the photo, at its own resolution brought to ``Scene.camera_size`` (a centre crop
+        when its aspect differs: it is taken to come from the same camera), is matched against
+        the scene's points and posed by PnP (``iris_runtime.cameras.locate_photos``), in the
+        scene's frame and unit. A photo it cannot pose gets the model's prediction, which lies
+        in the frame of the encoder's reference cameras (same view 0 but another unit).
+        Otherwise the pose is the model's prediction.
+
+        with_status: also return, per photo, "located" (posed against the scene's points) or
+        "unposed" (the model's prediction): ``(poses, status)``, status a str or a tuple.
         """
         if not isinstance(scene, Scene):
             raise InputError(f"scene: expected a Scene from IrisRuntime.encode, got "
@@ -379,8 +394,9 @@ class IrisRuntime:
                              f"or a sequence of them, got {type(image).__name__}")
         N = refs.shape[0]
         per_call = max(1, self.max_views - N)
-        queries = self._load_images([image] if single else image, "image",
-                                    limit=per_call * MAX_LOCATE_CALLS, single=single)
+        photos = self._load_photos([image] if single else image, "image",
+                                   limit=per_call * MAX_LOCATE_CALLS, single=single)
+        queries = self._model_batch(photos)
         poses = []
         for start in range(0, queries.shape[0], per_call):
             chunk = queries[start:start + per_call]
@@ -393,14 +409,17 @@ class IrisRuntime:
                                  f"images it was encoded from)")
             poses.append(world_from_cam[N:].astype(np.float64))
         poses = np.concatenate(poses)
-        if scene.camera_source != "model" and scene.image_index is not None:
-            from . import epipolar
-            to_uint8 = lambda x: np.rint(x * 255.0).astype(np.uint8).transpose(0, 2, 3, 1)
-            epi, solved = epipolar.locate_views(to_uint8(refs[scene.image_index]),
-                                                scene.world_from_cam, float(scene.focal[0]),
-                                                to_uint8(queries))
-            poses = np.where(solved[:, None, None], epi, poses)
-        return poses[0] if single else poses
+        located = np.zeros(len(photos), bool)
+        solve = scene.camera_solve
+        if solve is not None:
+            from .cameras import locate_photos
+            copies = [fit_to_model(p, *solve.image_size)[0] for p in photos]
+            solved, located = locate_photos(solve.point_map, solve.focal, solve.image_size, copies)
+            poses = np.where(located[:, None, None], solved, poses)
+        if not with_status:
+            return poses[0] if single else poses
+        status = tuple("located" if ok else "unposed" for ok in located.tolist())
+        return (poses[0], status[0]) if single else (poses, status)
 
     # -- rendering --------------------------------------------------------------------------
     def render(self, images_or_scene, pose, *, height: int | None = None, width: int | None = None,

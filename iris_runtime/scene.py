@@ -16,12 +16,15 @@ from .errors import InputError
 from .validation import check_world_from_cam
 
 if TYPE_CHECKING:
+    from .cameras import CameraSolve
     from .quality import RenderSettings
 
-__all__ = ["Scene", "RenderResult", "check_pose", "CAMERA_SOURCES"]
+__all__ = ["Scene", "RenderResult", "check_pose", "CAMERA_SOURCES", "CAMERA_STATUSES"]
 
 #: Values of ``Scene.camera_source``.
 CAMERA_SOURCES = ("model", "epipolar", "mixed")
+#: Values of ``Scene.camera_status`` (``iris_runtime.cameras.STATUSES``).
+CAMERA_STATUSES = ("solved", "located", "unposed")
 
 
 def _readonly(a, dtype) -> np.ndarray:
@@ -55,14 +58,25 @@ class Scene:
                     read each view's photo. Default: ``arange(V)`` when there are V reference
                     images, else None (unknown; explicit-colour renders refuse such a Scene)
     camera_source:  where ``world_from_cam`` comes from: "model" (the encoder's prediction),
-                    "epipolar" (``encode(..., cameras="epipolar")``: every view from the global
-                    epipolar solve, ``iris_runtime.epipolar.refine_cameras``) or "mixed" (the
-                    solve reached only some views through trusted pairs; the others keep the
-                    model's camera). ``subset`` keeps the value of the scene it was cut from
+                    "epipolar" (``encode(..., cameras="epipolar")``: every view from the camera
+                    solve of the photos, ``iris_runtime.cameras.solve_cameras``) or "mixed" (the
+                    solve could not pose some views; they keep the model's camera, see
+                    ``camera_status``). ``subset`` keeps the value of the scene it was cut from
     encoder_focal:  float64 [2], the focal the encoder predicted when ``focal`` is another one
-                    (``cameras="epipolar"`` puts the grid-searched focal in ``focal`` and ``K``);
-                    None when ``focal`` is the encoder's. ``locate`` checks the reference images
+                    (``cameras="epipolar"`` puts the solved focal in ``focal`` and ``K``); None
+                    when ``focal`` is the encoder's. ``locate`` checks the reference images
                     against it
+    camera_size:    (H, W) of the photos the cameras were solved at (their own resolution, at
+                    most ``images.CAMERA_WORKING_SIZE`` on the longer side); None for the
+                    model's cameras. ``K`` is the solved focal carried through the centre crop
+                    and resize to the model's resolution
+    camera_status:  per view, "solved" (in the joint solve), "located" (posed against the
+                    solved views' points afterwards) or "unposed" (the solve could not pose it:
+                    the model's camera); None for the model's cameras. ``subset`` keeps it in
+                    step with the views
+    camera_solve:   the ``iris_runtime.cameras.CameraSolve`` behind the cameras (its points and
+                    descriptors, in this scene's frame and unit), what ``locate`` poses new
+                    photos against; None for the model's cameras
     """
     field_maps: np.ndarray
     world_from_cam: np.ndarray
@@ -74,6 +88,9 @@ class Scene:
     image_index: np.ndarray | None = field(default=None, repr=False)
     camera_source: str = "model"
     encoder_focal: np.ndarray | None = field(default=None, repr=False)
+    camera_size: tuple[int, int] | None = None
+    camera_status: tuple[str, ...] | None = None
+    camera_solve: "CameraSolve | None" = field(default=None, repr=False)
 
     def __post_init__(self):
         arrays = {}
@@ -142,9 +159,30 @@ class Scene:
                                                and np.all(enc_focal > 0)):
                 raise InputError(f"encoder_focal: expected [2] positive finite numbers or None, "
                                  f"got {enc_focal.tolist()}")
+        cam_size = self.camera_size
+        if cam_size is not None:
+            try:
+                cam_size = tuple(int(x) for x in cam_size)
+            except (TypeError, ValueError):
+                cam_size = ()
+            if len(cam_size) != 2 or min(cam_size) <= 0:
+                raise InputError(f"camera_size: expected (H, W) positive or None, got "
+                                 f"{self.camera_size!r}")
+        if self.camera_solve is not None:
+            from .cameras import CameraSolve
+            if not isinstance(self.camera_solve, CameraSolve):
+                raise InputError(f"camera_solve: expected an iris_runtime.cameras.CameraSolve or "
+                                 f"None, got {type(self.camera_solve).__name__}")
+        status = self.camera_status
+        if status is not None:
+            status = tuple(status) if not isinstance(status, str) else ()
+            if len(status) != V or any(x not in CAMERA_STATUSES for x in status):
+                raise InputError(f"camera_status: expected {V} values of {list(CAMERA_STATUSES)} "
+                                 f"or None, got {self.camera_status!r}")
         for name, value in (("field_maps", maps), ("world_from_cam", poses), ("focal", focal),
                             ("image_size", size), ("K", K), ("reference_images", refs),
-                            ("image_index", index), ("encoder_focal", enc_focal)):
+                            ("image_index", index), ("encoder_focal", enc_focal),
+                            ("camera_size", cam_size), ("camera_status", status)):
             object.__setattr__(self, name, value)
 
     @property
@@ -177,12 +215,16 @@ class Scene:
         return Scene(self.field_maps[idx], self.world_from_cam[idx], self.focal, self.K,
                      self.image_size, self.model_id, self.reference_images,
                      None if self.image_index is None else self.image_index[idx],
-                     self.camera_source, self.encoder_focal)
+                     self.camera_source, self.encoder_focal, self.camera_size,
+                     None if self.camera_status is None
+                     else tuple(self.camera_status[i] for i in idx.tolist()),
+                     self.camera_solve)
 
     def __repr__(self) -> str:
+        solved = "" if self.camera_size is None else f", camera_size={self.camera_size}"
         return (f"Scene(views={self.num_views}, field_maps={tuple(self.field_maps.shape)}, "
                 f"image_size={self.image_size}, focal={np.round(self.focal, 4).tolist()}, "
-                f"camera_source={self.camera_source!r})")
+                f"camera_source={self.camera_source!r}{solved})")
 
 
 @dataclass(frozen=True, eq=False)

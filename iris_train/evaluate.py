@@ -215,9 +215,9 @@ class _TorchBackend:
             scene = self.model.encode(x)
         self.last_source = "model"
         if cameras == "epipolar":
-            from iris_runtime.epipolar import refine_cameras
-            ref = refine_cameras(np.ascontiguousarray(images), self.poses(scene), _focal_of(scene),
-                                 depth_range=self.depth_range)
+            from iris_runtime.cameras import replace_model_cameras
+            ref = replace_model_cameras(np.ascontiguousarray(images), self.poses(scene),
+                                        _focal_of(scene), self.image_size, self.depth_range)
             scene = dataclasses.replace(
                 scene, world_from_cam=torch.as_tensor(ref.world_from_cam).to(scene.world_from_cam),
                 focal=torch.as_tensor(ref.focal).to(scene.focal))
@@ -475,7 +475,7 @@ def evaluate(model, scenes: Iterable, *, views: int = DEFAULT_VIEWS, seed: int =
                 located = backend.locate(encoded, images[ref_order], images[target_order])
                 solved = np.zeros(len(target_order), dtype=bool)
                 if locate == "epipolar":
-                    from iris_runtime.epipolar import locate_views
+                    from iris_runtime.cameras import locate_views
                     epi, solved = locate_views(images[ref_order], pred[ref_order],
                                                float(_focal_of(encoded)[0]), images[target_order])
                     located = np.where(solved[:, None, None], epi, located)

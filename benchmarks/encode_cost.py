@@ -1,0 +1,91 @@
+"""What solving the cameras costs at encode time: ``IrisRuntime.encode`` of 8 photos of 320x240 on
+one thread, with the encoder's cameras and with the camera solve (``cameras="epipolar"``), and the
+solve's own steps. Medians of ``--runs`` wall times after one warm-up, one process.
+
+    python benchmarks/encode_cost.py MODEL_DIR                  # an iris-export output
+    python benchmarks/encode_cost.py MODEL_DIR --runs 7 --json benchmarks/results/encode_cost.json
+
+Photos: ViSP ``Castle-simu`` frames 1, 6, ..., 36 at 320x240 (``benchmarks/camera_solve.py``,
+Debian ``visp-images-data``) and the held-out synthetic scene 1000003 rendered at 320x240 (needs
+the [train] extra), whichever are available. The machine's load is recorded beside the figures
+(``os.getloadavg``): a loaded machine stretches every figure.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import sys
+import time
+from pathlib import Path
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+
+def photo_sets() -> dict:
+    """{name: 8 uint8 RGB photos of 240x320}."""
+    import numpy as np
+    out = {}
+    from benchmarks.camera_solve import CASTLE, CASTLE_SUBSETS, castle_scenes
+    if CASTLE.is_dir():
+        for scene in castle_scenes():
+            if scene.name == "castle 1-36 320x240" and len(CASTLE_SUBSETS["1-36"]) == 8:
+                out["castle 1-36 320x240"] = scene.photos
+    try:
+        from iris_train.synthetic import render_scene
+        out["synthetic 1000003 320x240"] = list(np.asarray(render_scene(1_000_003, 8, (240, 320)).images))
+    except ImportError:
+        pass
+    return out
+
+
+def measure(model_dir: str, runs: int) -> dict:
+    import cv2
+
+    from iris_runtime import IrisRuntime
+    cv2.setNumThreads(1)
+    rt = IrisRuntime(model_dir, threads=1)
+    out = {"threads": 1, "runs": runs, "load_before": list(os.getloadavg()), "sets": {}}
+    for name, photos in photo_sets().items():
+        res = {}
+        for cameras in ("model", "epipolar"):
+            rt.encode(photos, cameras=cameras)                       # warm-up
+            times, steps = [], []
+            for _ in range(runs):
+                timings = {}
+                t0 = time.perf_counter()
+                scene = rt._encode(photos, timings, cameras)
+                times.append(time.perf_counter() - t0)
+                steps.append(timings)
+            res[cameras] = {"median_s": statistics.median(times), "runs_s": times,
+                            "cameras_median_s": statistics.median(t.get("cameras", 0.0)
+                                                                  for t in steps),
+                            "camera_status": list(scene.camera_status or ()),
+                            "camera_size": scene.camera_size}
+            print(f"{name:28s} cameras={cameras:9s} {res[cameras]['median_s']:.3f} s "
+                  f"(solve {res[cameras]['cameras_median_s']:.3f} s; runs "
+                  f"{', '.join(f'{t:.2f}' for t in times)})", flush=True)
+        out["sets"][name] = res
+    out["load_after"] = list(os.getloadavg())
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("model_dir")
+    ap.add_argument("--runs", type=int, default=5)
+    ap.add_argument("--json", type=Path, default=None)
+    args = ap.parse_args(argv)
+    res = measure(args.model_dir, args.runs)
+    print(f"load average before / after: {res['load_before']} / {res['load_after']}")
+    if args.json is not None:
+        from iris_runtime.fileio import atomic_write_bytes
+        atomic_write_bytes(args.json, json.dumps(res, indent=1).encode())
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

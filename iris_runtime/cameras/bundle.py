@@ -1,0 +1,201 @@
+"""Step 5 of the camera solve: bundle adjustment, the poses, the points and the one shared focal
+refined together on the reprojection error of every observation.
+
+Levenberg-Marquardt on the normal equations with the points eliminated (Schur complement: one
+3x3 block per point, a dense system the size of the cameras), Cauchy-reweighted so that a wrong
+match does not drag the cameras. Written here in numpy because the runtime has no SciPy, and
+because ``scipy.optimize.least_squares`` (trust region, sparse Jacobian, LSMR) left the focal
+where it started on the same problems (docs/CAMERAS.md, "Bundle adjustment").
+
+Parametrisation: ``cam_from_world`` rotations ``R [V, 3, 3]`` updated on the left (R <- exp(w) R)
+and translations ``t [V, 3]``; one focal in pixels with the principal point at the image centre
+(square pixels, no distortion). One view is held fixed (the gauge) and one coordinate of another
+view's translation (the scale, which the images cannot fix).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+__all__ = ["BundleResult", "bundle_adjust", "reprojection_errors", "project"]
+
+#: A step that lowers the cost by less than this fraction of it ends the adjustment.
+RELATIVE_TOLERANCE = 1e-6
+
+
+@dataclass(frozen=True)
+class BundleResult:
+    """R [V, 3, 3], t [V, 3] (cam_from_world), focal (pixels), points [P, 3], the robust cost
+    at the end and the iterations run."""
+    R: np.ndarray
+    t: np.ndarray
+    focal: float
+    points: np.ndarray
+    cost: float
+    iterations: int
+
+
+def project(R, t, focal, centre, points):
+    """Camera coordinates ``Y [P, V, 3]`` and pixels ``[P, V, 2]`` of every point in every view."""
+    Y = np.matmul(points[None], R.transpose(0, 2, 1)).transpose(1, 0, 2) + t[None]
+    z = np.where(np.abs(Y[..., 2]) > 1e-12, Y[..., 2], 1e-12)
+    return Y, focal * Y[..., :2] / z[..., None] + centre
+
+
+def reprojection_errors(R, t, focal, centre, points, uv) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel distance [P, V] between each observation ``uv [P, V, 2]`` and its point's projection,
+    and the point's depth z [P, V] in each camera."""
+    Y, proj = project(R, t, focal, centre, points)
+    return np.linalg.norm(proj - uv, axis=-1), Y[..., 2]
+
+
+class _Problem:
+    """The observations of one adjustment, flattened: point ``p [n]`` (sorted), view ``v [n]``,
+    pixels ``uv [n, 2]``."""
+
+    def __init__(self, uv, active, centre, loss_scale):
+        self.p, self.v = np.nonzero(active)
+        self.uv = uv[self.p, self.v]
+        self.P, self.V = active.shape
+        self.starts = np.flatnonzero(np.r_[True, self.p[1:] != self.p[:-1]])
+        self.centre = centre
+        self.s2 = float(loss_scale) ** 2
+        # Every ordered pair (a, b) of observations of one point: the blocks of the Schur
+        # complement (a point seen by views i and j couples cameras i and j).
+        counts = np.diff(np.r_[self.starts, len(self.p)])
+        first = np.repeat(self.starts, counts)                     # first observation of its point
+        rep = np.repeat(counts, counts)                            # observations of its point
+        self.pair_a = np.repeat(np.arange(len(self.p)), rep)
+        offset = np.arange(len(self.pair_a)) - np.repeat(np.cumsum(rep) - rep, rep)
+        self.pair_b = np.repeat(first, rep) + offset
+
+    def camera_coords(self, R, t, X):
+        """Y [n, 3]: each observed point in its observing camera."""
+        return np.matmul(X[None], R.transpose(0, 2, 1))[self.v, self.p] + t[self.v]
+
+    def residuals(self, R, t, f, X):
+        Y = self.camera_coords(R, t, X)
+        z = np.where(Y[:, 2] > 1e-12, Y[:, 2], 1e-12)
+        return f * Y[:, :2] / z[:, None] + self.centre - self.uv, Y
+
+    def cost(self, R, t, f, X) -> float:
+        r, Y = self.residuals(R, t, f, X)
+        if (Y[:, 2] <= 0).any() or not f > 0:
+            return np.inf
+        return float(0.5 * self.s2 * np.log1p((r * r).sum(1) / self.s2).sum())   # Cauchy
+
+    def per_view(self, x):
+        """Sum of x [n, ...] per view -> [V, ...]."""
+        flat = x.reshape(len(x), -1)
+        k = flat.shape[1]
+        out = np.bincount((self.v[:, None] * k + np.arange(k)).ravel(), flat.ravel(),
+                          minlength=self.V * k)
+        return out.reshape((self.V,) + x.shape[1:])
+
+    def per_point(self, x):
+        """Sum of x [n, ...] per point -> [P, ...] (points without observations: 0)."""
+        out = np.zeros((self.P,) + x.shape[1:])
+        out[self.p[self.starts]] = np.add.reduceat(x, self.starts, axis=0)
+        return out
+
+
+def _jacobians(Y, a, R_v, f):
+    """d(pixel)/d(camera: rotation w, translation, focal) [n, 2, 7] and d(pixel)/d(point)
+    [n, 2, 3] of observations with camera coordinates Y [n, 3] = a + t (a = R X, the part the
+    rotation acts on) in cameras R_v [n, 3, 3]."""
+    n = len(Y)
+    iz = 1.0 / Y[:, 2]
+    JY = np.zeros((n, 2, 3))
+    JY[:, 0, 0] = JY[:, 1, 1] = f * iz
+    JY[:, 0, 2] = -f * Y[:, 0] * iz * iz
+    JY[:, 1, 2] = -f * Y[:, 1] * iz * iz
+    minus_skew = np.zeros((n, 3, 3))                       # d(exp(w) a)/dw = -[a]_x
+    minus_skew[:, 0, 1], minus_skew[:, 0, 2] = a[:, 2], -a[:, 1]
+    minus_skew[:, 1, 0], minus_skew[:, 1, 2] = -a[:, 2], a[:, 0]
+    minus_skew[:, 2, 0], minus_skew[:, 2, 1] = a[:, 1], -a[:, 0]
+    Jc = np.concatenate([JY @ minus_skew, JY, (Y[:, :2] * iz[:, None])[:, :, None]], axis=2)
+    return Jc, JY @ R_v
+
+
+def bundle_adjust(R, t, focal, centre, points, uv, active, *, fixed_view: int, scale_view: int,
+                  refine_focal: bool = True, loss_scale: float = 1.0,
+                  max_iterations: int = 50) -> BundleResult:
+    """Refine ``R [V, 3, 3]``, ``t [V, 3]`` (cam_from_world), ``focal`` (pixels; principal point
+    ``centre`` [2]) and ``points [P, 3]`` on the observations ``uv [P, V, 2]`` where ``active
+    [P, V]`` is True. View ``fixed_view`` does not move; the largest coordinate of view
+    ``scale_view``'s translation does not either. ``loss_scale``: the Cauchy scale in pixels."""
+    R, t, X = np.array(R, np.float64), np.array(t, np.float64), np.array(points, np.float64)
+    f = float(focal)
+    prob = _Problem(np.asarray(uv, np.float64), np.asarray(active, bool),
+                    np.asarray(centre, np.float64), loss_scale)
+    V, P = R.shape[0], X.shape[0]
+    if len(prob.p) == 0:
+        return BundleResult(R, t, f, X, 0.0, 0)
+    # Parameter index of each of the 7 per-view entries (rotation, translation, focal); -1: fixed.
+    index = -np.ones((V, 7), np.int64)
+    n = 0
+    for v in np.unique(prob.v):
+        if v != fixed_view:
+            index[v, :6] = np.arange(n, n + 6)
+            if v == scale_view:
+                index[v, 3 + int(np.argmax(np.abs(t[v])))] = -1
+            n += 6
+    if refine_focal:
+        index[:, 6] = n
+        n += 1
+    flat = index.ravel()
+    M = np.zeros((7 * V, max(n, 1)))
+    M[np.flatnonzero(flat >= 0), flat[flat >= 0]] = 1.0
+    cost = prob.cost(R, t, f, X)
+    lam, it = 1e-3, 0
+    for it in range(1, max_iterations + 1):
+        r, Y = prob.residuals(R, t, f, X)
+        w = 1.0 / (1.0 + (r * r).sum(1) / prob.s2)                          # Cauchy IRLS weights
+        Jc, Jp = _jacobians(Y, Y - t[prob.v], R[prob.v], f)
+        JcT_w = Jc.transpose(0, 2, 1) * w[:, None, None]                    # [n, 7, 2]
+        JpT_w = Jp.transpose(0, 2, 1) * w[:, None, None]                    # [n, 3, 2]
+        U7 = prob.per_view(JcT_w @ Jc)                                      # [V, 7, 7]
+        g7 = prob.per_view((JcT_w @ r[:, :, None])[:, :, 0])                # [V, 7]
+        Vp = prob.per_point(JpT_w @ Jp)                                     # [P, 3, 3]
+        gp = prob.per_point((JpT_w @ r[:, :, None])[:, :, 0])               # [P, 3]
+        Wo = JcT_w @ Jp                                                     # [n, 7, 3]
+        U = np.zeros((7 * V, 7 * V))
+        for v in range(V):
+            U[7 * v:7 * v + 7, 7 * v:7 * v + 7] = U7[v]
+        Ur, gr = M.T @ U @ M, M.T @ g7.ravel()
+        a, b = prob.pair_a, prob.pair_b
+        block = (prob.v[a] * V + prob.v[b])[:, None] * 49 + np.arange(49)   # (view a, view b)
+        done = False
+        while True:
+            Vinv = np.linalg.inv(Vp + lam * Vp * np.eye(3) + 1e-9 * np.eye(3))
+            WV = Wo @ Vinv[prob.p]                                          # [n, 7, 3]
+            pairs = (WV[a] @ Wo[b].transpose(0, 2, 1)).reshape(len(a), 49)
+            schur = np.bincount(block.ravel(), pairs.ravel(), minlength=V * V * 49)
+            schur = schur.reshape(V, V, 7, 7).transpose(0, 2, 1, 3).reshape(7 * V, 7 * V)
+            S = Ur + lam * np.diag(np.diag(Ur)) - M.T @ schur @ M
+            b_c = prob.per_view((WV @ gp[prob.p][:, :, None])[:, :, 0])   # [V, 7]
+            rhs = gr - M.T @ b_c.ravel()
+            try:
+                dc = -np.linalg.solve(S + 1e-12 * np.eye(len(S)), rhs) if n else np.zeros(1)
+            except np.linalg.LinAlgError:
+                dc = np.full(len(S), np.nan)
+            if np.all(np.isfinite(dc)):
+                d7 = (M @ dc).reshape(V, 7) if n else np.zeros((V, 7))
+                WTd = (Wo.transpose(0, 2, 1) @ d7[prob.v][:, :, None])[:, :, 0]   # [n, 3]
+                dp = -(Vinv @ (gp + prob.per_point(WTd))[:, :, None])[:, :, 0]
+                R2 = np.stack([cv2.Rodrigues(d7[v, :3])[0] @ R[v] for v in range(V)])
+                t2, f2, X2 = t + d7[:, 3:6], f + d7[0, 6], X + dp
+                new = prob.cost(R2, t2, f2, X2)
+                if new < cost:
+                    done = (cost - new) < RELATIVE_TOLERANCE * cost
+                    R, t, f, X, cost = R2, t2, f2, X2, new
+                    lam = max(lam / 10.0, 1e-10)
+                    break
+            lam *= 10.0
+            if lam > 1e10:
+                break
+        if lam > 1e10 or done:
+            break
+    return BundleResult(R, t, f, X, cost, it)

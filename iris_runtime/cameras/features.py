@@ -1,0 +1,144 @@
+"""Step 1 of the camera solve: SIFT features of each photo and their matches between two photos.
+
+Sparse features, not dense flow, because a keypoint matched by its descriptor survives a wide gap
+between two views (docs/CAMERAS.md, "Matches"). Conventions: pixel coordinates with pixel (row i,
+col j) centred at (j + 0.5, i + 0.5) (DESIGN.md), OpenCV's keypoints shifted by +0.5 to it.
+"""
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from ..errors import InputError
+
+__all__ = ["Features", "extract_features", "match_features", "canonical_order", "grey",
+           "enlargement", "enlarge", "MAX_FEATURES", "CONTRAST_THRESHOLD", "MAX_RATIO",
+           "MAX_DISTANCE", "MIN_SIZE"]
+
+#: Keypoints kept per photo (the strongest by SIFT response); matching costs grow with the square.
+MAX_FEATURES = 2048
+#: OpenCV's SIFT contrast threshold: half its default, so low-texture photos keep enough keypoints.
+CONTRAST_THRESHOLD = 0.02
+#: Lowe's ratio test: best / second-best descriptor distance below this (COLMAP's default).
+MAX_RATIO = 0.8
+#: Largest accepted descriptor distance between unit RootSIFT vectors (COLMAP's default).
+MAX_DISTANCE = 0.7
+#: Photos shorter than this on their longer side are enlarged by a whole factor (cubic) before
+#: the solve: SIFT finds few keypoints in small photos (docs/CAMERAS.md, "Small photos").
+MIN_SIZE = 256
+#: RootSIFT descriptors are stored as uint8 round(512 x), the scale COLMAP uses (entries <= 0.5).
+_DESCRIPTOR_SCALE = 512.0
+
+
+@dataclass(frozen=True)
+class Features:
+    """SIFT keypoints of one photo.
+
+    uv:          float64 [N, 2]  keypoint positions (pixel centres at +0.5)
+    descriptors: uint8 [N, 128]  RootSIFT descriptors, scaled by 512
+    image_size:  (H, W)          the photo they were found in
+    """
+    uv: np.ndarray
+    descriptors: np.ndarray
+    image_size: tuple[int, int]
+
+    def __len__(self) -> int:
+        return self.uv.shape[0]
+
+    def subset(self, index: np.ndarray) -> "Features":
+        return Features(self.uv[index], self.descriptors[index], self.image_size)
+
+
+def grey(photo: np.ndarray) -> np.ndarray:
+    """uint8 [H, W] grey of a uint8 RGB photo [H, W, 3] (a grey [H, W] photo is returned as is)."""
+    if photo.ndim == 2:
+        return photo
+    return cv2.cvtColor(photo, cv2.COLOR_RGB2GRAY)
+
+
+def enlargement(image_size: tuple[int, int]) -> int:
+    """The whole factor k >= 1 by which photos of ``image_size`` (H, W) are enlarged for the
+    solve: the smallest with k * max(H, W) >= ``MIN_SIZE``. Pixel coordinates map as u -> k u
+    (pixel edges at whole numbers, centres at +0.5), so cameras solved on the enlarged photos
+    hold for the photos with the focal divided by k."""
+    return max(1, -(-MIN_SIZE // max(image_size)))
+
+
+def enlarge(photo: np.ndarray, k: int) -> np.ndarray:
+    """``photo`` enlarged k times on each side (cubic), or itself when k == 1."""
+    if k == 1:
+        return photo
+    return cv2.resize(photo, (photo.shape[1] * k, photo.shape[0] * k),
+                      interpolation=cv2.INTER_CUBIC)
+
+
+def extract_features(photo: np.ndarray, max_features: int | None = None) -> Features:
+    """SIFT keypoints of a uint8 photo ([H, W, 3] RGB or [H, W] grey), at most ``max_features``
+    (default ``MAX_FEATURES``).
+
+    The keypoints are sorted by a key of their own values (response, position, scale, angle),
+    not by the order OpenCV's threads found them in, so the same photo gives the same features.
+    """
+    image = grey(photo)
+    n = max_features or MAX_FEATURES
+    # OpenCV keeps every keypoint whose response reaches the n-th largest (a set, not an order)
+    # before computing descriptors; the order is then fixed below.
+    sift = cv2.SIFT_create(nfeatures=n, contrastThreshold=CONTRAST_THRESHOLD)
+    keypoints, desc = sift.detectAndCompute(image, None)
+    H, W = image.shape
+    if desc is None or len(keypoints) == 0:
+        return Features(np.zeros((0, 2)), np.zeros((0, 128), np.uint8), (H, W))
+    kp = np.array([(k.response, k.pt[0], k.pt[1], k.size, k.angle) for k in keypoints])
+    order = np.lexsort(kp.T[::-1])[::-1][:n]                    # strongest first
+    desc = desc[order].astype(np.float64)
+    desc /= np.maximum(desc.sum(axis=1, keepdims=True), 1e-12)   # RootSIFT: L1, then sqrt
+    desc = np.clip(np.rint(np.sqrt(desc) * _DESCRIPTOR_SCALE), 0, 255).astype(np.uint8)
+    return Features(kp[order, 1:3] + 0.5, desc, (H, W))
+
+
+def _unit(desc: np.ndarray) -> np.ndarray:
+    d = desc.astype(np.float32)
+    return d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-6)
+
+
+def match_features(a: Features, b: Features) -> np.ndarray:
+    """Matches ``int64 [M, 2]`` (index in a, index in b) of two photos' features: each keypoint's
+    nearest descriptor in the other photo, kept when it passes the ratio test (``MAX_RATIO``), is
+    close enough (``MAX_DISTANCE``) and is mutual (b's nearest in a is the same keypoint)."""
+    if len(a) < 2 or len(b) < 2:
+        return np.zeros((0, 2), np.int64)
+    # Nearest and second nearest from the similarities: |x - y|^2 = 2 - 2 x.y for unit vectors.
+    sim = _unit(a.descriptors) @ _unit(b.descriptors).T
+    rows = np.arange(sim.shape[0])
+    nearest = np.argmax(sim, axis=1)
+    best = sim[rows, nearest]
+    sim_b = sim.copy()
+    sim_b[rows, nearest] = -np.inf
+    second = sim_b.max(axis=1)
+    d_best = np.sqrt(np.maximum(2.0 - 2.0 * best, 0.0))
+    d_second = np.sqrt(np.maximum(2.0 - 2.0 * second, 0.0))
+    ok = (d_best < MAX_RATIO * d_second) & (d_best < MAX_DISTANCE)
+    ia = np.flatnonzero(ok)
+    ib = nearest[ia]
+    mutual = np.argmax(sim[:, ib], axis=0) == ia
+    return np.stack([ia[mutual], ib[mutual]], axis=1).astype(np.int64)
+
+
+def canonical_order(photos) -> np.ndarray:
+    """``perm`` int64 [V]: the order the solve looks at the photos in, fixed by their content
+    (ascending SHA-256 of each photo's bytes and shape; identical photos keep their given order).
+
+    Matching and the robust estimators depend on which photo comes first, so the solve runs in
+    this order and the caller's order only decides which view the result is rooted at: the same
+    photos in any order give the same cameras.
+    """
+    keys = []
+    for k, x in enumerate(photos):
+        x = np.ascontiguousarray(x)
+        if x.dtype != np.uint8:
+            raise InputError(f"photos[{k}]: expected uint8, got {x.dtype}")
+        keys.append(hashlib.sha256(repr(x.shape).encode() + x.tobytes()).hexdigest())
+    return np.array(sorted(range(len(keys)), key=lambda k: (keys[k], k)), dtype=np.int64)

@@ -1,0 +1,207 @@
+"""Step 6 of the camera solve: the pose of a photo from its matches to known 3D points (PnP).
+
+The mapper registers each new view this way, and ``locate_photos`` poses photos that were not
+part of the solve against its points, which stay fixed (``IrisRuntime.locate``, the targets of
+``iris-eval``). Matching a photo against every solved view's keypoints that see a point gives
+2D-3D correspondences; OpenCV's PnP RANSAC (SQPnP on minimal samples) then Levenberg-Marquardt
+on the inliers gives the pose. Conventions: OpenCV axes, ``cam_from_world`` (R, t) internally,
+pixels centred at +0.5 (DESIGN.md).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from ..errors import InputError
+from .features import (Features, canonical_order, enlarge, enlargement, extract_features,
+                       match_features)
+from .tracks import build_tracks
+from .triangulation import triangulate
+from .two_view import CONFIDENCE, MAX_ERROR, intrinsics, pixel_scale
+
+__all__ = ["PointMap", "pose_from_points", "locate_photos", "point_map_from_cameras",
+           "locate_views", "PNP_ERROR", "PNP_MIN_INLIERS", "PNP_MIN_INLIER_RATIO",
+           "PNP_ITERATIONS", "MIN_TRIANGULATION_ANGLE"]
+
+#: Reprojection threshold of a registration (pixels at ``two_view.REFERENCE_SIZE``).
+PNP_ERROR = 4.0
+#: Fewest 2D-3D inliers a posed view needs (COLMAP's relaxed ``abs_pose_min_num_inliers``).
+PNP_MIN_INLIERS = 15
+#: ... and the fraction of its 2D-3D correspondences they must be (COLMAP's default).
+PNP_MIN_INLIER_RATIO = 0.25
+#: RANSAC iterations of the PnP.
+PNP_ITERATIONS = 1000
+#: Points of known cameras seen under a narrower angle (degrees) carry no depth.
+MIN_TRIANGULATION_ANGLE = 1.5
+
+
+@dataclass(frozen=True)
+class PointMap:
+    """The solved scene's 3D points and the keypoints that see them, what a new photo is matched
+    against: ``points`` float64 [P, 3] (the world frame and unit of the cameras), and per
+    observation ``view`` int64 [N], ``point`` int64 [N] (row of ``points``) and ``descriptors``
+    uint8 [N, 128] (RootSIFT x 512, ``features.Features``)."""
+    points: np.ndarray
+    view: np.ndarray
+    point: np.ndarray
+    descriptors: np.ndarray
+
+    def transformed(self, world_from_old: np.ndarray, scale: float = 1.0) -> "PointMap":
+        """The same map with points x -> world_from_old (scale x) (a rigid map and a scale)."""
+        X = scale * self.points @ world_from_old[:3, :3].T + world_from_old[:3, 3]
+        return PointMap(X, self.view, self.point, self.descriptors)
+
+
+def pose_from_points(points: np.ndarray, uv: np.ndarray, focal: float,
+                     image_size: tuple[int, int], *, max_error: float,
+                     min_inliers: int = PNP_MIN_INLIERS,
+                     min_inlier_ratio: float = PNP_MIN_INLIER_RATIO):
+    """cam_from_world ``(R [3, 3], t [3], inliers bool [N])`` of a photo whose pixels ``uv [N, 2]``
+    see ``points [N, 3]``, or None when fewer than ``min_inliers`` (or ``min_inlier_ratio`` of
+    them) reproject within ``max_error`` pixels. Deterministic (OpenCV's RNG seeded with 0)."""
+    N = len(points)
+    if N < max(min_inliers, 6):
+        return None
+    K = intrinsics(focal, image_size)
+    obj, img = np.ascontiguousarray(points, np.float64), np.ascontiguousarray(uv, np.float64)
+    cv2.setRNGSeed(0)
+    try:
+        ok, rvec, tvec, inl = cv2.solvePnPRansac(obj, img, K, None, iterationsCount=PNP_ITERATIONS,
+                                                 reprojectionError=max_error,
+                                                 confidence=CONFIDENCE, flags=cv2.SOLVEPNP_SQPNP)
+    except cv2.error:
+        return None
+    if not ok or inl is None or len(inl) < min_inliers:
+        return None
+    inl = inl.ravel()
+    rvec, tvec = cv2.solvePnPRefineLM(obj[inl], img[inl], K, None, rvec, tvec)
+    R, t = cv2.Rodrigues(rvec)[0], tvec.ravel()
+    Y = obj @ R.T + t
+    with np.errstate(divide="ignore", invalid="ignore"):
+        err = np.linalg.norm(focal * Y[:, :2] / Y[:, 2:] + K[:2, 2] - img, axis=1)
+    inliers = (Y[:, 2] > 0) & (err <= max_error)
+    if inliers.sum() < max(min_inliers, min_inlier_ratio * N):
+        return None
+    return R, t, inliers
+
+
+def correspondences(point_map: PointMap, features: Features) -> tuple[np.ndarray, np.ndarray]:
+    """2D-3D correspondences of a photo's ``features`` against ``point_map``: ``(keypoint int64
+    [N], point int64 [N])``, from its matches with each solved view's keypoints (ratio test and
+    mutual check per view); a keypoint matched to several points keeps the one most views agree
+    on (ties: the lowest point index)."""
+    kps, pts = [], []
+    for v in np.unique(point_map.view):
+        rows = np.flatnonzero(point_map.view == v)
+        ref = Features(np.zeros((len(rows), 2)), point_map.descriptors[rows], features.image_size)
+        m = match_features(features, ref)
+        kps.append(m[:, 0])
+        pts.append(point_map.point[rows[m[:, 1]]])
+    kp = np.concatenate(kps) if kps else np.zeros(0, np.int64)
+    pt = np.concatenate(pts) if pts else np.zeros(0, np.int64)
+    if len(kp) == 0:
+        return kp, pt
+    pairs, votes = np.unique(np.stack([kp, pt], 1), axis=0, return_counts=True)
+    order = np.lexsort((pairs[:, 1], -votes, pairs[:, 0]))     # per keypoint: most votes first
+    pairs = pairs[order]
+    first = np.r_[True, pairs[1:, 0] != pairs[:-1, 0]]
+    return pairs[first, 0], pairs[first, 1]
+
+
+def locate_photos(point_map: PointMap, focal: float, image_size: tuple[int, int], photos
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """Poses of ``photos`` (uint8 [H, W, 3] or [H, W] of ``image_size``, taken with the solved
+    camera: ``focal`` pixels, principal point centred) against the fixed ``point_map``.
+
+    Returns ``(world_from_cam float64 [Q, 4, 4]`` (NaN for a photo that cannot be posed),
+    ``located bool [Q])``. Each photo is posed on its own, so the order of the photos does not
+    matter."""
+    Q = len(photos)
+    k = enlargement(image_size)                   # as the solve saw photos of this size
+    size = (image_size[0] * k, image_size[1] * k)
+    max_error = PNP_ERROR * pixel_scale(size)
+    out = np.full((Q, 4, 4), np.nan)
+    ok = np.zeros(Q, bool)
+    for q, photo in enumerate(photos):
+        feats = extract_features(enlarge(np.asarray(photo), k))
+        kp, pt = correspondences(point_map, feats)
+        pose = pose_from_points(point_map.points[pt], feats.uv[kp], focal * k, size,
+                                max_error=max_error)
+        if pose is None:
+            continue
+        R, t, _ = pose
+        out[q] = np.eye(4)
+        out[q, :3, :3], out[q, :3, 3] = R.T, -R.T @ t
+        ok[q] = True
+    return out, ok
+
+
+def _sampson(p, q, F):
+    """Sampson distance (pixels) of matches p -> q [N, 2] to the fundamental matrix F."""
+    ph, qh = np.c_[p, np.ones(len(p))], np.c_[q, np.ones(len(q))]
+    Fp, Ftq = ph @ F.T, qh @ F
+    num = np.sum(qh * Fp, axis=1) ** 2
+    den = Fp[:, 0] ** 2 + Fp[:, 1] ** 2 + Ftq[:, 0] ** 2 + Ftq[:, 1] ** 2
+    return np.sqrt(num / np.maximum(den, 1e-300))
+
+
+def point_map_from_cameras(photos, world_from_cam: np.ndarray, focal: float) -> PointMap:
+    """The 3D points of ``photos`` (V uint8 photos of one size) whose cameras are known
+    (``world_from_cam [V, 4, 4]``, ``focal`` pixels, principal point centred): their matches
+    kept where the known epipolar geometry explains them, tracked across views and
+    triangulated. The photos are matched in ``canonical_order``, so their order does not
+    matter."""
+    k = enlargement(np.asarray(photos[0]).shape[:2])        # as the solve sees such photos
+    photos = [enlarge(np.asarray(p), k) for p in photos]
+    focal = focal * k
+    V = len(photos)
+    size = photos[0].shape[:2]
+    T = np.asarray(world_from_cam, dtype=np.float64)
+    if T.shape != (V, 4, 4) or not np.isfinite(T).all():
+        raise InputError(f"world_from_cam: expected finite [{V}, 4, 4], got {T.shape}")
+    perm = canonical_order(photos)
+    feats = [extract_features(photos[k]) for k in perm]
+    cam_from_world = np.linalg.inv(T[perm])
+    R, t = cam_from_world[:, :3, :3], cam_from_world[:, :3, 3]
+    K = intrinsics(focal, size)
+    Kinv = np.linalg.inv(K)
+    max_error = MAX_ERROR * pixel_scale(size)
+    matches = {}
+    for a in range(V):
+        for b in range(a + 1, V):
+            m = match_features(feats[a], feats[b])
+            rel = cam_from_world[b] @ T[perm[a]]                       # cam_b from cam_a
+            tx = np.array([[0, -rel[2, 3], rel[1, 3]], [rel[2, 3], 0, -rel[0, 3]],
+                           [-rel[1, 3], rel[0, 3], 0]])
+            F = Kinv.T @ tx @ rel[:3, :3] @ Kinv
+            keep = _sampson(feats[a].uv[m[:, 0]], feats[b].uv[m[:, 1]], F) <= max_error
+            matches[a, b] = m[keep]
+    tracks = build_tracks(feats, matches)
+    X, ok = triangulate(R, t, focal, K[:2, 2], tracks.uv, tracks.observed,
+                        max_error=PNP_ERROR * pixel_scale(size),
+                        min_angle=MIN_TRIANGULATION_ANGLE)
+    rows = np.flatnonzero(ok)
+    t_idx, v_idx = np.nonzero(tracks.observed[rows])
+    desc = (np.stack([feats[v].descriptors[tracks.keypoint[rows[i], v]]
+                      for i, v in zip(t_idx, v_idx)]) if len(t_idx)
+            else np.zeros((0, 128), np.uint8))
+    return PointMap(X[rows], perm[v_idx], t_idx.astype(np.int64), desc)
+
+
+def locate_views(reference_photos, reference_world_from_cam, focal: float, query_photos
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Poses of ``query_photos`` against reference photos whose cameras are known
+    (``reference_world_from_cam [V, 4, 4]``, ``focal`` fx/W, square pixels, principal point
+    centred; all photos of one size), those cameras held fixed: ``point_map_from_cameras`` of
+    the references, then ``locate_photos``. Returns ``(world_from_cam [Q, 4, 4]`` (NaN where a
+    query cannot be posed), ``located bool [Q])``, in the references' frame and unit."""
+    refs = [np.asarray(p) for p in reference_photos]
+    queries = [np.asarray(p) for p in query_photos]
+    size = refs[0].shape[:2]
+    if any(p.shape[:2] != size for p in refs + queries):
+        raise InputError(f"query_photos: expected photos of the references' size {size}")
+    f = float(focal) * size[1]
+    pm = point_map_from_cameras(refs, reference_world_from_cam, f)
+    return locate_photos(pm, f, size, queries)

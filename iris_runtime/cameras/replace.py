@@ -1,0 +1,57 @@
+"""A model's predicted cameras replaced by the camera solve of the same photos: what
+``IrisRuntime.encode(images, cameras="epipolar")`` and ``iris-eval``'s torch backend do.
+
+The photos are solved near their own resolution (``images.camera_copies``), and the solved focal
+is carried through the centre crop and resize that brought them to the model's resolution. View 0
+defines the frame: when the solve cannot pose it, the model's cameras are kept whole.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..images import camera_copies
+from .solve import CameraSolve, solve_cameras
+
+__all__ = ["ModelCameras", "replace_model_cameras"]
+
+
+@dataclass(frozen=True)
+class ModelCameras:
+    """world_from_cam [V, 4, 4] (view 0 = I), focal [2] (fx/W, fy/H) and K [3, 3] at the model's
+    resolution; source "epipolar" (every view posed by the solve), "mixed" (the unposed views
+    keep the model's camera) or "model"; status per view (``STATUSES``); camera_size (H, W) the
+    solve ran at (None with source "model"); solve the ``CameraSolve`` (None with "model")."""
+    world_from_cam: np.ndarray
+    focal: np.ndarray
+    K: np.ndarray
+    source: str
+    status: tuple[str, ...]
+    camera_size: tuple[int, int] | None
+    solve: CameraSolve | None
+
+
+def replace_model_cameras(photos, world_from_cam, focal, image_size: tuple[int, int],
+                          depth_range: tuple[float, float]) -> ModelCameras:
+    """The model's cameras (``world_from_cam [V, 4, 4]``, ``focal`` [2] fx/W, fy/H at the model's
+    ``image_size`` (H, W)) replaced by ``solve_cameras`` of ``photos`` (V uint8 RGB arrays, any
+    size: the ones the model's inputs were cut from), in the renderer's ``depth_range``."""
+    H, W = image_size
+    model = np.array(world_from_cam, dtype=np.float64)
+    model_focal = np.asarray(focal, dtype=np.float64).reshape(2)
+    model_K = np.array([[model_focal[0] * W, 0.0, W / 2.0], [0.0, model_focal[1] * H, H / 2.0],
+                        [0.0, 0.0, 1.0]])
+    photos = [np.asarray(p) for p in photos]
+    copies, model_from_camera = camera_copies(photos, (H, W))
+    solve = solve_cameras(copies, depth_range)
+    if solve.status[0] == "unposed":
+        return ModelCameras(model, model_focal, model_K, "model", ("unposed",) * len(photos),
+                            None, None)
+    posed = solve.posed
+    poses = np.where(posed[:, None, None], solve.world_from_cam, model)
+    poses[0] = np.eye(4)
+    K = model_from_camera @ solve.K
+    return ModelCameras(poses, np.array([K[0, 0] / W, K[1, 1] / H]), K,
+                        "epipolar" if posed.all() else "mixed", solve.status, solve.image_size,
+                        solve)

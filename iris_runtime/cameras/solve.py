@@ -1,0 +1,200 @@
+"""The camera solve's one entry point: ``solve_cameras(photos, depth_range) -> CameraSolve``.
+
+The photos are taken in ``canonical_order`` (fixed by their content), so the same photos in any
+order give the same cameras, re-based on the caller's view 0. The solve has no unit of its own;
+the cameras get the renderer's: the median depth of the scene's points is put ``DEPTH_TARGET``
+of the way into the renderer's depth range [near, far], the range its training data was built in
+(docs/CAMERAS.md, "Scale").
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import InputError
+from .features import canonical_order, enlarge, enlargement, extract_features, match_features
+from .locate import PointMap, pose_from_points
+from .mapper import MapperOptions, Reconstruction, incremental_mapping
+from .tracks import Tracks, build_tracks
+from .two_view import MAX_ERROR, estimate_two_view, intrinsics, pixel_scale
+
+__all__ = ["CameraSolve", "solve_cameras", "check_photos", "STATUSES", "DEPTH_TARGET",
+           "FOCAL_PRIORS", "LOCATE_MIN_INLIERS"]
+
+#: Per-view outcome: registered in the joint solve, posed against its points afterwards with the
+#: points held fixed, or not posed at all.
+STATUSES = ("solved", "located", "unposed")
+#: Where the scene's median point depth goes in the renderer's [near, far] (0: near, 1: far).
+DEPTH_TARGET = 0.5
+#: Starting focals, in units of the photo's longer side (the first is COLMAP's default prior);
+#: the bundle adjustment refines each, the mapper keeps the reconstruction that explains the
+#: observations best.
+FOCAL_PRIORS = (1.2, 0.8)
+#: A view the mapper could not register is still posed against the finished points when this
+#: many correspondences agree (status "located").
+LOCATE_MIN_INLIERS = 10
+
+
+@dataclass(frozen=True)
+class CameraSolve:
+    """The cameras of V photos of one static scene, from the photos alone.
+
+    world_from_cam: float64 [V, 4, 4]  OpenCV axes, in the frame of view ``root`` (the caller's
+                                       view 0 when it is posed) and the renderer's unit; NaN
+                                       rows for unposed views
+    focal:          pixels of ``image_size`` (square pixels, principal point at the centre)
+    image_size:     (H, W) of the photos the cameras were solved at
+    status:         per view, one of ``STATUSES``
+    root:           the view whose camera is the identity (-1: no view posed)
+    scale:          the factor that took the solve's centres to the renderer's unit
+    point_map:      the scene's 3D points (same frame and unit) and the descriptors that see
+                    them, what ``locate.locate_photos`` poses new photos against
+    """
+    world_from_cam: np.ndarray
+    focal: float
+    image_size: tuple[int, int]
+    status: tuple[str, ...]
+    root: int
+    scale: float
+    point_map: PointMap
+
+    @property
+    def K(self) -> np.ndarray:
+        """``K [3, 3]`` in pixels of ``image_size``."""
+        return intrinsics(self.focal, self.image_size)
+
+    @property
+    def posed(self) -> np.ndarray:
+        """bool [V]: the views with a camera ("solved" or "located")."""
+        return np.array([s != "unposed" for s in self.status])
+
+
+def check_photos(photos, name: str = "photos") -> list[np.ndarray]:
+    """``photos`` as a list of V >= 1 uint8 arrays of one size, [H, W, 3] RGB or [H, W] grey, or
+    ``InputError`` naming ``name``."""
+    try:
+        items = [np.asarray(p) for p in photos]
+    except TypeError:
+        raise InputError(f"{name}: expected a sequence of uint8 photos, got "
+                         f"{type(photos).__name__}") from None
+    if not items:
+        raise InputError(f"{name}: expected at least one photo, got none")
+    for k, p in enumerate(items):
+        if p.dtype != np.uint8 or not (p.ndim == 2 or (p.ndim == 3 and p.shape[2] == 3)) \
+                or min(p.shape[:2]) < 16:
+            raise InputError(f"{name}[{k}]: expected uint8 [H, W, 3] or [H, W] with H, W >= 16, "
+                             f"got {p.dtype} {p.shape}")
+        if p.shape[:2] != items[0].shape[:2]:
+            raise InputError(f"{name}[{k}]: size {p.shape[:2]} differs from {name}[0]'s "
+                             f"{items[0].shape[:2]} (one camera: bring the photos to one size)")
+    return items
+
+
+def _point_map(rec: Reconstruction, tracks: Tracks, features, perm) -> PointMap:
+    """The reconstruction's valid points and their active observations (views in the caller's
+    numbering)."""
+    active = rec.active(tracks)
+    rows = np.flatnonzero(rec.point_ok)
+    new_index = -np.ones(len(tracks), np.int64)
+    new_index[rows] = np.arange(len(rows))
+    t_idx, v_idx = np.nonzero(active)
+    desc = np.stack([features[v].descriptors[tracks.keypoint[t, v]]
+                     for t, v in zip(t_idx, v_idx)]) if len(t_idx) else np.zeros((0, 128), np.uint8)
+    return PointMap(rec.points[rows], perm[v_idx], new_index[t_idx], desc)
+
+
+def _median_depth(rec: Reconstruction, tracks: Tracks) -> float:
+    active = rec.active(tracks)
+    z = np.einsum("vij,pj->pvi", rec.R, rec.points)[..., 2] + rec.t[None, :, 2]
+    z = z[active]
+    return float(np.median(z)) if len(z) else float("nan")
+
+
+def solve_cameras(photos, depth_range: tuple[float, float], *, focal: float | None = None,
+                  options: MapperOptions | None = None) -> CameraSolve:
+    """The cameras of ``photos`` (V uint8 photos of one size, RGB [H, W, 3] or grey [H, W]).
+
+    depth_range: the renderer's (near, far): the cameras' unit puts the scene's median point
+                 depth ``DEPTH_TARGET`` of the way into it
+    focal:       a known focal in pixels of the photos to start from (default: each of ``FOCAL_PRIORS`` x
+                 the longer side); the bundle adjustment refines it either way
+    options:     the mapper's thresholds (pixels at ``two_view.REFERENCE_SIZE``) (default ``MapperOptions()``)
+
+    Photos under ``features.MIN_SIZE`` pixels are solved enlarged (``features.enlargement``);
+    the cameras are reported for the photos as given. Steps: SIFT features of each photo and their matches across every pair (``features``); per
+    pair F, H and the relative pose (``two_view``); tracks (``tracks``); the incremental mapper
+    with bundle adjustment (``mapper``, ``triangulation``, ``bundle``); views it could not
+    register posed against its points (``locate``). Deterministic and order-free.
+    """
+    photos = check_photos(photos)
+    near, far = (float(x) for x in np.asarray(depth_range, np.float64).reshape(-1)[:2]) \
+        if np.size(depth_range) == 2 else (np.nan, np.nan)
+    if not (np.isfinite(near) and np.isfinite(far) and 0 <= near < far):
+        raise InputError(f"depth_range: expected (near, far) with 0 <= near < far, got "
+                         f"{depth_range!r}")
+    V = len(photos)
+    size = photos[0].shape[:2]
+    k = enlargement(size)                         # small photos: solved enlarged k times
+    H, W = size[0] * k, size[1] * k
+    px = pixel_scale((H, W))
+    opts = options or MapperOptions()
+    opts = MapperOptions(**{**opts.__dict__, "two_view_error": opts.two_view_error * px,
+                            "pnp_error": opts.pnp_error * px,
+                            "max_error": opts.max_error * px, "loss_scale": opts.loss_scale * px})
+    if focal is not None and not (np.isfinite(focal) and focal > 0):
+        raise InputError(f"focal: expected a positive number of pixels, got {focal!r}")
+    focals = ((k * float(focal),) if focal is not None
+              else tuple(prior * max(H, W) for prior in FOCAL_PRIORS))
+    f0 = focals[0]
+
+    perm = canonical_order(photos)
+    features = [extract_features(enlarge(photos[v], k)) for v in perm]
+    geometries, inliers = {}, {}
+    for a in range(V):
+        for b in range(a + 1, V):
+            m = match_features(features[a], features[b])
+            g = estimate_two_view(features[a].uv, features[b].uv, m, f0, (H, W),
+                                  MAX_ERROR * px)
+            geometries[a, b] = g
+            if g.config != "degenerate":
+                inliers[a, b] = g.inliers
+    tracks = build_tracks(features, inliers)
+    rec = incremental_mapping(features, tracks, geometries, focals, (H, W), opts) \
+        if V > 1 else None
+
+    status = np.array(["unposed"] * V, dtype=object)
+    if rec is None:
+        empty = PointMap(np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros(0, np.int64),
+                         np.zeros((0, 128), np.uint8))
+        return CameraSolve(np.full((V, 4, 4), np.nan), f0 / k, size, tuple(status), -1, 1.0, empty)
+    status[perm[rec.registered]] = "solved"
+    cam_from_world = np.full((V, 4, 4), np.nan)          # canonical numbering
+    for v in np.flatnonzero(rec.registered):
+        cam_from_world[v] = np.eye(4)
+        cam_from_world[v, :3, :3], cam_from_world[v, :3, 3] = rec.R[v], rec.t[v]
+    for v in np.flatnonzero(~rec.registered):
+        sees = rec.point_ok & tracks.observed[:, v]
+        pose = pose_from_points(rec.points[sees], tracks.uv[sees, v], rec.focal, (H, W),
+                                max_error=opts.pnp_error, min_inliers=LOCATE_MIN_INLIERS)
+        if pose is not None:
+            cam_from_world[v] = np.eye(4)
+            cam_from_world[v, :3, :3], cam_from_world[v, :3, 3] = pose[0], pose[1]
+            status[perm[v]] = "located"
+    world_from_cam = np.full((V, 4, 4), np.nan)
+    posed = np.isfinite(cam_from_world).all(axis=(1, 2))
+    world_from_cam[perm[posed]] = np.linalg.inv(cam_from_world[posed])
+    root = int(np.flatnonzero(status != "unposed")[0])
+    old_from_root = world_from_cam[root].copy()
+    depth = _median_depth(rec, tracks)
+    scale = (near + DEPTH_TARGET * (far - near)) / depth if np.isfinite(depth) and depth > 0 \
+        else 1.0
+    root_from_old = np.linalg.inv(old_from_root)
+    world_from_cam = root_from_old @ world_from_cam
+    world_from_cam[:, :3, 3] *= scale
+    world_from_cam[root] = np.eye(4)
+    world_from_cam[status == "unposed"] = np.nan
+    point_map = _point_map(rec, tracks, features, perm)
+    point_map = point_map.transformed(root_from_old).transformed(np.eye(4), scale)
+    return CameraSolve(world_from_cam, rec.focal / k, size, tuple(status.tolist()), root, scale,
+                       point_map)

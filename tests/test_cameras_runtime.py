@@ -1,0 +1,352 @@
+"""The camera solve inside the runtime: the intrinsics carried from the photos to the model's
+resolution, ``IrisRuntime.encode(images, cameras="epipolar")`` and ``locate`` on photos at their
+own resolution, the Scene's record of them, iris-render's ``--cameras`` and iris-eval's torch
+backend."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from iris_runtime.cameras import replace_model_cameras, solve_cameras
+from iris_runtime.errors import ImageError, InputError
+from iris_runtime.images import (camera_copies, fit_to_model, fit_to_working_size,
+                                 plan_crop_resize)
+
+from . import np_scenes
+
+REPO = Path(__file__).resolve().parents[1]
+SIZE = (192, 256)
+FOCAL = 230.0
+DEPTH_RANGE = (0.1, 1.0)
+
+
+def _angle_deg(Ra, Rb):
+    return float(np.degrees(np.arccos(np.clip((np.trace(Ra.T @ Rb) - 1) / 2, -1, 1))))
+
+
+@pytest.fixture(scope="module")
+def corner():
+    """Six ray-cast photos of a textured corner (192x256) and their true cameras."""
+    truth = np_scenes.cameras(6, 70.0)
+    return np_scenes.render(truth, FOCAL, SIZE), truth
+
+
+# ----------------------------------------------------------------------------------------------
+# intrinsics from the photos to the model's resolution (torch-free)
+# ----------------------------------------------------------------------------------------------
+
+def _project(K, Y):
+    return (Y @ K.T)[:, :2] / Y[:, 2:]
+
+
+@pytest.mark.parametrize("photo_size", [(250, 333), (768, 1024), (64, 64), (301, 200)])
+def test_camera_copies_carry_the_intrinsics_to_the_model(photo_size):
+    """A point seen at pixel p in the photo lands at crop-resize(p) in the model's image: the
+    model's K (model_from_camera @ K of the solve's copy) must project it there. Checked against
+    the direct computation from the photo's own K and the documented crop/resize formula."""
+    rng = np.random.default_rng(0)
+    h, w = photo_size
+    K_photo = np.array([[0.9 * w, 0, w / 2], [0, 0.9 * w, h / 2], [0, 0, 1.0]])
+    photos = [np.zeros((h, w, 3), np.uint8)] * 2
+    copies, model_from_camera = camera_copies(photos, (64, 64))
+    hc, wc = copies[0].shape[:2]
+    assert max(hc, wc) == min(512, max(h, w)) and abs(hc / wc - h / w) < 2 / min(hc, wc)
+    # The solve's K lives in the copy: the photo's K scaled by the copy's size.
+    K_copy = np.diag([wc / w, hc / h, 1.0]) @ K_photo
+    K_model = model_from_camera @ K_copy
+    # Direct: the model image is the centre crop of the photo resized to 64x64.
+    crop = min(h, w)
+    x0, y0 = (w - crop) // 2, (h - crop) // 2
+    s = 64 / crop
+    K_direct = np.array([[s * K_photo[0, 0], 0, s * (K_photo[0, 2] - x0)],
+                         [0, s * K_photo[1, 1], s * (K_photo[1, 2] - y0)], [0, 0, 1.0]])
+    np.testing.assert_allclose(K_model, K_direct, rtol=1e-12, atol=1e-9)
+    Y = np.c_[rng.uniform(-1, 1, (20, 2)), rng.uniform(2, 4, 20)]
+    plan = plan_crop_resize(h, w, 64, 64)
+    np.testing.assert_allclose(_project(K_model, Y), plan.to_output(_project(K_photo, Y)),
+                               atol=1e-9)
+
+
+def test_camera_copies_of_photos_of_different_sizes_share_one_camera():
+    photos = [np.zeros((480, 640, 3), np.uint8), np.zeros((600, 600, 3), np.uint8)]
+    copies, model_from_camera = camera_copies(photos, (64, 64))
+    assert {c.shape for c in copies} == {(480, 480, 3)}        # the model's aspect, one size
+    np.testing.assert_allclose(model_from_camera, np.diag([64 / 480, 64 / 480, 1.0]), atol=1e-12)
+
+
+def test_fit_to_working_size_bounds_the_longer_side_and_refuses_bad_input():
+    big = np.zeros((600, 1000, 3), np.uint8)
+    out, plan = fit_to_working_size(big)
+    assert out.shape == (307, 512, 3) and (plan.x0, plan.y0) == (0, 0)
+    small = np.ones((100, 80, 3), np.uint8)
+    out, plan = fit_to_working_size(small)
+    np.testing.assert_array_equal(out, small)
+    assert out is not small
+    for bad in (np.zeros((10, 10), np.uint8), np.zeros((10, 10, 3), np.float32), "photo.png"):
+        with pytest.raises(ImageError, match="image"):
+            fit_to_working_size(bad)
+    with pytest.raises(ImageError, match="max_side"):
+        fit_to_working_size(small, 0)
+
+
+def test_replace_model_cameras_keeps_the_model_for_an_unposable_view_0(corner):
+    photos, truth = corner
+    model = np.tile(np.eye(4), (4, 1, 1))
+    model[:, :3, 3] = np.arange(12).reshape(4, 3) * 0.01
+    flat = np.full_like(photos[0], 90)
+    out = replace_model_cameras([flat, *photos[:3]], model, [1.1, 1.2], (64, 64), DEPTH_RANGE)
+    assert out.source == "model" and out.status == ("unposed",) * 4 and out.solve is None
+    np.testing.assert_array_equal(out.world_from_cam, model)
+    np.testing.assert_array_equal(out.focal, [1.1, 1.2])
+    # A posable view 0 and an unposable other: that view keeps the model's camera.
+    out = replace_model_cameras([*photos[:3], flat], model, [1.1, 1.2], (64, 64), DEPTH_RANGE)
+    assert out.source == "mixed" and out.status == ("solved",) * 3 + ("unposed",)
+    np.testing.assert_array_equal(out.world_from_cam[3], model[3])
+    np.testing.assert_array_equal(out.world_from_cam[0], np.eye(4))
+    assert out.camera_size == SIZE
+
+
+# ----------------------------------------------------------------------------------------------
+# IrisRuntime (an exported random model: the cameras do not depend on its weights)
+# ----------------------------------------------------------------------------------------------
+
+def test_runtime_solves_the_cameras_on_the_photos_at_their_own_resolution(corner, model_dir):
+    from iris_runtime import IrisRuntime
+    photos, truth = corner
+    rt = IrisRuntime(model_dir, threads=1)
+    H, W = rt.image_size
+    images = list(photos)
+    model = rt.encode(images, cameras="model")
+    epi = rt.encode(images, cameras="epipolar")
+    assert model.camera_source == "model" and model.camera_size is None
+    assert model.camera_status is None and model.camera_solve is None
+    assert epi.camera_source == "epipolar" and epi.camera_size == SIZE
+    assert epi.camera_status == ("solved",) * 6 and "camera_size=(192, 256)" in repr(epi)
+    np.testing.assert_array_equal(epi.field_maps, model.field_maps)     # the encoder's, as always
+    np.testing.assert_array_equal(epi.encoder_focal, model.focal)
+    # The same solve as solve_cameras of the photos, its K carried to the model's resolution.
+    s = solve_cameras(images, (rt.near, rt.far))
+    np.testing.assert_array_equal(epi.world_from_cam, s.world_from_cam)
+    crop = plan_crop_resize(*SIZE, H, W)
+    np.testing.assert_allclose(epi.K, crop.matrix @ s.K, rtol=1e-12)
+    np.testing.assert_allclose(epi.focal, [epi.K[0, 0] / W, epi.K[1, 1] / H])
+    rel = np.linalg.inv(truth[0]) @ truth
+    for k in range(6):
+        assert _angle_deg(epi.world_from_cam[k, :3, :3], rel[k, :3, :3]) < 2.0
+    # locate: a view left out comes back at the camera the full solve gave it, at any size.
+    left_out = epi.subset([0, 1, 2, 4, 5])
+    assert left_out.camera_status == ("solved",) * 5 and left_out.camera_solve is epi.camera_solve
+    bigger = np.repeat(np.repeat(photos[3], 2, axis=0), 2, axis=1)       # the same photo, 2x
+    for photo in (photos[3], bigger):
+        T, status = rt.locate(left_out, photo, with_status=True)
+        assert status == "located"
+        assert _angle_deg(T[:3, :3], epi.world_from_cam[3, :3, :3]) < 1.0
+        spread = np.linalg.norm(epi.world_from_cam[:, :3, 3], axis=1).mean()
+        assert np.linalg.norm(T[:3, 3] - epi.world_from_cam[3, :3, 3]) < 0.05 * spread
+    poses, status = rt.locate(left_out, [photos[3], np.full_like(photos[3], 90)],
+                              with_status=True)
+    assert status == ("located", "unposed")
+    # The unposed photo gets the model's prediction (queries alone or together: float rounding).
+    np.testing.assert_allclose(poses[1], rt.locate(model, [np.full_like(photos[3], 90)])[0],
+                               atol=1e-5)
+    assert rt.render(epi, 2).shape == (H, W, 3)
+
+
+def test_runtime_model_cameras_are_bitwise_unchanged(corner, model_dir):
+    from iris_runtime import IrisRuntime
+    photos, _ = corner
+    rt = IrisRuntime(model_dir, threads=1)
+    images = list(photos[:4])
+    default, model = rt.encode(images), rt.encode(images, cameras="model")
+    batch = rt._load_images(images)
+    maps, poses, focal = rt._run_encoder(batch, np.ones(4, bool))      # the graph's own outputs
+    for scene in (default, model):
+        np.testing.assert_array_equal(scene.field_maps, maps)
+        np.testing.assert_array_equal(scene.world_from_cam, poses.astype(np.float64))
+        np.testing.assert_array_equal(scene.focal, focal.astype(np.float64))
+        assert scene.camera_source == "model" and scene.encoder_focal is None
+    np.testing.assert_array_equal(rt.render(default, 1), rt.render(model, 1))
+
+
+def test_bad_camera_values_raise_typed_errors(model_dir):
+    from iris_runtime import IrisRuntime
+    from iris_runtime.runtime import Scene
+    rt = IrisRuntime(model_dir, threads=1)
+    images = [np.zeros((64, 64, 3), np.uint8)] * 2
+    for bad in ("Epipolar", "colmap", 1, ["model"]):
+        with pytest.raises(InputError, match="cameras"):
+            rt.encode(images, cameras=bad)
+    scene = rt.encode(images, cameras="model")
+    kwargs = dict(field_maps=scene.field_maps, world_from_cam=scene.world_from_cam,
+                  focal=scene.focal, K=scene.K, image_size=scene.image_size)
+    for name, value in (("camera_source", "colmap"), ("encoder_focal", [0.0, 1.0]),
+                        ("camera_size", (0, 64)), ("camera_size", "64x64"),
+                        ("camera_status", ("solved",)), ("camera_status", ("done", "solved")),
+                        ("camera_solve", "solve")):
+        with pytest.raises(InputError, match=name):
+            Scene(**kwargs, **{name: value})
+
+
+@pytest.mark.torch
+def test_default_cameras_follow_the_manifest(corner, model_dir, tmp_path):
+    """A model trained on solved cameras says so in its manifest ("cameras"), and encode,
+    one-shot render and iris-eval then solve the cameras by default; without the key: "model"."""
+    import shutil
+
+    from iris_runtime import IrisRuntime
+    from iris_train.evaluate import _backend
+    from iris_train.model import trained_cameras
+    photos, _ = corner
+    d = tmp_path / "epi"
+    shutil.copytree(model_dir, d)
+    doc = json.loads((d / "iris.json").read_text())
+    assert doc["cameras"] == "model"                  # a random model: no training config
+    doc["cameras"] = "epipolar"
+    (d / "iris.json").write_text(json.dumps(doc))
+    rt_model, rt_epi = IrisRuntime(model_dir, threads=1), IrisRuntime(d, threads=1)
+    assert rt_model.default_cameras == "model" and rt_epi.default_cameras == "epipolar"
+    images = list(photos[:5])
+    default, epi = rt_epi.encode(images), rt_epi.encode(images, cameras="epipolar")
+    assert default.camera_source == epi.camera_source == "epipolar"
+    np.testing.assert_array_equal(default.world_from_cam, epi.world_from_cam)
+    assert rt_epi.encode(images, cameras="model").camera_source == "model"
+    np.testing.assert_array_equal(rt_epi.render(images, np.eye(4)), rt_epi.render(default, 0))
+    backend = _backend(rt_epi)
+    assert backend.default_cameras == "epipolar"
+    assert backend.encode(np.stack(images), cameras="model").camera_source == "model"
+    assert backend.encode(np.stack(images)).camera_source == "epipolar"
+    del doc["cameras"]                                 # manifests written before the key
+    (d / "iris.json").write_text(json.dumps(doc))
+    assert IrisRuntime(d, threads=1).default_cameras == "model"
+    # The checkpoint side: what the training config says, "model" when it says nothing.
+    assert trained_cameras({"train_config": {"render_cameras": "epipolar"}}) == "epipolar"
+    assert trained_cameras({"train_config": {}}) == trained_cameras({}) == "model"
+
+
+def test_cli_cameras_flag(corner, model_dir, tmp_path):
+    from PIL import Image
+    photos, _ = corner
+    paths = []
+    for k in range(4):
+        p = tmp_path / f"{k}.png"
+        Image.fromarray(photos[k]).save(p)
+        paths.append(str(p))
+    base = [sys.executable, "-c", "import sys; sys.modules['torch'] = None; "
+            "from iris_runtime.cli import main; sys.exit(main())", str(model_dir), *paths]
+    out = subprocess.run(base + ["-o", str(tmp_path / "o"), "--cameras", "epipolar", "--view", "1",
+                                 "--no-depth"], capture_output=True, text=True, cwd=REPO)
+    assert out.returncode == 0, out.stderr
+    assert "cameras of the inputs: epipolar (every view solved from the photos at 256x192)" \
+        in out.stdout and (tmp_path / "o" / "view_001.png").is_file()
+    cams = json.loads((tmp_path / "o" / "cameras.json").read_text())
+    assert cams["source"] == "epipolar" and cams["solved_at"] == [192, 256]
+    assert cams["status"] == ["solved"] * 4 and len(cams["focal"]) == 2
+    plain = subprocess.run(base + ["-o", str(tmp_path / "m"), "--cameras", "model", "--view", "0",
+                                   "--no-depth"], capture_output=True, text=True, cwd=REPO)
+    assert plain.returncode == 0, plain.stderr
+    cams = json.loads((tmp_path / "m" / "cameras.json").read_text())
+    assert cams["source"] == "model" and cams["solved_at"] is None and cams["status"] is None
+    bad = subprocess.run(base + ["-o", str(tmp_path / "p"), "--cameras", "sfm"],
+                         capture_output=True, text=True, cwd=REPO)
+    assert bad.returncode == 2 and "--cameras" in bad.stderr and len(bad.stderr.splitlines()) == 1
+
+
+# ----------------------------------------------------------------------------------------------
+# iris-eval --cameras epipolar (torch checkpoint backend)
+# ----------------------------------------------------------------------------------------------
+
+@pytest.mark.torch
+def test_evaluate_with_epipolar_cameras_on_a_torch_model():
+    torch = pytest.importorskip("torch")
+    pytest.importorskip("pyrender")
+    import dataclasses
+
+    from iris_train import build_model, preset
+    from iris_train.evaluate import ORDERS, _TorchBackend, evaluate
+    from iris_train.synthetic import render_scene
+    torch.manual_seed(0)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        # iris-eval gives the encoder (and so the solve) the model's resolution: 128 here, so
+        # that the photos carry enough keypoints.
+        cfg = dataclasses.replace(preset("tiny"), image_height=128, image_width=128, samples=4)
+        model = build_model(cfg).eval()
+        scene = render_scene(1_000_003, n_views=8, size=(128, 128))
+        # One implementation: the torch backend's cameras are replace_model_cameras of its own.
+        backend = _TorchBackend(model)
+        plain = backend.encode(scene.images[:5])
+        epi = backend.encode(scene.images[:5], cameras="epipolar")
+        ref = replace_model_cameras(scene.images[:5], backend.poses(plain),
+                                    plain.focal.double().numpy(), (128, 128),
+                                    (cfg.near, cfg.far))
+        np.testing.assert_array_equal(epi.world_from_cam.numpy(),
+                                      ref.world_from_cam.astype(np.float32))
+        np.testing.assert_array_equal(epi.focal.numpy(), ref.focal.astype(np.float32))
+        assert backend.last_source == ref.source == "epipolar"
+        base = evaluate(model, [scene], progress=False)
+        got = evaluate(model, [scene], progress=False, cameras="epipolar")
+        for order in ORDERS:
+            assert "cameras" not in base[order]
+            c = got[order]["cameras"]
+            assert c["references"] == c["targets"] == "epipolar"
+            assert sum(c["sources"].values()) == 1 and 0.0 <= c["targets_epipolar"] <= 1.0
+            for k in ("rpa@15", "rpa@30", "locate_rpa@30"):
+                assert got[order]["model"][k] > base[order]["model"][k]
+        with pytest.raises(ValueError, match="cameras"):
+            evaluate(model, [scene], progress=False, cameras="colmap")
+    finally:
+        torch.set_num_threads(threads)
+
+
+# ----------------------------------------------------------------------------------------------
+# the training teacher (iris_train.pseudo_poses): the same solve, on the largest photos
+# ----------------------------------------------------------------------------------------------
+
+@pytest.mark.torch
+def test_teacher_solves_on_the_largest_photos_and_caches_per_training_size(corner, tmp_path,
+                                                                           monkeypatch):
+    pytest.importorskip("torch")
+    import cv2
+
+    from iris_train import pseudo_poses as PP
+    photos, truth = corner
+
+    class Scenes:
+        """A dataset that trains at 48x64 and keeps 192x256 renders (as SyntheticScenes with a
+        larger render_size does)."""
+        seeds, n_views, size, cache_dir = [7], 6, (48, 64), tmp_path
+
+        def cached(self, seed):
+            return type("S", (), {"images": photos})()
+
+        def __getitem__(self, i):
+            small = np.stack([cv2.resize(p, (64, 48), interpolation=cv2.INTER_AREA)
+                              for p in photos])
+            return type("S", (), {"images": small})()
+
+    scenes = Scenes()
+    solved = PP.load_or_solve(scenes, 0, DEPTH_RANGE)
+    s = solve_cameras(list(photos), DEPTH_RANGE)                  # on the 192x256 photos
+    assert solved.solved.all()
+    np.testing.assert_array_equal(solved.world_from_cam, s.world_from_cam)
+    assert solved.focal == pytest.approx(s.focal / SIZE[1], rel=1e-12)   # fx/W at 48x64
+    teacher = PP.load_or_estimate(scenes, 0)
+    assert teacher.trusted.sum() == 30 and teacher.focal == solved.focal
+    rel = np.linalg.inv(s.world_from_cam[2]) @ s.world_from_cam[1]
+    np.testing.assert_allclose(teacher.cam_from_cam[1, 2][:3, :3], rel[:3, :3], atol=1e-12)
+    assert abs(np.linalg.norm(teacher.cam_from_cam[1, 2][:3, 3]) - 1) < 1e-12
+    assert (teacher.inliers[teacher.trusted] > 0).all()
+    # Cached: read back without solving again; another training size solves again.
+    monkeypatch.setattr(PP, "solve_cameras", lambda *a, **k: pytest.fail("solved again"))
+    again = PP.load_or_solve(scenes, 0, DEPTH_RANGE)
+    np.testing.assert_array_equal(again.world_from_cam, solved.world_from_cam)
+    assert PP.load_or_estimate(scenes, 0).focal == teacher.focal
+    scenes.size = (96, 128)
+    with pytest.raises(pytest.fail.Exception, match="solved again"):
+        PP.load_or_solve(scenes, 0, DEPTH_RANGE)
