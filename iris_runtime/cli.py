@@ -93,6 +93,16 @@ def _non_negative(text: str) -> int:
     return v
 
 
+def providers_arg(text: str) -> list[str]:
+    """``--providers A,B``: ONNX Runtime execution providers in priority order (checked by
+    ``IrisRuntime``, which names the ones this onnxruntime has)."""
+    names = [t.strip() for t in text.split(",")]
+    if not all(names):
+        raise argparse.ArgumentTypeError(f"expected comma-separated provider names, e.g. "
+                                         f"CUDAExecutionProvider,CPUExecutionProvider, got {text!r}")
+    return names
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = _Parser(
         prog="iris-render",
@@ -136,6 +146,10 @@ def build_parser() -> argparse.ArgumentParser:
                      help="ONNX Runtime intra-op threads (default: one per physical core)")
     out.add_argument("--chunk-rays", type=_positive, default=None,
                      help="rays per renderer call (default: chosen from the number of views)")
+    out.add_argument("--providers", type=providers_arg, default=None, metavar="A,B",
+                     help="ONNX Runtime execution providers in priority order, e.g. "
+                          "CUDAExecutionProvider,CPUExecutionProvider with onnxruntime-gpu "
+                          "(default: the CPU)")
     out.add_argument("--precision", choices=["float32", "int8"], default="float32",
                      help="renderer graph: float32, or int8 if exported with --quantize int8")
     out.add_argument("--quality", choices=list(QUALITY_PRESETS), default="exact",
@@ -214,7 +228,9 @@ def _write_depth(path_png: Path, path_npy: Path, depth: np.ndarray, far: float) 
     np.save(path_npy, depth.astype(np.float32))
 
 
-def run(args: argparse.Namespace) -> int:
+def run(args: argparse.Namespace, runtime=None) -> int:
+    """iris-render with parsed ``args``; ``runtime``: an ``IrisRuntime`` of ``args.model_dir`` to
+    use instead of loading one (``iris-batch`` renders many scenes with one model load)."""
     from . import camera_io
     from .camera_plot import draw_cameras
     from .errors import InputError
@@ -227,7 +243,8 @@ def run(args: argparse.Namespace) -> int:
 
     # 1. Check everything before writing anything.
     t0 = time.perf_counter()
-    rt = IrisRuntime(args.model_dir, threads=args.threads, precision=args.precision)
+    rt = runtime or IrisRuntime(args.model_dir, threads=args.threads, precision=args.precision,
+                                providers=args.providers)
     H, W = rt.image_size
     # Request limits (runtime.MAX_OUTPUT_PIXELS, max_views, MAX_CHUNK_SAMPLES) before any work.
     size = rt.check_output_size(*args.size) if args.size else (H, W)
@@ -321,7 +338,7 @@ def run(args: argparse.Namespace) -> int:
                              rt.far)
             if name.startswith("orbit_"):
                 if writer is None:
-                    writer = _open_video(video_path, args.fps, size)
+                    writer = open_video(video_path, args.fps, size)
                 if writer is not None:
                     writer.write(res.image[..., ::-1].copy())         # OpenCV wants BGR
             totals["write"] += time.perf_counter() - t0
@@ -351,7 +368,9 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _open_video(path: Path, fps: int, size: tuple[int, int]):
+def open_video(path: Path, fps: int, size: tuple[int, int]):
+    """An OpenCV ``mp4v`` writer of ``size`` (H, W) frames at ``path`` (frames in BGR), or None
+    when this OpenCV has no such encoder."""
     import cv2
     writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), float(fps),
                              (size[1], size[0]))
