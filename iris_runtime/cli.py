@@ -220,9 +220,14 @@ def _write_png(path: Path, rgb: np.ndarray) -> None:
     Image.fromarray(rgb).save(path)
 
 
+def depth_uint16(depth: np.ndarray, far: float) -> np.ndarray:
+    """Soft depth [H, W] as the 16-bit values of NAME_depth.png: round(depth / far * 65535)."""
+    return np.rint(np.clip(depth / far, 0.0, 1.0) * 65535.0).astype(np.uint16)
+
+
 def _write_depth(path_png: Path, path_npy: Path, depth: np.ndarray, far: float) -> None:
     import cv2
-    scaled = np.rint(np.clip(depth / far, 0.0, 1.0) * 65535.0).astype(np.uint16)
+    scaled = depth_uint16(depth, far)
     if not cv2.imwrite(str(path_png), scaled):
         raise OSError(f"{path_png}: cv2.imwrite failed")
     np.save(path_npy, depth.astype(np.float32))

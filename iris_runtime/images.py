@@ -117,7 +117,10 @@ def _decode(data: bytes, where: str) -> np.ndarray:
         rawmodes = [t[3][0] if isinstance(t[3], tuple) else t[3] for t in (img.tile or [])
                     if len(t) > 3 and t[3]]
         img.load()               # decodes fully: raises on truncated / corrupt data
-    except (UnidentifiedImageError, OSError, SyntaxError, ValueError, Image.DecompressionBombError) as e:
+    except UnidentifiedImageError:
+        raise ImageError(f"{where}: not a readable image file (expected PNG, JPEG or another "
+                         f"format Pillow reads): unknown image format") from None
+    except (OSError, SyntaxError, ValueError, Image.DecompressionBombError) as e:
         raise ImageError(
             f"{where}: not a readable image file (expected PNG, JPEG or another format Pillow "
             f"reads): {e}") from None
