@@ -443,3 +443,28 @@ def test_cuda_provider_renders_like_the_cpu(model_dir, rt):
     diff = gpu.render(ref, 1, height=32, width=32).astype(int) - rt.render(ref, 1, height=32,
                                                                           width=32)
     assert np.abs(diff).max() <= 2
+
+
+# -- the scene store (in process) ----------------------------------------------------------------
+
+def test_scene_store_is_lru_and_bounded(rt):
+    from iris_runtime.serve.errors import NotFound, PayloadTooLarge
+    from iris_runtime.serve.store import SceneStore, scene_nbytes
+    scene = rt.encode(PHOTOS[:2])
+    size = scene_nbytes(scene)
+    evicted = []
+    store = SceneStore(max_bytes=3 * size, max_scenes=2, on_evict=lambda: evicted.append(1))
+    a, b = store.put(scene, "model"), store.put(scene, "model")
+    store.get(a.scene_id)                                   # a is now the most recently used
+    c = store.put(scene, "model")                           # over max_scenes: b goes
+    assert len(evicted) == 1 and len(store) == 2 and store.nbytes == 2 * size
+    with pytest.raises(NotFound, match="evicted"):
+        store.get(b.scene_id)
+    assert store.get(a.scene_id).scene is scene and store.get(c.scene_id).scene is scene
+    small = SceneStore(max_bytes=size - 1, max_scenes=4)
+    with pytest.raises(PayloadTooLarge, match="--store-mb"):
+        small.put(scene, "model")
+    store.delete(a.scene_id)
+    with pytest.raises(NotFound):
+        store.delete(a.scene_id)
+    assert store.nbytes == size
