@@ -183,7 +183,7 @@ def create_app(runtime: IrisRuntime, config: ServeConfig = ServeConfig()) -> Fas
     app.add_middleware(RequestObserver, metrics=metrics, max_body_bytes=config.max_upload_bytes)
     app.state.pool, app.state.store, app.state.metrics = pool, store, metrics
 
-    def require_token(request: Request) -> None:
+    async def require_token(request: Request) -> None:
         if config.token is None:
             return
         scheme, _, given = request.headers.get("authorization", "").partition(" ")
@@ -209,8 +209,9 @@ def create_app(runtime: IrisRuntime, config: ServeConfig = ServeConfig()) -> Fas
         except ValidationError as exc:
             raise Unprocessable(field_message(exc.errors())) from None
 
-    async def read_photos(request: Request, field: str, at_least: int, at_most: int):
-        """The files of multipart ``field`` (bytes each) and the form's text fields."""
+    async def read_photos(request: Request, field: str, at_least: int, at_most: int,
+                          options: tuple[str, ...] = ()):
+        """The files of multipart ``field`` (bytes each) and the text fields ``options``."""
         ctype = request.headers.get("content-type", "").split(";")[0].strip().lower()
         if ctype != "multipart/form-data":
             raise UnsupportedMediaType(f"body: expected multipart/form-data with photos in "
@@ -219,11 +220,15 @@ def create_app(runtime: IrisRuntime, config: ServeConfig = ServeConfig()) -> Fas
             form = await request.form(max_files=at_most, max_fields=16, max_part_size=64 * 1024)
         except StarletteHTTPException as exc:
             if "Too many files" in str(exc.detail):
-                raise PayloadTooLarge(f"{field}: more than {at_most} photos per request "
-                                      f"(iris-serve --max-photos, and the model's max_views "
-                                      f"{rt.max_views})") from None
+                raise PayloadTooLarge(f"{field}: more than {at_most} photo(s) in one request "
+                                      f"(iris-serve --max-photos, at most the model's "
+                                      f"max_views {rt.max_views})") from None
             raise BadRequest(f"body: {exc.detail}") from None
         try:
+            unknown = sorted(set(form.keys()) - {field, *options})
+            if unknown:
+                expected = " and ".join([f"'{field}' files", *(f"'{o}'" for o in options)])
+                raise Unprocessable(f"{unknown[0]}: unknown form field (expected {expected})")
             parts = form.getlist(field)
             if any(not isinstance(p, UploadFile) for p in parts):
                 raise Unprocessable(f"{field}: expected files (parts with a filename), got a "
@@ -239,7 +244,12 @@ def create_app(runtime: IrisRuntime, config: ServeConfig = ServeConfig()) -> Fas
                 data = await part.read()
                 _photo_pixels(data, name, config.max_photo_pixels)
                 photos.append(data)
-            fields = {k: v for k, v in form.multi_items() if not isinstance(v, UploadFile)}
+            fields = {}
+            for name in options:
+                value = form.get(name)
+                if value is not None and not isinstance(value, str):
+                    raise Unprocessable(f"{name}: expected a text field, got a file")
+                fields[name] = value
             return photos, fields
         finally:
             await form.close()
@@ -312,12 +322,8 @@ def create_app(runtime: IrisRuntime, config: ServeConfig = ServeConfig()) -> Fas
 
     @scenes.post("", status_code=201)
     async def create_scene(request: Request):
-        photos, fields = await read_photos(request, "images", 2, max_photos)
-        unknown = sorted(set(fields) - {"cameras"})
-        if unknown:
-            raise Unprocessable(f"{unknown[0]}: unknown form field (expected 'images' files and "
-                                f"an optional 'cameras')")
-        cameras = fields.get("cameras") or rt.default_cameras
+        photos, fields = await read_photos(request, "images", 2, max_photos, ("cameras",))
+        cameras = fields["cameras"] or rt.default_cameras
         scene = await pool.run("encode", rt.encode, photos, cameras)
         entry = store.put(scene, cameras)
         return JSONResponse(scene_json(entry), status_code=201,
@@ -346,9 +352,7 @@ def create_app(runtime: IrisRuntime, config: ServeConfig = ServeConfig()) -> Fas
     @scenes.post("/{scene_id}/locate")
     async def locate(scene_id: str, request: Request):
         entry = store.get(scene_id)
-        photos, fields = await read_photos(request, "image", 1, 1)
-        if fields:
-            raise Unprocessable(f"{sorted(fields)[0]}: unknown form field (expected one 'image')")
+        photos, _ = await read_photos(request, "image", 1, 1)
         pose = await pool.run("locate", rt.locate, entry.scene, photos[0])
         return {"world_from_cam": pose.tolist()}
 
