@@ -7,6 +7,12 @@ memory-bounded LRU of encoded scenes), ``pool`` (the bounded worker pool and its
 ``metrics`` (Prometheus), ``observe`` (request ids, body limit, JSON access logs), ``cli`` (the
 command), ``static/`` (the viewer page). The contract and how to operate it: docs/SERVING.md.
 """
-from .app import OrbitRequest, RenderRequest, ServeConfig, create_app, warm_up
-
 __all__ = ["ServeConfig", "RenderRequest", "OrbitRequest", "create_app", "warm_up"]
+
+
+def __getattr__(name: str):
+    # Lazy: ``iris-serve`` imports this package before it can say that fastapi is missing.
+    if name in __all__:
+        from . import app
+        return getattr(app, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
