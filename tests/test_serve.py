@@ -147,6 +147,11 @@ def test_healthz(client, rt):
     assert body["model"]["image_size"] == list(rt.image_size)
     assert body["model"]["name"]
     assert body["limits"]["max_photos"] == 4
+    spec = client.get("/openapi.json").json()
+    render_body = spec["paths"]["/scenes/{scene_id}/render"]["post"]["requestBody"]
+    assert "world_from_cam" in render_body["content"]["application/json"]["schema"]["properties"]
+    assert "images" in json.dumps(spec["paths"]["/scenes"]["post"]["requestBody"])
+    assert client.get("/docs").status_code == 404                 # no page that needs a CDN
 
 
 def test_scene_json_matches_runtime_encode(scene, rt, client):

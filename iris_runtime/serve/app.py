@@ -113,6 +113,20 @@ class OrbitRequest(BaseModel):
     quality: Quality | None = None         # type: ignore[valid-type]
 
 
+def _json_body(model: type[BaseModel]) -> dict:
+    """OpenAPI request body of a route that reads ``model`` itself (``read_json``)."""
+    return {"requestBody": {"required": True, "content": {
+        "application/json": {"schema": model.model_json_schema()}}}}
+
+
+def _multipart(field: str, what: str, options: tuple[str, ...] = ()) -> dict:
+    """OpenAPI request body of a route that reads photos itself (``read_photos``)."""
+    props = {field: {"type": "array", "items": {"type": "string", "format": "binary"},
+                     "description": what}} | {o: {"type": "string"} for o in options}
+    return {"requestBody": {"required": True, "content": {"multipart/form-data": {
+        "schema": {"type": "object", "properties": props, "required": [field]}}}}}
+
+
 def _png(image: np.ndarray) -> bytes:
     """Lossless PNG of uint8 RGB [H, W, 3] or uint16 [H, W] (fast compression)."""
     if image.ndim == 3:
@@ -177,7 +191,8 @@ def create_app(runtime: IrisRuntime, config: ServeConfig = ServeConfig()) -> Fas
         pool.shutdown()
         log.info("stopped")
 
-    app = FastAPI(title="iris-serve", version="1", lifespan=lifespan, docs_url="/docs",
+    # The schema is at /openapi.json; FastAPI's /docs page would load its scripts from a CDN.
+    app = FastAPI(title="iris-serve", version="1", lifespan=lifespan, docs_url=None,
                   redoc_url=None)
     install_handlers(app)
     app.add_middleware(RequestObserver, metrics=metrics, max_body_bytes=config.max_upload_bytes)
@@ -320,7 +335,8 @@ def create_app(runtime: IrisRuntime, config: ServeConfig = ServeConfig()) -> Fas
     # -- scenes (bearer token when configured) ---------------------------------------------
     scenes = APIRouter(prefix="/scenes", dependencies=[Depends(require_token)])
 
-    @scenes.post("", status_code=201)
+    @scenes.post("", status_code=201, openapi_extra=_multipart("images", "2 or more photos",
+                                                               ("cameras",)))
     async def create_scene(request: Request):
         photos, fields = await read_photos(request, "images", 2, max_photos, ("cameras",))
         cameras = fields["cameras"] or rt.default_cameras
@@ -338,7 +354,8 @@ def create_app(runtime: IrisRuntime, config: ServeConfig = ServeConfig()) -> Fas
         store.delete(scene_id)
         return Response(status_code=204)
 
-    @scenes.post("/{scene_id}/render")
+    @scenes.post("/{scene_id}/render", openapi_extra=_json_body(RenderRequest),
+                 response_class=Response, responses={200: {"content": {"image/png": {}}}})
     async def render(scene_id: str, request: Request):
         entry = store.get(scene_id)
         req = await read_json(request, RenderRequest)
@@ -349,7 +366,7 @@ def create_app(runtime: IrisRuntime, config: ServeConfig = ServeConfig()) -> Fas
         headers = {"X-Iris-Depth-Far": f"{rt.far:g}"} if req.depth else {}
         return Response(png, media_type="image/png", headers=headers)
 
-    @scenes.post("/{scene_id}/locate")
+    @scenes.post("/{scene_id}/locate", openapi_extra=_multipart("image", "one photo"))
     async def locate(scene_id: str, request: Request):
         entry = store.get(scene_id)
         photos, _ = await read_photos(request, "image", 1, 1)
@@ -380,7 +397,8 @@ def create_app(runtime: IrisRuntime, config: ServeConfig = ServeConfig()) -> Fas
         centre = scene_centre(s.world_from_cam, rt.near, rt.far)
         return {"world_from_cam": poses.tolist(), "centre": centre.tolist()}
 
-    @scenes.post("/{scene_id}/orbit.mp4")
+    @scenes.post("/{scene_id}/orbit.mp4", openapi_extra=_json_body(OrbitRequest),
+                 response_class=Response, responses={200: {"content": {"video/mp4": {}}}})
     async def orbit_mp4(scene_id: str, request: Request):
         entry = store.get(scene_id)
         req = await read_json(request, OrbitRequest)
