@@ -106,6 +106,16 @@ def _non_negative(text: str) -> int:
     return v
 
 
+def providers_arg(text: str) -> list[str]:
+    """``--providers A,B``: ONNX Runtime execution providers in priority order (checked by
+    ``IrisRuntime``, which names the ones this onnxruntime has)."""
+    names = [t.strip() for t in text.split(",")]
+    if not all(names):
+        raise argparse.ArgumentTypeError(f"expected comma-separated provider names, e.g. "
+                                         f"CUDAExecutionProvider,CPUExecutionProvider, got {text!r}")
+    return names
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = _Parser(
         prog="iris-render",
@@ -149,6 +159,10 @@ def build_parser() -> argparse.ArgumentParser:
                      help="ONNX Runtime intra-op threads (default: one per physical core)")
     out.add_argument("--chunk-rays", type=_positive, default=None,
                      help="rays per renderer call (default: chosen from the number of views)")
+    out.add_argument("--providers", type=providers_arg, default=None, metavar="A,B",
+                     help="ONNX Runtime execution providers in priority order, e.g. "
+                          "CUDAExecutionProvider,CPUExecutionProvider with onnxruntime-gpu "
+                          "(default: the CPU)")
     out.add_argument("--precision", choices=list(PRECISIONS), default="float32",
                      help="renderer graph: float32, or int8 if exported with --quantize int8")
     out.add_argument("--quality", choices=list(QUALITY_PRESETS), default="exact",
@@ -219,9 +233,14 @@ def _write_png(path: Path, rgb: np.ndarray) -> None:
     Image.fromarray(rgb).save(path)
 
 
+def depth_uint16(depth: np.ndarray, far: float) -> np.ndarray:
+    """Soft depth [H, W] as the 16-bit values of NAME_depth.png: round(depth / far * 65535)."""
+    return np.rint(np.clip(depth / far, 0.0, 1.0) * 65535.0).astype(np.uint16)
+
+
 def _write_depth(path_png: Path, path_npy: Path, depth: np.ndarray, far: float) -> None:
     import cv2
-    scaled = np.rint(np.clip(depth / far, 0.0, 1.0) * 65535.0).astype(np.uint16)
+    scaled = depth_uint16(depth, far)
     if not cv2.imwrite(str(path_png), scaled):
         raise OSError(f"{path_png}: cv2.imwrite failed")
     np.save(path_npy, depth.astype(np.float32))
@@ -238,11 +257,13 @@ class _Request:
     photos: list[np.ndarray]                  # the --locate photos
 
 
-def run(args: argparse.Namespace) -> int:
+def run(args: argparse.Namespace, runtime=None) -> int:
+    """iris-render with parsed ``args``; ``runtime``: an ``IrisRuntime`` of ``args.model_dir`` to
+    use instead of loading one (``iris-batch`` renders many scenes with one model load)."""
     say = (lambda *a: None) if args.quiet else (lambda *a: print("iris-render:", *a, flush=True))
     t_all = time.perf_counter()
     t0 = time.perf_counter()
-    req = _check_request(args)                          # 1. everything, before writing anything
+    req = _check_request(args, runtime)                          # 1. everything, before writing anything
     scene, located = _encode(req, args, say, time.perf_counter() - t0)       # 2. encode once
     jobs, orbit = _jobs(req, args, scene, located)
     out = _write_cameras(Path(args.out), req, scene, orbit, located)        # 3. the inputs' cameras
@@ -252,7 +273,7 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _check_request(args: argparse.Namespace) -> _Request:
+def _check_request(args: argparse.Namespace, runtime=None) -> _Request:
     """The model, the request limits (``iris_runtime.limits``, checked by the same functions
     ``IrisRuntime`` uses), the images, view indices and pose files: every error before a file is
     written."""
@@ -261,7 +282,8 @@ def _check_request(args: argparse.Namespace) -> _Request:
     from .images import fit_to_model, load_image
     from .runtime import IrisRuntime
 
-    rt = IrisRuntime(args.model_dir, threads=args.threads, precision=args.precision)
+    rt = runtime or IrisRuntime(args.model_dir, threads=args.threads, precision=args.precision,
+                                providers=args.providers)
     H, W = rt.image_size
     size = rt.check_output_size(*args.size) if args.size else (H, W)
     if args.chunk_rays is not None:
@@ -384,7 +406,7 @@ def _render_jobs(req: _Request, args: argparse.Namespace, scene, jobs, out: Path
                              req.rt.far)
             if name.startswith("orbit_"):
                 if writer is None:
-                    writer = _open_video(out / VIDEO_NAME, args.fps, req.size)
+                    writer = open_video(out / VIDEO_NAME, args.fps, req.size)
                 if writer is not None:
                     writer.write(res.image[..., ::-1].copy())         # OpenCV wants BGR
             totals["write"] += time.perf_counter() - t0
@@ -419,7 +441,9 @@ def _hw_text(hw) -> str:
     return "?" if hw is None else f"{hw[1]}x{hw[0]}"
 
 
-def _open_video(path: Path, fps: int, size: tuple[int, int]):
+def open_video(path: Path, fps: int, size: tuple[int, int]):
+    """An OpenCV ``mp4v`` writer of ``size`` (H, W) frames at ``path`` (frames in BGR), or None
+    when this OpenCV has no such encoder."""
     import cv2
     writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), float(fps),
                              (size[1], size[0]))

@@ -2,7 +2,8 @@
 
 numpy + Pillow + OpenCV only (the runtime never imports torch).
 
-``load_image`` accepts a file path, a PIL image or a numpy array and returns ``uint8 [H, W, 3]`` RGB:
+``load_image`` accepts a file path, the bytes of an image file (e.g. an HTTP upload), a PIL image or
+a numpy array and returns ``uint8 [H, W, 3]`` RGB:
 
 - grayscale (``[H, W]`` or ``[H, W, 1]``) is repeated to three channels;
 - RGBA (``[H, W, 4]``) loses its alpha channel (no compositing: the colour channels are kept as is);
@@ -40,7 +41,7 @@ from PIL import Image, ImageOps, UnidentifiedImageError
 from .errors import ImageError
 from .validation import check_images, check_integer
 
-ImageLike = Union[str, os.PathLike, Image.Image, np.ndarray]
+ImageLike = Union[str, os.PathLike, bytes, Image.Image, np.ndarray]
 
 __all__ = ["ImageLike", "load_image", "to_rgb_uint8", "CropResize", "plan_crop_resize", "fit_to_model",
            "fit_to_working_size", "camera_copies", "CAMERA_WORKING_SIZE"]
@@ -55,7 +56,8 @@ CAMERA_WORKING_SIZE = 512
 # ----------------------------------------------------------------------------------------------
 
 def load_image(x: ImageLike, name: str = "image") -> np.ndarray:
-    """Load ``x`` (path, PIL image or numpy array) as ``uint8 [H, W, 3]`` RGB.
+    """Load ``x`` (path, bytes of an image file, PIL image or numpy array) as ``uint8 [H, W, 3]``
+    RGB. Bytes are decoded exactly as the file holding them would be.
 
     ``name`` is the argument's name used in error messages (e.g. ``"images[2]"``).
     Raises ``ImageError`` for unreadable, truncated, non-image or empty inputs and for arrays of
@@ -63,12 +65,15 @@ def load_image(x: ImageLike, name: str = "image") -> np.ndarray:
     """
     if isinstance(x, (str, os.PathLike)):
         return _load_file(Path(x), name)
+    if isinstance(x, (bytes, bytearray, memoryview)):
+        return _decode(bytes(x), name)
     if isinstance(x, Image.Image):
         return _from_pil(x, name, source=f"{name} (PIL image)")
     if isinstance(x, np.ndarray):
         return to_rgb_uint8(x, name)
     raise ImageError(
-        f"{name}: expected a file path, a PIL image or a numpy array, got {type(x).__name__}")
+        f"{name}: expected a file path, a PIL image or a numpy array (or the bytes of an image "
+        f"file), got {type(x).__name__}")
 
 
 def to_rgb_uint8(a: np.ndarray, name: str = "image") -> np.ndarray:
@@ -103,6 +108,11 @@ def _load_file(path: Path, name: str) -> np.ndarray:
         raise ImageError(f"{where}: is a directory, expected an image file") from None
     except OSError as e:
         raise ImageError(f"{where}: cannot read file: {e}") from None
+    return _decode(data, where)
+
+
+def _decode(data: bytes, where: str) -> np.ndarray:
+    """The image file content ``data`` as uint8 RGB (``where``: how messages name it)."""
     if not data:
         raise ImageError(f"{where}: file is empty, expected an image (PNG, JPEG, ...)")
     try:
@@ -112,7 +122,10 @@ def _load_file(path: Path, name: str) -> np.ndarray:
         rawmodes = [t[3][0] if isinstance(t[3], tuple) else t[3] for t in (img.tile or [])
                     if len(t) > 3 and t[3]]
         img.load()               # decodes fully: raises on truncated / corrupt data
-    except (UnidentifiedImageError, OSError, SyntaxError, ValueError, Image.DecompressionBombError) as e:
+    except UnidentifiedImageError:
+        raise ImageError(f"{where}: not a readable image file (expected PNG, JPEG or another "
+                         f"format Pillow reads): unknown image format") from None
+    except (OSError, SyntaxError, ValueError, Image.DecompressionBombError) as e:
         raise ImageError(
             f"{where}: not a readable image file (expected PNG, JPEG or another format Pillow "
             f"reads): {e}") from None
@@ -126,7 +139,7 @@ def _load_file(path: Path, name: str) -> np.ndarray:
         img = ImageOps.exif_transpose(img)
     except Exception:        # a broken EXIF block must not make a decodable image unreadable
         pass
-    return _from_pil(img, name, source=where)
+    return _from_pil(img, where, source=where)
 
 
 def _from_pil(img: Image.Image, name: str, source: str) -> np.ndarray:

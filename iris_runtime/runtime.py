@@ -32,7 +32,7 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Sequence
 
 import numpy as np
 import onnxruntime as ort
@@ -89,6 +89,20 @@ class _RenderJob:
     photos: np.ndarray | None
 
 
+def _check_providers(providers) -> tuple[str, ...]:
+    """``IrisRuntime``'s ``providers`` as a tuple of names this onnxruntime build has (None: the
+    CPU's), or ``InputError``."""
+    if providers is None:
+        return ("CPUExecutionProvider",)
+    available = ort.get_available_providers()
+    if isinstance(providers, (str, bytes)) or not isinstance(providers, (list, tuple)) \
+            or not providers or any(not isinstance(p, str) or p not in available
+                                    for p in providers) or len(set(providers)) != len(providers):
+        raise InputError(f"providers: expected a non-empty list of distinct ONNX Runtime execution "
+                         f"providers among this onnxruntime's {available}, got {providers!r}")
+    return tuple(providers)
+
+
 def _is_single_image(x) -> bool:
     """One image (a path, a PIL image, an HxW(xC) array) rather than a sequence of images."""
     return (isinstance(x, (str, os.PathLike, bytes)) or hasattr(x, "getpixel")
@@ -106,13 +120,18 @@ class IrisRuntime:
     rays, exact: the same calls, only concurrent); with ``workers > 1`` each renderer session
     runs ``max(1, threads // workers)`` intra-op threads (``threads`` None: the usable CPUs), so
     ``workers=2`` on 2 cores is data-parallel instead of ORT's op-parallel threading.
+    ``providers``: ONNX Runtime execution providers of both graphs in priority order, e.g.
+    ``["CUDAExecutionProvider", "CPUExecutionProvider"]`` with onnxruntime-gpu (None: the CPU);
+    the numpy geometry stays on the CPU. A name this onnxruntime does not have, or a first
+    provider that fails to start, is an ``InputError``.
     Construction reads and checks ``iris.json`` and the sha256 of both graphs; sessions are
     created on first use (and the graph bytes hashed again, so the graph that runs is the one
     that was checked). Safe to share between threads.
     """
 
     def __init__(self, model_dir: str | os.PathLike, threads: int | None = None, *,
-                 precision: str = "float32", cull: bool = True, workers: int = 1):
+                 precision: str = "float32", cull: bool = True, workers: int = 1,
+                 providers: Sequence[str] | None = None):
         if isinstance(workers, bool) or not isinstance(workers, (int, np.integer)) or workers < 1:
             raise InputError(f"workers: expected a positive integer, got {workers!r}")
         if not isinstance(precision, str) or precision not in PRECISIONS:
@@ -123,8 +142,10 @@ class IrisRuntime:
         if not isinstance(model_dir, (str, os.PathLike)):
             raise InputError(f"model_dir: expected a path to an iris-export output directory, got "
                              f"{type(model_dir).__name__}")
+        providers = _check_providers(providers)
         self.manifest: Manifest = read_manifest(model_dir)
         self.model_dir: Path = self.manifest.model_dir
+        self.providers: tuple[str, ...] = providers
         self.threads = None if threads is None else int(threads)
         self.precision = precision
         self._renderer_graph(precision)                 # the model has that renderer
@@ -211,10 +232,13 @@ class IrisRuntime:
         opts.log_severity_level = 3
         try:
             session = ort.InferenceSession(data, sess_options=opts,
-                                           providers=["CPUExecutionProvider"])
+                                           providers=list(self.providers))
         except Exception as exc:               # ORT raises its own Fail/InvalidGraph types
             raise ModelFileError(f"{entry.path}: onnxruntime cannot load the {name} graph: "
                                  f"{str(exc).strip().splitlines()[0][:300]}") from None
+        if session.get_providers()[0] != self.providers[0]:   # ORT falls back silently
+            raise InputError(f"providers: onnxruntime could not start {self.providers[0]} for the "
+                             f"{name} graph (it would run on {session.get_providers()})")
         have_in = {i.name for i in session.get_inputs()}
         have_out = {o.name for o in session.get_outputs()}
         if have_in != set(entry.inputs) or not set(entry.outputs) <= have_out:

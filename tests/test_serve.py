@@ -1,0 +1,475 @@
+"""iris-serve against a real server process: the contract of docs/SERVING.md.
+
+Each server is a subprocess (``python -m iris_runtime.serve.cli MODEL --port 0``) on 127.0.0.1,
+started from an exported model (``model_dir``: IRIS_TEST_MODEL_DIR in the torch-free CI
+environment), read from its JSON log for the bound port, with bounded waits, and always stopped
+(SIGTERM, then SIGKILL) by its fixture. Renders are compared with ``IrisRuntime.render`` in this
+process on the same photos and pose. Also here: the ONNX Runtime ``providers`` pass-through
+(CUDA where onnxruntime has it).
+"""
+from __future__ import annotations
+
+import io
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+httpx = pytest.importorskip("httpx")
+pytest.importorskip("fastapi")
+pytest.importorskip("uvicorn")
+pytest.importorskip("prometheus_client")
+from PIL import Image  # noqa: E402
+
+from iris_runtime import IrisRuntime  # noqa: E402
+from iris_runtime.errors import InputError  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+PHOTOS = sorted((REPO / "samples" / "heldout-1000003").glob("frame_*.png"))
+START_TIMEOUT = 120.0
+
+
+class IrisServer:
+    """A running ``iris-serve`` subprocess: ``url``, ``logs`` (its JSON lines), ``stop()``."""
+
+    def __init__(self, model_dir, *args: str):
+        cmd = [sys.executable, "-m", "iris_runtime.serve.cli", str(model_dir), "--host",
+               "127.0.0.1", "--port", "0", *args]
+        env = {**os.environ, "OMP_NUM_THREADS": "1"}
+        self.proc = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=subprocess.DEVNULL,
+                                     stderr=subprocess.PIPE, text=True)
+        self.lines: list[str] = []
+        self.port: int | None = None
+        self._ready = threading.Event()
+        threading.Thread(target=self._drain, daemon=True).start()
+        if not self._ready.wait(START_TIMEOUT) or self.port is None:
+            self.stop()
+            raise RuntimeError("iris-serve did not start:\n" + "\n".join(self.lines[-20:]))
+        self.url = f"http://127.0.0.1:{self.port}"
+
+    def _drain(self):
+        for line in self.proc.stderr:
+            self.lines.append(line.rstrip("\n"))
+            if self.port is None and '"listening"' in line:
+                self.port = json.loads(line)["port"]
+                self._ready.set()
+        self._ready.set()                                  # exited before listening
+
+    @property
+    def logs(self) -> list[dict]:
+        return [json.loads(line) for line in list(self.lines) if line.startswith("{")]
+
+    def stop(self, timeout: float = 30.0) -> int:
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            try:
+                self.proc.wait(timeout)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(10)
+        return self.proc.returncode
+
+
+@pytest.fixture(scope="module")
+def server(model_dir):
+    """Two workers and tight limits, so that every limit can be hit with small requests."""
+    srv = IrisServer(model_dir, "--workers", "2", "--queue", "16", "--max-photos", "4",
+                     "--max-upload-mb", "1", "--max-photo-pixels", "100000",
+                     "--max-output-pixels", "4096", "--max-orbit-frames", "8")
+    try:
+        yield srv
+    finally:
+        srv.stop()
+
+
+@pytest.fixture(scope="module")
+def client(server):
+    with httpx.Client(base_url=server.url, timeout=120.0) as c:
+        yield c
+
+
+@pytest.fixture(scope="module")
+def scene(client):
+    """Photos 0-2 encoded by the server: (its JSON, the photo paths)."""
+    r = client.post("/scenes", files=[("images", (p.name, p.read_bytes(), "image/png"))
+                                      for p in PHOTOS[:3]])
+    assert r.status_code == 201, r.text
+    return r.json(), PHOTOS[:3]
+
+
+@pytest.fixture(scope="module")
+def rt(model_dir):
+    return IrisRuntime(model_dir, threads=1)
+
+
+def png_pixels(data: bytes) -> np.ndarray:
+    return np.asarray(Image.open(io.BytesIO(data)))
+
+
+def novel_pose(scene_json) -> list:
+    """Input view 1's pose turned by 5 degrees about its y axis: no input camera's."""
+    T = np.array(scene_json["world_from_cam"][1])
+    a = np.deg2rad(5.0)
+    turn = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+    T[:3, :3] = T[:3, :3] @ turn
+    return T.tolist()
+
+
+def render(client, scene_id, pose, **fields):
+    return client.post(f"/scenes/{scene_id}/render", json={"world_from_cam": pose, **fields})
+
+
+# -- the contract --------------------------------------------------------------------------------
+
+def test_serve_and_batch_import_torch_free():
+    code = ("import sys; sys.modules['torch'] = None\n"
+            "import iris_runtime.serve, iris_runtime.serve.cli, iris_runtime.batch\n"
+            "assert 'torch' not in [m for m, v in sys.modules.items() if v is not None]\n")
+    out = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+
+
+def test_healthz(client, rt):
+    r = client.get("/healthz")
+    assert r.status_code == 200
+    body = r.json()
+    assert body["status"] == "ok"
+    assert body["model"]["format"] == "iris-model"
+    assert body["model"]["default_cameras"] == rt.default_cameras
+    assert body["model"]["image_size"] == list(rt.image_size)
+    assert body["model"]["name"]
+    assert body["limits"]["max_photos"] == 4
+    spec = client.get("/openapi.json").json()
+    render_body = spec["paths"]["/scenes/{scene_id}/render"]["post"]["requestBody"]
+    assert "world_from_cam" in render_body["content"]["application/json"]["schema"]["properties"]
+    assert "images" in json.dumps(spec["paths"]["/scenes"]["post"]["requestBody"])
+    assert client.get("/docs").status_code == 404                 # no page that needs a CDN
+
+
+def test_scene_json_matches_runtime_encode(scene, rt, client):
+    body, paths = scene
+    assert set(body) >= {"scene_id", "views", "world_from_cam", "intrinsics", "focal",
+                         "camera_source", "image_size"}
+    ref = rt.encode(paths)
+    assert body["views"] == 3 and body["camera_source"] == ref.camera_source
+    np.testing.assert_allclose(body["world_from_cam"], ref.world_from_cam, atol=1e-5)
+    np.testing.assert_allclose(body["intrinsics"], ref.K, rtol=1e-6)
+    assert client.get(f"/scenes/{body['scene_id']}").json() == body
+
+
+def test_render_equals_runtime_render(scene, rt, client):
+    body, paths = scene
+    pose = novel_pose(body)
+    r = render(client, body["scene_id"], pose, height=24, width=20)
+    assert r.status_code == 200, r.text
+    assert r.headers["content-type"] == "image/png"
+    served = png_pixels(r.content)
+    expected = rt.render(paths, np.array(pose), height=24, width=20)     # one shot, same photos
+    assert served.shape == expected.shape == (24, 20, 3)
+    assert np.abs(served.astype(int) - expected.astype(int)).max() <= 1
+    # Depth on request: iris-render's 16-bit encoding of the same render's depth.
+    r = render(client, body["scene_id"], pose, height=24, width=20, depth=True)
+    assert r.status_code == 200 and float(r.headers["x-iris-depth-far"]) == rt.far
+    depth = png_pixels(r.content)
+    assert depth.dtype == np.uint16 and depth.shape == (24, 20)
+    ref = rt.render(paths, np.array(pose), height=24, width=20, depth=True).depth
+    expected = np.rint(np.clip(ref / rt.far, 0, 1) * 65535)
+    assert np.abs(depth.astype(float) - expected).max() <= 2
+
+
+def test_quality_preset_equals_runtime(scene, rt, client):
+    body, paths = scene
+    pose = novel_pose(body)
+    served = png_pixels(render(client, body["scene_id"], pose, height=16, width=16,
+                               quality="fast").content)
+    expected = rt.render(rt.encode(paths), np.array(pose), height=16, width=16, quality="fast")
+    assert np.abs(served.astype(int) - expected.astype(int)).max() <= 1
+
+
+def test_eight_concurrent_renders_equal_the_serial_one(scene, client):
+    body, _ = scene
+    pose = novel_pose(body)
+    serial = png_pixels(render(client, body["scene_id"], pose, height=16, width=16).content)
+    with ThreadPoolExecutor(8) as ex:
+        responses = list(ex.map(lambda _: render(client, body["scene_id"], pose, height=16,
+                                                 width=16), range(8)))
+    assert [r.status_code for r in responses] == [200] * 8
+    for r in responses:
+        assert np.abs(png_pixels(r.content).astype(int) - serial.astype(int)).max() <= 1
+
+
+def test_locate_equals_runtime_locate(scene, rt, client):
+    body, paths = scene
+    photo = PHOTOS[5]
+    r = client.post(f"/scenes/{body['scene_id']}/locate",
+                    files={"image": (photo.name, photo.read_bytes(), "image/png")})
+    assert r.status_code == 200, r.text
+    expected = rt.locate(rt.encode(paths), str(photo))
+    np.testing.assert_allclose(r.json()["world_from_cam"], expected, atol=1e-4)
+
+
+def test_cameras_picture_and_orbit(scene, rt, client):
+    from iris_runtime.camera_plot import draw_cameras
+    from iris_runtime.orbit import orbit_poses
+    body, _ = scene
+    sid = body["scene_id"]
+    T, K = np.array(body["world_from_cam"]), np.array(body["intrinsics"])
+    r = client.get(f"/scenes/{sid}/cameras.png")
+    assert r.status_code == 200 and r.headers["content-type"] == "image/png"
+    what = "predicted" if body["camera_source"] == "model" else body["camera_source"]
+    expected = draw_cameras(T, K, size=(480, 640), title=f"{what} cameras of the 3 input(s)")
+    np.testing.assert_array_equal(png_pixels(r.content), expected)
+    r = client.get(f"/scenes/{sid}/orbit", params={"frames": 3})
+    np.testing.assert_allclose(r.json()["world_from_cam"],
+                               orbit_poses(T, 3, near=rt.near, far=rt.far), atol=1e-12)
+    r = client.post(f"/scenes/{sid}/orbit.mp4", json={"frames": 2, "height": 16, "width": 16})
+    assert r.status_code == 200 and r.headers["content-type"] == "video/mp4"
+    assert r.content[4:8] == b"ftyp"
+
+
+def test_delete(client):
+    files = [("images", (p.name, p.read_bytes(), "image/png")) for p in PHOTOS[3:5]]
+    sid = client.post("/scenes", files=files).json()["scene_id"]
+    assert client.delete(f"/scenes/{sid}").status_code == 204
+    for r in (client.get(f"/scenes/{sid}"), client.delete(f"/scenes/{sid}"),
+              render(client, sid, np.eye(4).tolist())):
+        assert r.status_code == 404 and r.json()["error"]["type"] == "not_found"
+
+
+def _png_bytes(h: int, w: int) -> bytes:
+    buf = io.BytesIO()
+    Image.fromarray(np.full((h, w, 3), 90, np.uint8)).save(buf, format="PNG")
+    return buf.getvalue()
+
+
+def test_bad_requests_get_4xx_json_and_the_server_stays_healthy(scene, client, server):
+    sid = scene[0]["scene_id"]
+    eye = np.eye(4).tolist()
+    photo = ("images", ("a.png", PHOTOS[0].read_bytes(), "image/png"))
+    cases = [  # (kind, request, status, error type, text the message must contain)
+        ("unknown scene", lambda: client.get("/scenes/nope"), 404, "not_found", "scene_id"),
+        ("render of an unknown scene", lambda: render(client, "nope", eye), 404, "not_found",
+         "scene_id"),
+        ("one photo", lambda: client.post("/scenes", files=[photo]), 422, "invalid", "images"),
+        ("unreadable photo", lambda: client.post("/scenes", files=[
+            ("images", ("x.png", b"not an image", "image/png")), photo]), 400, "bad_image",
+         "images[0]"),
+        ("photos in the wrong field", lambda: client.post("/scenes", files=[
+            ("photos", ("a.png", PHOTOS[0].read_bytes(), "image/png"))] * 2), 422, "invalid",
+         "images"),
+        ("JSON instead of multipart", lambda: client.post("/scenes", json={"images": []}), 415,
+         "unsupported_media_type", "multipart"),
+        ("too many photos", lambda: client.post("/scenes", files=[photo] * 5), 413, "too_large",
+         "images"),
+        ("body over the byte limit", lambda: client.post("/scenes", files=[
+            ("images", ("big.bin", os.urandom(1_200_000), "image/png")), photo]), 413,
+         "too_large", "request body"),
+        ("photo over the pixel limit", lambda: client.post("/scenes", files=[
+            ("images", ("wide.png", _png_bytes(400, 400), "image/png")), photo]), 413,
+         "too_large", "images[0]"),
+        ("unknown cameras", lambda: client.post("/scenes", files=[photo, photo],
+                                                data={"cameras": "magic"}), 422, "invalid",
+         "cameras"),
+        ("broken JSON", lambda: client.post(f"/scenes/{sid}/render", content=b"{not json",
+                                            headers={"content-type": "application/json"}), 400,
+         "bad_request", "JSON"),
+        ("form instead of JSON", lambda: client.post(f"/scenes/{sid}/render", data={"a": "1"}),
+         415, "unsupported_media_type", "application/json"),
+        ("non-rigid pose", lambda: render(client, sid, (2 * np.eye(4)).tolist()), 422, "invalid",
+         "world_from_cam"),
+        ("3x3 pose", lambda: render(client, sid, np.eye(3).tolist()), 422, "invalid",
+         "world_from_cam"),
+        ("NaN in the pose", lambda: client.post(
+            f"/scenes/{sid}/render", headers={"content-type": "application/json"},
+            content=b'{"world_from_cam": [[NaN,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}'), 422,
+         "invalid", "world_from_cam"),
+        ("pose of strings", lambda: render(client, sid, [["a"] * 4] * 4), 422, "invalid",
+         "world_from_cam"),
+        ("negative height", lambda: render(client, sid, eye, height=-4), 422, "invalid", "height"),
+        ("output over the pixel limit", lambda: render(client, sid, eye, height=128, width=128),
+         413, "too_large", "height, width"),
+        ("unknown quality", lambda: render(client, sid, eye, quality="ultra"), 422, "invalid",
+         "quality"),
+        ("unknown field", lambda: render(client, sid, eye, colour="red"), 422, "invalid", "colour"),
+        ("locate without a photo", lambda: client.post(f"/scenes/{sid}/locate", files=[photo]),
+         422, "invalid", "image"),
+        ("too many orbit frames", lambda: client.get(f"/scenes/{sid}/orbit",
+                                                     params={"frames": 9}), 413, "too_large",
+         "frames"),
+        ("orbit frames not a number", lambda: client.get(f"/scenes/{sid}/orbit",
+                                                         params={"frames": "x"}), 422, "invalid",
+         "frames"),
+        ("wrong method", lambda: client.put(f"/scenes/{sid}"), 405, "method_not_allowed", "PUT"),
+        ("unknown route", lambda: client.get("/nowhere"), 404, "not_found", "/nowhere"),
+    ]
+    kinds = set()
+    for kind, send, status, type_, text in cases:
+        r = send()
+        assert r.status_code == status, (kind, r.status_code, r.text)
+        body = r.json()
+        assert set(body) == {"error"} and set(body["error"]) == {"type", "message"}, kind
+        assert body["error"]["type"] == type_, (kind, body)
+        assert text in body["error"]["message"], (kind, body)
+        assert "Traceback" not in r.text and 'File "' not in r.text, kind
+        kinds.add(kind)
+    assert len(kinds) >= 11
+    assert client.get("/healthz").status_code == 200
+    assert render(client, sid, eye, height=8, width=8).status_code == 200
+    assert not any(rec.get("level") == "error" for rec in server.logs)       # no 500 logged
+
+
+def test_metrics_and_access_log(scene, client, server):
+    text = client.get("/metrics").text
+    assert 'iris_http_requests_total{method="POST",route="/scenes/{scene_id}/render",status="200"}' \
+        in text
+    assert "iris_http_request_duration_seconds_bucket" in text
+    assert "iris_queue_depth" in text and "iris_jobs_running" in text
+    assert 'iris_job_duration_seconds_count{kind="render"}' in text
+    scenes = float(next(line.split()[1] for line in text.splitlines()
+                        if line.startswith("iris_scenes ")))
+    assert scenes >= 1
+    access = [rec for rec in server.logs if rec.get("logger") == "iris.access"]
+    assert access and all({"request_id", "method", "path", "route", "status", "duration_ms"}
+                          <= set(rec) for rec in access)
+    assert any(rec["route"] == "/scenes/{scene_id}/render" and rec["status"] == 200
+               for rec in access)
+
+
+# -- operating it ------------------------------------------------------------------------------
+
+def _wait_metric(client, name: str, value: float, timeout: float = 60.0) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        for line in client.get("/metrics").text.splitlines():
+            if line.startswith(name + " ") and float(line.split()[1]) >= value:
+                return
+        time.sleep(0.05)
+    raise AssertionError(f"{name} never reached {value}")
+
+
+def test_token_backpressure_and_graceful_shutdown(model_dir, tmp_path):
+    token_file = tmp_path / "token"
+    token_file.write_text("s3cret-token\n")
+    srv = IrisServer(model_dir, "--workers", "1", "--queue", "1", "--queue-timeout", "1",
+                     "--token-file", str(token_file), "--shutdown-timeout", "120")
+    auth = {"Authorization": "Bearer s3cret-token"}
+    files = [("images", (p.name, p.read_bytes(), "image/png")) for p in PHOTOS[:2]]
+    try:
+        with httpx.Client(base_url=srv.url, timeout=120.0, headers=auth) as c, \
+                httpx.Client(base_url=srv.url, timeout=120.0) as anonymous:
+            assert anonymous.get("/healthz").status_code == 200        # open for probes
+            for headers in ({}, {"Authorization": "Bearer wrong"}, {"Authorization": "s3cret"}):
+                r = anonymous.post("/scenes", files=files, headers=headers)
+                assert r.status_code == 401 and r.json()["error"]["type"] == "unauthorized"
+                assert r.headers["www-authenticate"].startswith("Bearer")
+            r = c.post("/scenes", files=files)
+            assert r.status_code == 201
+            sid = r.json()["scene_id"]
+            eye = np.eye(4).tolist()
+            with ThreadPoolExecutor(2) as ex:
+                # A long job holds the only worker; the next job waits in the queue (503 after
+                # the 1 s queue timeout); one more finds worker and queue full: 429 at once.
+                long_job = ex.submit(c.post, f"/scenes/{sid}/orbit.mp4",
+                                     json={"frames": 6, "height": 48, "width": 48})
+                _wait_metric(c, "iris_jobs_running", 1)
+                waiting = ex.submit(render, c, sid, eye)
+                _wait_metric(c, "iris_queue_depth", 1)
+                busy = render(c, sid, eye)
+                assert busy.status_code == 429 and busy.json()["error"]["type"] == "busy"
+                assert int(busy.headers["retry-after"]) >= 1
+                r = waiting.result(60)
+                assert r.status_code == 503 and r.json()["error"]["type"] == "unavailable"
+                assert int(r.headers["retry-after"]) >= 1
+                assert not long_job.done()        # the shutdown below catches it running
+                # Graceful shutdown: SIGTERM while the long job runs; it still completes.
+                srv.proc.send_signal(signal.SIGTERM)
+                done = long_job.result(120)
+            assert done.status_code == 200 and done.content[4:8] == b"ftyp"
+        # uvicorn re-raises the signal once it has shut down: exit status "killed by SIGTERM".
+        assert srv.proc.wait(60) in (0, -signal.SIGTERM)
+        messages = [rec["message"] for rec in srv.logs]
+        assert "shutting down: refusing new jobs, waiting for running ones" in messages
+        assert "stopped" in messages
+        text = "\n".join(srv.lines)
+        assert "s3cret-token" not in text                           # never logged
+    finally:
+        srv.stop()
+
+
+def test_startup_errors_are_one_line(tmp_path, model_dir):
+    for args, text in (([str(tmp_path / "missing")], "missing"),
+                       ([str(model_dir), "--providers", "NoSuchProvider"], "providers"),
+                       ([str(model_dir), "--token-file", str(tmp_path / "none")],
+                        "--token-file")):
+        out = subprocess.run([sys.executable, "-m", "iris_runtime.serve.cli", *args],
+                             cwd=REPO, capture_output=True, text=True, timeout=120)
+        assert out.returncode == 2, out.stderr
+        assert out.stderr.startswith("iris-serve: error:") and text in out.stderr
+        assert "Traceback" not in out.stderr
+
+
+# -- ONNX Runtime execution providers ----------------------------------------------------------
+
+def test_providers_are_checked_and_passed_through(model_dir, rt):
+    import onnxruntime as ort
+    for bad in (["NoSuchExecutionProvider"], "CPUExecutionProvider", [], ["CPUExecutionProvider"] * 2):
+        with pytest.raises(InputError, match="providers"):
+            IrisRuntime(model_dir, providers=bad)
+    assert "CPUExecutionProvider" in ort.get_available_providers()
+    cpu = IrisRuntime(model_dir, threads=1, providers=["CPUExecutionProvider"])
+    assert cpu.providers == ("CPUExecutionProvider",) == rt.providers
+    scene = rt.encode(PHOTOS[:2])
+    np.testing.assert_array_equal(cpu.render(scene, 1, height=8, width=8),
+                                  rt.render(scene, 1, height=8, width=8))
+    out = subprocess.run([sys.executable, "-m", "iris_runtime.cli", str(model_dir),
+                          str(PHOTOS[0]), "-o", "unused", "--providers", "Nope"], cwd=REPO,
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 2 and "providers" in out.stderr and "Traceback" not in out.stderr
+
+
+def test_cuda_provider_renders_like_the_cpu(model_dir, rt):
+    import onnxruntime as ort
+    if "CUDAExecutionProvider" not in ort.get_available_providers():
+        pytest.skip("onnxruntime has no CUDAExecutionProvider here (needs onnxruntime-gpu and a "
+                    "GPU)")
+    gpu = IrisRuntime(model_dir, providers=["CUDAExecutionProvider", "CPUExecutionProvider"])
+    scene = gpu.encode(PHOTOS[:3])
+    assert gpu._session("renderer").get_providers()[0] == "CUDAExecutionProvider"
+    ref = rt.encode(PHOTOS[:3])
+    np.testing.assert_allclose(scene.world_from_cam, ref.world_from_cam, atol=1e-3)
+    diff = gpu.render(ref, 1, height=32, width=32).astype(int) - rt.render(ref, 1, height=32,
+                                                                          width=32)
+    assert np.abs(diff).max() <= 2
+
+
+# -- the scene store (in process) ----------------------------------------------------------------
+
+def test_scene_store_is_lru_and_bounded(rt):
+    from iris_runtime.serve.errors import NotFound, PayloadTooLarge
+    from iris_runtime.serve.store import SceneStore, scene_nbytes
+    scene = rt.encode(PHOTOS[:2])
+    size = scene_nbytes(scene)
+    evicted = []
+    store = SceneStore(max_bytes=3 * size, max_scenes=2, on_evict=lambda: evicted.append(1))
+    a, b = store.put(scene, "model"), store.put(scene, "model")
+    store.get(a.scene_id)                                   # a is now the most recently used
+    c = store.put(scene, "model")                           # over max_scenes: b goes
+    assert len(evicted) == 1 and len(store) == 2 and store.nbytes == 2 * size
+    with pytest.raises(NotFound, match="evicted"):
+        store.get(b.scene_id)
+    assert store.get(a.scene_id).scene is scene and store.get(c.scene_id).scene is scene
+    small = SceneStore(max_bytes=size - 1, max_scenes=4)
+    with pytest.raises(PayloadTooLarge, match="--store-mb"):
+        small.put(scene, "model")
+    store.delete(a.scene_id)
+    with pytest.raises(NotFound):
+        store.delete(a.scene_id)
+    assert store.nbytes == size
