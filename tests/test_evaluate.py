@@ -87,14 +87,23 @@ def tiny_model():
 
 
 def check_structure(results):
+    """The summary keys (the best-reference baseline and the per-scene records were added)."""
     assert set(results) == {"seq", "rand"}
     for R in results.values():
-        assert set(R) == {"model", "baselines"}
+        assert set(R) == {"model", "baselines", "scenes"}
         assert set(R["model"]) == {"psnr", "ssim", *RPA_KEYS, *LOCATE_KEYS, "depth_spearman"}
-        assert set(R["baselines"]) == {"nearest_reference", "mean_colour", "identity_poses"}
+        assert set(R["baselines"]) == {"nearest_reference", "mean_colour", "identity_poses",
+                                       "best_reference"}
         assert set(R["baselines"]["nearest_reference"]) == {"psnr", "ssim"}
+        assert set(R["baselines"]["best_reference"]) == {"psnr", "ssim"}
         assert set(R["baselines"]["mean_colour"]) == {"psnr", "ssim"}
         assert set(R["baselines"]["identity_poses"]) == {*RPA_KEYS, *LOCATE_KEYS}
+        for s in R["scenes"]:
+            assert set(s) == {"index", "name", "model", "baselines", "cameras"}
+            assert set(s["model"]) == set(R["model"])
+            assert set(s["baselines"]) == set(R["baselines"])
+            assert set(s["cameras"]) == {"source", "references", "references_solved", "targets",
+                                         "targets_located", "fallbacks", "scale", "scale_source"}
 
 
 # ----------------------------------------------------------------------------------------------
