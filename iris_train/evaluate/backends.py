@@ -140,7 +140,7 @@ class RuntimeBackend:
         references). Asked on the scene with ``camera_source`` "model": ``IrisRuntime.locate``
         of a solved scene would run the epipolar location itself, which ``evaluate`` runs once
         where it is asked for (and records which targets it posed)."""
-        if getattr(scene, "camera_source", "model") != "model":
+        if getattr(scene, "camera_source", "model") != "model" and dataclasses.is_dataclass(scene):
             scene = dataclasses.replace(scene, camera_source="model")
         return np.asarray(self.rt.locate(scene, list(queries)), dtype=np.float64)
 
