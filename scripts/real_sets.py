@@ -39,7 +39,6 @@ Other sequences looked at and why they are not sets: ``CANDIDATES`` and docs/REA
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import shutil
 import subprocess
@@ -84,22 +83,24 @@ class SetSpec:
     size: tuple[int, int] = field(default=(0, 0))      # (H, W) of the source images
 
 
-def _cube_scenes() -> tuple[SceneSpec, ...]:
-    return tuple(SceneSpec(f"start{s:02d}_step{k}", tuple(s + k * i for i in range(8)))
-                 for s, k in ((18, 2), (33, 2), (48, 3), (20, 4)))
+def _strided_scenes(starts_steps) -> tuple[SceneSpec, ...]:
+    """8-frame scenes ``start, start + step, ...``, named with their position first so that the
+    folders sort in the listed order (a scene's index fixes its Rand permutation)."""
+    return tuple(SceneSpec(f"{n}_start{s:02d}_step{k}", tuple(s + k * i for i in range(8)))
+                 for n, (s, k) in enumerate(starts_steps))
 
 
 SETS = {
     "cube": SetSpec("cube", "ViSP cube: a real camera over a poster and a cube (grey, 384x288)",
-                    "cube/image.{:04d}.pgm", _cube_scenes(), None, (288, 384)),
+                    "cube/image.{:04d}.pgm", _strided_scenes(((18, 2), (33, 2), (48, 3), (20, 4))),
+                    None, (288, 384)),
     "castle": SetSpec("castle", "ViSP Castle-simu: a Blender render with true poses (grey, 640x480)",
                       "mbt-depth/Castle-simu/Images/Image_{:04d}.pgm",
-                      (SceneSpec("frames01-36_step5", tuple(range(1, 37, 5))),
-                       SceneSpec("frames21-39_step2", tuple(range(21, 40, 2)))), "castle", (480, 640)),
+                      (SceneSpec("0_frames01-36_step5", tuple(range(1, 37, 5))),
+                       SceneSpec("1_frames21-39_step2", tuple(range(21, 40, 2)))), "castle", (480, 640)),
     "castel": SetSpec("castel", "ViSP castel: a real camera moving around a real castle model "
                                 "(grey, 640x480)", "mbt-depth/castel/castel/image_{:04d}.pgm",
-                      tuple(SceneSpec(f"start{s:02d}_step{k}", tuple(s + k * i for i in range(8)))
-                            for s, k in ((2, 3), (8, 3), (2, 2), (15, 2))), None, (480, 640)),
+                      _strided_scenes(((2, 3), (8, 3), (2, 2), (15, 2))), None, (480, 640)),
 }
 
 

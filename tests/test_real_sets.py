@@ -81,16 +81,16 @@ def built(fake_visp, tmp_path_factory):
 def test_scene_folders_and_frame_lists(built):
     out, doc = built
     expected = {
-        "cube": {"start18_step2": range(18, 33, 2), "start33_step2": range(33, 48, 2),
-                 "start48_step3": range(48, 70, 3), "start20_step4": range(20, 49, 4)},
-        "castle": {"frames01-36_step5": range(1, 37, 5), "frames21-39_step2": range(21, 40, 2)},
-        "castel": {"start02_step3": range(2, 24, 3), "start08_step3": range(8, 30, 3),
-                   "start02_step2": range(2, 17, 2), "start15_step2": range(15, 30, 2)},
+        "cube": {"0_start18_step2": range(18, 33, 2), "1_start33_step2": range(33, 48, 2),
+                 "2_start48_step3": range(48, 70, 3), "3_start20_step4": range(20, 49, 4)},
+        "castle": {"0_frames01-36_step5": range(1, 37, 5), "1_frames21-39_step2": range(21, 40, 2)},
+        "castel": {"0_start02_step3": range(2, 24, 3), "1_start08_step3": range(8, 30, 3),
+                   "2_start02_step2": range(2, 17, 2), "3_start15_step2": range(15, 30, 2)},
     }
     assert json.loads((out / "sets.json").read_text()) == doc
     assert sorted(p.name for p in out.iterdir()) == ["castel", "castle", "cube", "sets.json"]
     for name, scenes in expected.items():
-        assert sorted(p.name for p in (out / name).iterdir()) == sorted(scenes)
+        assert sorted(p.name for p in (out / name).iterdir()) == list(scenes)   # listed order
         for scene, frames in scenes.items():
             frames = list(frames)
             assert len(frames) in (8, 10) and doc["sets"][name]["scenes"][scene]["frames"] == frames
@@ -103,12 +103,12 @@ def test_scene_folders_and_frame_lists(built):
                 assert rgb[0, 0, 0] == f                            # the right source frame
             has_cameras = (out / name / scene / "transforms.json").is_file()
             assert has_cameras == (name == "castle")
-    assert doc["sets"]["cube"]["scenes"]["start18_step2"]["files"][0] == "cube/image.0018.pgm"
+    assert doc["sets"]["cube"]["scenes"]["0_start18_step2"]["files"][0] == "cube/image.0018.pgm"
 
 
 def test_castle_cameras_are_the_inverse_of_the_files_cMo(built):
     out, _ = built
-    for scene, frames in (("frames01-36_step5", range(1, 37, 5)), ("frames21-39_step2", range(21, 40, 2))):
+    for scene, frames in (("0_frames01-36_step5", range(1, 37, 5)), ("1_frames21-39_step2", range(21, 40, 2))):
         cams = read_transforms_json(out / "castle" / scene / "transforms.json")
         truth = np.stack([fake_castle_pose(f) for f in frames])
         np.testing.assert_allclose(cams.world_from_cam, truth, atol=1e-12)
@@ -205,7 +205,7 @@ def test_real_package_builds_and_its_cameras_explain_the_images(tmp_path):
     doc = real_sets.build(out, sets=("castle", "cube"))
     assert doc["version"] and set(doc["sets"]) == {"castle", "cube"}
     # The written cameras (not only the source files) satisfy the epipolar constraint.
-    folder = out / "castle" / "frames01-36_step5"
+    folder = out / "castle" / "0_frames01-36_step5"
     cams = read_transforms_json(folder / "transforms.json")
     sift = cv2.SIFT_create()
     feats = [sift.detectAndCompute(cv2.imread(str(folder / n), cv2.IMREAD_GRAYSCALE), None)
