@@ -103,7 +103,8 @@ def check_structure(results):
             assert set(s["model"]) == set(R["model"])
             assert set(s["baselines"]) == set(R["baselines"])
             assert set(s["cameras"]) == {"source", "references", "references_solved", "targets",
-                                         "targets_located", "fallbacks", "scale", "scale_source"}
+                                         "targets_located", "fallbacks", "scale", "scale_source",
+                                         "principal_offset"}
 
 
 # ----------------------------------------------------------------------------------------------

@@ -117,7 +117,7 @@ class PosedScene:
     targets_located:  bool [V] over frames, which targets ``epipolar.locate_views`` posed (or the
                       data, with ``locate="true"``); None with the model's locate
     fallbacks:        views that were to get a solved camera and kept the camera head's
-    scale, scale_source: of ``true_cameras`` (None for the other modes)
+    scale, scale_source, principal_offset: of ``true_cameras`` (None for the other modes)
     """
     encoded: object
     world_from_cam: np.ndarray

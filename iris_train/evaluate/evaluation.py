@@ -152,7 +152,9 @@ def _scene_record(index: int, prepared: PreparedScene, posed: PosedScene, rgb, d
                   targets, baselines: dict) -> dict:
     """One scene in one order: ``{"index", "name", "model": {...}, "baselines": {...},
     "cameras": {"source", "references", "references_solved", "targets", "targets_located",
-    "fallbacks", "scale", "scale_source"}}`` (flags per frame of ``references`` / ``targets``)."""
+    "fallbacks", "scale", "scale_source", "principal_offset"}}`` (flags per frame of
+    ``references`` / ``targets``; the last three for true cameras only, the principal point's
+    offset from the centre in pixels of the model image, which the renderer takes as centred)."""
     targets_a = list(targets)
     model = dict.fromkeys(_MODEL_KEYS)
     model.update(nvs_scores(rgb, prepared.gt_images[targets_a]))
@@ -172,7 +174,9 @@ def _scene_record(index: int, prepared: PreparedScene, posed: PosedScene, rgb, d
                     "references_solved": _flag_list(posed.references_solved, refs),
                     "targets": targets_a, "targets_located": _flag_list(posed.targets_located, targets),
                     "fallbacks": posed.fallbacks, "scale": posed.scale,
-                    "scale_source": posed.scale_source}}
+                    "scale_source": posed.scale_source,
+                    "principal_offset": None if posed.principal_offset is None
+                    else [float(x) for x in posed.principal_offset]}}
 
 
 class _OrderRecord:
