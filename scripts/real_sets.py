@@ -31,8 +31,10 @@ The sets (source: Debian ``visp-images-data``, ``/usr/share/visp-images-data/ViS
   ``iris-eval`` keeps 8 evenly, 21 23 27 29 31 33 37 39).
 - ``castel``: ``mbt-depth/castel/castel/image_NNNN.pgm``, a real camera moving around a real
   castle model on a table (parallax between the towers and the room behind), 640x480, 30 frames
-  of which 0-2 are still (``--check``); 4 scenes of 8 frames starting at 2, 8, 2, 15 with steps
-  3, 3, 2, 2. No poses (the package holds only the tracker's initial pose).
+  of which 0-2 are still (``--check``); one scene of 8 frames spread over the moving ones (2, 6,
+  10, 14, 17, 21, 25, 29). No poses (the package holds only the tracker's initial pose). The
+  camera moves little: at the model's 64x64 neighbouring frames differ by about a pixel, so the
+  best reference photo is hard to beat there (docs/REAL.md): a check of sharpness, not a bar.
 
 Other sequences looked at and why they are not sets: ``CANDIDATES`` and docs/REAL.md.
 """
@@ -100,7 +102,7 @@ SETS = {
                        SceneSpec("1_frames21-39_step2", tuple(range(21, 40, 2)))), "castle", (480, 640)),
     "castel": SetSpec("castel", "ViSP castel: a real camera moving around a real castle model "
                                 "(grey, 640x480)", "mbt-depth/castel/castel/image_{:04d}.pgm",
-                      _strided_scenes(((2, 3), (8, 3), (2, 2), (15, 2))), None, (480, 640)),
+                      (SceneSpec("0_frames02-29", (2, 6, 10, 14, 17, 21, 25, 29)),), None, (480, 640)),
 }
 
 
@@ -357,7 +359,7 @@ CANDIDATES = {
     "visp Castle-simu": (PACKAGE, lambda r: _read_glob(r / "mbt-depth/Castle-simu/Images", "*.pgm"),
                          "set 'castle'"),
     "visp mbt-depth/castel": (PACKAGE, lambda r: _read_glob(r / "mbt-depth/castel/castel", "*.pgm"),
-                              "set 'castel' (frames 2-29)"),
+                              "set 'castel' (frames 2-29; small motion)"),
     "visp mbt/cube": (PACKAGE, lambda r: _read_glob(r / "mbt/cube", "*.pgm"),
                       "rejected: still camera (the border does not move), a hand moves the cube"),
     "visp mire-2": (PACKAGE, lambda r: _read_glob(r / "mire-2", "*.pgm"),
