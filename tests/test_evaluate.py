@@ -87,14 +87,24 @@ def tiny_model():
 
 
 def check_structure(results):
+    """The summary keys (the best-reference baseline and the per-scene records were added)."""
     assert set(results) == {"seq", "rand"}
     for R in results.values():
-        assert set(R) == {"model", "baselines"}
+        assert set(R) == {"model", "baselines", "scenes"}
         assert set(R["model"]) == {"psnr", "ssim", *RPA_KEYS, *LOCATE_KEYS, "depth_spearman"}
-        assert set(R["baselines"]) == {"nearest_reference", "mean_colour", "identity_poses"}
+        assert set(R["baselines"]) == {"nearest_reference", "mean_colour", "identity_poses",
+                                       "best_reference"}
         assert set(R["baselines"]["nearest_reference"]) == {"psnr", "ssim"}
+        assert set(R["baselines"]["best_reference"]) == {"psnr", "ssim"}
         assert set(R["baselines"]["mean_colour"]) == {"psnr", "ssim"}
         assert set(R["baselines"]["identity_poses"]) == {*RPA_KEYS, *LOCATE_KEYS}
+        for s in R["scenes"]:
+            assert set(s) == {"index", "name", "model", "baselines", "cameras"}
+            assert set(s["model"]) == set(R["model"])
+            assert set(s["baselines"]) == set(R["baselines"])
+            assert set(s["cameras"]) == {"source", "references", "references_solved", "targets",
+                                         "targets_located", "fallbacks", "scale", "scale_source",
+                                         "principal_offset"}
 
 
 # ----------------------------------------------------------------------------------------------
@@ -424,3 +434,239 @@ def test_cli_reports_bad_inputs_in_one_line(tmp_path, capsys):
     (tmp_path / "empty").mkdir()
     assert main([str(tmp_path / "empty"), "synthetic:heldout"]) == 2
     assert "iris.json" in capsys.readouterr().err
+
+
+# ----------------------------------------------------------------------------------------------
+# The best-reference baseline, per-scene records, camera sources and --cameras true
+# ----------------------------------------------------------------------------------------------
+
+def test_best_reference_matches_a_brute_force_search():
+    from iris_train.evaluate import best_reference
+    from iris_train.metrics import psnr
+    rng = np.random.default_rng(7)
+    base = rng.uniform(0, 1, (*SIZE, 3))
+    # Frames are the base image plus noise of different strengths, so the best one is not the
+    # nearest index; frame 5 equals target 6 exactly (the PSNR cap decides, not inf).
+    images = np.stack([np.clip(base + rng.normal(0, s, base.shape), 0, 1)
+                       for s in (0.3, 0.05, 0.2, 0.01, 0.1, 0.5, 0.4, 0.02)])
+    distinct = images.copy()
+    images[5] = images[6]
+    refs, targets = split_frames(8)
+    expected = []
+    for t in targets:
+        best, best_score = None, -np.inf
+        for r in refs:                                 # ties go to the earlier reference
+            score = min(psnr(images[r], images[t]), 100.0)
+            if score > best_score:
+                best, best_score = r, score
+        expected.append(best)
+    assert best_reference(images, refs, targets) == expected == [3, 3, 5]
+    # evaluate() reports it per scene (with the frames copied) and as a mean over scenes (the
+    # oracle runtime tells frames apart by their pixels: no duplicate there).
+    scene = rotation_scene(8)
+    scene.images = np.rint(distinct * 255).astype(np.uint8)
+    results = evaluate(OracleRuntime([scene]), [scene], progress=False)
+    gt = scene.images / 255.0
+    picked = best_reference(gt, refs, targets)
+    want = np.mean([min(psnr(gt[r], gt[t]), 100.0) for r, t in zip(picked, targets)])
+    for order in ORDERS:
+        record = results[order]["scenes"][0]["baselines"]["best_reference"]
+        assert record["frames"] == picked and record["psnr"] == pytest.approx(want)
+        assert results[order]["baselines"]["best_reference"]["psnr"] == pytest.approx(want)
+    assert "best reference" in format_table(results)
+
+
+def test_scene_records_say_where_the_cameras_came_from():
+    """A solve that leaves two references to the camera head ("mixed"): the records name them,
+    count them as fallbacks, and the summary adds them up; model cameras: no flags."""
+    import dataclasses as dc
+    from iris_train.evaluate import format_scenes
+
+    @dc.dataclass
+    class MixedScene:
+        world_from_cam: np.ndarray
+        views: list
+        all_poses: np.ndarray
+        all_images: np.ndarray
+        camera_source: str = "mixed"
+
+    class MixedRuntime(OracleRuntime):
+        default_cameras = "epipolar"
+
+        def encode(self, images, cameras=None):
+            plain = super().encode(images)
+            if cameras == "model":
+                return plain
+            poses = plain.world_from_cam.copy()
+            poses[[1, 2, 4], :3, 3] += 0.01         # views 1, 2, 4 "solved", 3 and 0 not changed
+            return MixedScene(poses, plain.views, plain.all_poses, plain.all_images)
+
+    scenes = [rotation_scene(9), rotation_scene(10)]
+    results = evaluate(MixedRuntime(scenes), scenes, progress=False, locate="model")
+    refs, targets = split_frames(8)
+    for order in ORDERS:
+        R = results[order]
+        assert R["cameras"]["sources"] == {"mixed": 2}
+        assert R["cameras"]["fallbacks"] == 2 and R["cameras"]["scenes_with_fallbacks"] == 2
+        for k, s in enumerate(R["scenes"]):
+            c = s["cameras"]
+            ref_order, _ = presentation_order(order, refs, targets, k)
+            kept = {ref_order[3]}                   # presentation positions 0 and 3 not solved,
+            assert c["source"] == "mixed" and c["fallbacks"] == 1   # position 0 is the root
+            assert c["references_solved"] == [f not in kept for f in refs]
+            assert c["targets_located"] is None and s["name"] == f"scene {k}"   # model locate
+    table = format_scenes(results)
+    assert "mixed" in table and table.count("4/5") == 4
+    plain = evaluate(OracleRuntime(scenes), scenes, progress=False)
+    assert all(s["cameras"]["references_solved"] is None and s["cameras"]["fallbacks"] == 0
+               for s in plain["seq"]["scenes"])
+
+
+def plane_scene(size=64, views=8, seed=3):
+    """8 photos of a textured plane (z = 2 in the world) from cameras moving sideways and
+    turning a little (a few pixels of flow a frame, which DIS follows), rendered exactly by ray
+    casting; true poses, K and depth."""
+    rng = np.random.default_rng(seed)
+    import cv2
+    texture = cv2.GaussianBlur(rng.uniform(0, 1, (512, 512, 3)).astype(np.float32), (0, 0), 3.0)
+    texture = 255 * (texture - texture.min()) / (texture.max() - texture.min())
+    H = W = size
+    K = np.array([[1.2 * W, 0, W / 2], [0, 1.2 * H, H / 2], [0, 0, 1.0]])
+    v, u = np.mgrid[0:H, 0:W] + 0.5
+    rays = np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(K).T
+    images, poses, depths = [], [], []
+    for k in range(views):
+        T = pose(rot_y(0.3 * k - 1.0) @ rot_x(0.5 * (k % 3) - 0.5), (0.05 * k - 0.2, 0.01 * k, 0.0))
+        d = rays @ T[:3, :3].T
+        lam = (2.0 - T[2, 3]) / d[..., 2]
+        X = T[:3, 3] + lam[..., None] * d
+        map_x = ((X[..., 0] + 1.5) / 3.0 * 512 - 0.5).astype(np.float32)
+        map_y = ((X[..., 1] + 1.5) / 3.0 * 512 - 0.5).astype(np.float32)
+        images.append(np.clip(cv2.remap(texture, map_x, map_y, cv2.INTER_LINEAR), 0, 255).astype(np.uint8))
+        poses.append(T)
+        depths.append(lam * rays[..., 2])
+    return SimpleNamespace(images=np.stack(images), world_from_cam=np.stack(poses), K=K,
+                           depth=np.stack(depths))
+
+
+def rot_x(deg):
+    a = np.radians(deg)
+    return np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
+
+
+def test_true_cameras_are_the_true_ones_rebased_and_scaled():
+    from iris_runtime.cameras import DEPTH_TARGET
+    from iris_train.evaluate import true_cameras
+    scene = plane_scene()
+    refs, _ = split_frames(8)
+    for ref_order in (list(refs), presentation_order("rand", refs, (1, 4, 6), 2)[0]):
+        tc = true_cameras(scene.images, scene.world_from_cam, scene.K, ref_order, (0.1, 1.0))
+        rebased = np.linalg.inv(scene.world_from_cam[ref_order[0]]) @ scene.world_from_cam
+        np.testing.assert_allclose(tc.world_from_cam[:, :3, :3], rebased[:, :3, :3], atol=1e-12)
+        np.testing.assert_allclose(tc.world_from_cam[:, :3, 3], tc.scale * rebased[:, :3, 3], atol=1e-12)
+        np.testing.assert_array_equal(tc.world_from_cam[ref_order[0]], np.eye(4))
+        np.testing.assert_allclose(tc.focal, [1.2, 1.2])
+        assert tc.scale_source == "matches" and tc.principal_offset.tolist() == [0.0, 0.0]
+        # The rule: the median depth of the scene (here the true depth maps of the references)
+        # lands DEPTH_TARGET of the way into [near, far].
+        target = 0.1 + DEPTH_TARGET * 0.9
+        assert tc.scale * np.median(scene.depth[list(refs)]) == pytest.approx(target, rel=0.03)
+        if ref_order == list(refs):
+            seq = tc
+    assert tc.scale == pytest.approx(seq.scale, rel=1e-12)     # nor on the order (but rounding)
+    # Neither the world frame nor its unit changes the result.
+    M = pose(rot_y(40.0) @ rot_x(-25.0), (3.0, -1.0, 7.0))
+    moved = M @ scene.world_from_cam
+    moved[:, :3, 3] *= 3.7
+    again = true_cameras(scene.images, moved, scene.K, list(refs), (0.1, 1.0))
+    np.testing.assert_allclose(again.world_from_cam, seq.world_from_cam, atol=1e-9)
+
+
+def test_true_focal_follows_the_crop_to_model_resolution():
+    from iris_train.evaluate import prepare_scene
+    scene = plane_scene(size=32)
+    scene.images = np.repeat(scene.images, 2, axis=2)[:, :, :48]      # 32 x 48 photos
+    scene.K = np.array([[40.0, 0, 24.0], [0, 40.0, 16.0], [0, 0, 1]])
+    prepared = prepare_scene(scene, 8, SIZE)
+    # centre crop 32 x 32 (x0 = 8), then halved: fx 20, cx (24 - 8) / 2 = 8.
+    np.testing.assert_allclose(prepared.K, np.broadcast_to([[20.0, 0, 8.0], [0, 20.0, 8.0], [0, 0, 1]],
+                                                           (8, 3, 3)))
+
+
+def check_true_run(results, n_scenes):
+    for order in ORDERS:
+        R = results[order]
+        assert all(R["model"][k] == 1.0 for k in RPA_KEYS + LOCATE_KEYS)
+        assert R["cameras"] == {"references": "true", "targets": "true", "sources": {"true": n_scenes},
+                                "targets_epipolar": None, "fallbacks": 0, "scenes_with_fallbacks": 0}
+        for s in R["scenes"]:
+            assert s["cameras"]["source"] == "true" and s["cameras"]["scale_source"] == "matches"
+            assert s["cameras"]["references_solved"] == [True] * 5
+        assert 0 < R["model"]["psnr"] <= 100 and np.isfinite(R["model"]["ssim"])
+
+
+def test_evaluate_with_true_cameras_on_a_torch_model():
+    from iris_train.evaluate import TorchBackend
+    from iris_train.evaluate.cameras import pose_scene
+    model = tiny_model()
+    scene = plane_scene(size=SIZE[0] * 2)               # 32 x 32 photos, fitted to 16 x 16
+    check_true_run(evaluate(model, [scene], progress=False, cameras="true"), 1)
+    # The encoded scene renders from exactly the true cameras, the targets at theirs.
+    from iris_train.evaluate import prepare_scene
+    p = prepare_scene(scene, 8, SIZE)
+    refs, targets = split_frames(8)
+    posed = pose_scene(TorchBackend(model), p.images, p.poses, p.K, refs, targets, "true", "true")
+    truth = true_cameras_of(p, refs)
+    np.testing.assert_allclose(posed.encoded.world_from_cam.numpy(), truth.world_from_cam[list(refs)],
+                               atol=1e-6)
+    np.testing.assert_allclose(posed.encoded.focal.numpy(), truth.focal, atol=1e-6)
+    np.testing.assert_allclose(posed.world_from_cam, truth.world_from_cam, atol=1e-12)
+
+
+def true_cameras_of(prepared, refs):
+    from iris_train.evaluate import true_cameras
+    return true_cameras(prepared.images, prepared.poses, prepared.K, list(refs), (0.1, 1.0))
+
+
+def test_evaluate_with_true_cameras_on_an_exported_model(model_dir):
+    """The exported-model path: the runtime's Scene gets the true cameras and focal, the render
+    runs, and the cameras equal the torch path's."""
+    from iris_runtime import IrisRuntime
+    from iris_train.evaluate import RuntimeBackend, prepare_scene
+    from iris_train.evaluate.cameras import pose_scene
+    rt = IrisRuntime(model_dir, threads=1)
+    scene = plane_scene(size=rt.image_size[0])
+    check_true_run(evaluate(rt, [scene], progress=False, cameras="true"), 1)
+    p = prepare_scene(scene, 8, rt.image_size)
+    refs, targets = split_frames(8)
+    posed = pose_scene(RuntimeBackend(rt), p.images, p.poses, p.K, refs, targets, "true", "true")
+    truth = true_cameras_of(p, refs)
+    np.testing.assert_allclose(posed.encoded.world_from_cam, truth.world_from_cam[list(refs)], atol=1e-12)
+    np.testing.assert_allclose(posed.encoded.focal, truth.focal, atol=1e-12)
+    assert posed.encoded.encoder_focal is not None          # locate still recognises the images
+    rt.locate(posed.encoded, p.images[1])
+
+
+def test_true_cameras_bad_arguments(tmp_path, capsys):
+    from iris_runtime.errors import InputError
+    no_cameras = rotation_scene(14)
+    no_cameras.world_from_cam = None
+    with pytest.raises(InputError, match=r"scene 0 \(scene 0\): cameras: 'true' needs"):
+        evaluate(OracleRuntime([no_cameras]), [no_cameras], progress=False, cameras="true")
+    with pytest.raises(InputError, match="locate: 'true' needs cameras='true'"):
+        evaluate(OracleRuntime([no_cameras]), [no_cameras], progress=False, locate="true")
+    with pytest.raises(InputError, match="cameras: expected one of"):
+        evaluate(OracleRuntime([no_cameras]), [no_cameras], progress=False, cameras="colmap")
+    with pytest.raises(InputError, match="locate: expected one of"):
+        evaluate(OracleRuntime([no_cameras]), [no_cameras], progress=False, locate="sfm")
+    # The CLI on a folder without cameras: one line, exit 2.
+    from PIL import Image
+    ckpt = tmp_path / "model.pt"
+    save_checkpoint(ckpt, tiny_model())
+    folder = tmp_path / "data" / "scene_a"
+    folder.mkdir(parents=True)
+    for k, im in enumerate(rotation_scene(4).images):
+        Image.fromarray(im).save(folder / f"{k:03d}.png")
+    assert main([str(ckpt), str(tmp_path / "data"), "--cameras", "true", "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("iris-eval: error: scene 0 (scene_a)") and len(err.splitlines()) == 1

@@ -1,0 +1,172 @@
+"""One interface over the two things ``iris-eval`` evaluates: an ``IrisModel`` checkpoint run in
+torch, and an exported model run by ``iris_runtime.IrisRuntime`` (numpy + onnxruntime).
+
+Both backends: ``encode(images uint8 [V, H, W, 3], cameras)`` -> a scene whose references are
+exactly those images; ``poses(scene) -> [V, 4, 4]``; ``locate(scene, references, queries) ->
+[Q, 4, 4]``, the model's own prediction; ``with_cameras(scene, world_from_cam, focal)``: the same
+field maps rendered from other cameras; ``render(scene, poses [N, 4, 4]) -> (rgb [N, H, W, 3],
+depth [N, H, W])`` float64 at the model's resolution. After ``encode`` they hold
+``last_source`` (the scene's camera source) and ``last_solved`` (bool [V]: which views' cameras
+came from the epipolar solve; None with the model's cameras).
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+__all__ = ["TorchBackend", "RuntimeBackend", "backend_for", "focal_of"]
+
+
+def focal_of(encoded) -> np.ndarray | None:
+    """The normalised focal [fx/W, fy/H] of an encoded scene (torch or runtime), or None."""
+    f = getattr(encoded, "focal", None)
+    if f is None:
+        return None
+    if hasattr(f, "detach"):
+        f = f.detach().cpu().double().numpy()
+    return np.asarray(f, dtype=np.float64)
+
+
+class TorchBackend:
+    """``IrisModel`` in torch (a checkpoint)."""
+
+    def __init__(self, model):
+        self.model = model
+        self.image_size = (model.cfg.image_height, model.cfg.image_width)
+        self.depth_range = (model.cfg.near, model.cfg.far)
+        self.last_source = "model"
+        self.last_solved = None
+        # A checkpoint loaded by load_evaluable knows the cameras it was trained with.
+        self.default_cameras = getattr(model, "trained_cameras", "model")
+
+    @staticmethod
+    def _tensor(images: np.ndarray):
+        import torch
+        return torch.from_numpy(np.ascontiguousarray(images)).permute(0, 3, 1, 2).float() / 255.0
+
+    def encode(self, images: np.ndarray, cameras: str | None = None):
+        """``cameras``: None = ``default_cameras``; ``"epipolar"``: the model's poses and focal
+        replaced by ``iris_runtime.cameras.replace_model_cameras`` of the images, as
+        ``IrisRuntime.encode`` does."""
+        import torch
+        cameras = self.default_cameras if cameras is None else cameras
+        with torch.no_grad():
+            scene = self.model.encode(self._tensor(images))
+        self.last_source, self.last_solved = "model", None
+        if cameras == "epipolar":
+            from iris_runtime.cameras import replace_model_cameras
+            ref = replace_model_cameras(np.ascontiguousarray(images), self.poses(scene),
+                                        focal_of(scene), self.image_size, self.depth_range)
+            scene = self.with_cameras(scene, ref.world_from_cam, ref.focal)
+            self.last_source = ref.source
+            self.last_solved = np.array([st != "unposed" for st in ref.status], dtype=bool)
+        return scene
+
+    def with_cameras(self, scene, world_from_cam: np.ndarray, focal: np.ndarray):
+        import torch
+        return dataclasses.replace(
+            scene, world_from_cam=torch.as_tensor(np.asarray(world_from_cam)).to(scene.world_from_cam),
+            focal=torch.as_tensor(np.asarray(focal)).to(scene.focal))
+
+    def poses(self, scene) -> np.ndarray:
+        return scene.world_from_cam.detach().double().numpy()
+
+    def locate(self, scene, references: np.ndarray, queries: np.ndarray) -> np.ndarray:
+        """The model's poses [Q, 4, 4] of ``queries`` in the frame of ``encode(references)``."""
+        import torch
+        with torch.no_grad():
+            return self.model.locate(self._tensor(references), self._tensor(queries)).double().numpy()
+
+    def render(self, scene, poses: np.ndarray):
+        import torch
+        H, W = self.image_size
+        rgb, depth = self.model.render(scene, torch.as_tensor(poses, dtype=scene.field_maps.dtype), H, W)
+        return rgb.double().numpy(), depth.double().numpy()
+
+
+class RuntimeBackend:
+    """An exported model run by ``iris_runtime.IrisRuntime`` (numpy + onnxruntime)."""
+
+    def __init__(self, runtime):
+        self.rt = runtime
+        H, W = runtime.image_size
+        self.image_size = (int(H), int(W))
+        self.depth_range = (float(runtime.near), float(runtime.far))
+        self.last_source = "model"
+        self.last_solved = None
+        self.default_cameras = getattr(runtime, "default_cameras", "model")
+
+    def encode(self, images: np.ndarray, cameras: str | None = None):
+        cameras = self.default_cameras if cameras is None else cameras
+        if cameras == self.default_cameras:     # (duck-typed runtimes need not know cameras=)
+            scene = self.rt.encode(list(images))
+        else:
+            scene = self.rt.encode(list(images), cameras=cameras)
+        self.last_source = getattr(scene, "camera_source", "model")
+        self.last_solved = None if cameras == "model" else self._solved(scene, images)
+        return scene
+
+    def _solved(self, scene, images: np.ndarray) -> np.ndarray:
+        """bool [V]: the views whose camera the camera solve gave (``Scene.camera_status``)."""
+        V = len(images)
+        status = getattr(scene, "camera_status", None)
+        if status is not None:
+            return np.array([st != "unposed" for st in status], dtype=bool)
+        if self.last_source == "epipolar":
+            return np.ones(V, dtype=bool)
+        if self.last_source != "mixed":
+            return np.zeros(V, dtype=bool)
+        own = np.asarray(self.rt.encode(list(images), cameras="model").world_from_cam)
+        solved = ~np.all(np.isclose(np.asarray(scene.world_from_cam), own, rtol=0.0, atol=1e-9),
+                         axis=(1, 2))
+        solved[0] = True                        # the frame's root: the identity either way
+        return solved
+
+    def with_cameras(self, scene, world_from_cam: np.ndarray, focal: np.ndarray):
+        """The same field maps and images with other cameras; ``encoder_focal`` keeps the
+        encoder's focal so that ``IrisRuntime.locate`` still recognises the reference images."""
+        from iris_runtime import geometry as G
+        H, W = self.image_size
+        focal = np.asarray(focal, dtype=np.float64)
+        encoder_focal = scene.focal if scene.encoder_focal is None else scene.encoder_focal
+        return dataclasses.replace(scene, world_from_cam=np.asarray(world_from_cam, np.float64),
+                                   focal=focal, K=G.intrinsics_from_focal(focal, H, W),
+                                   encoder_focal=encoder_focal, camera_source="model")
+
+    def poses(self, scene) -> np.ndarray:
+        return np.asarray(scene.world_from_cam, dtype=np.float64)
+
+    def locate(self, scene, references: np.ndarray, queries: np.ndarray) -> np.ndarray:
+        """The model's poses [Q, 4, 4] of ``queries`` in ``scene``'s frame (the scene keeps its
+        references). Asked on the scene with ``camera_source`` "model": ``IrisRuntime.locate``
+        of a solved scene would run the epipolar location itself, which ``evaluate`` runs once
+        where it is asked for (and records which targets it posed)."""
+        if getattr(scene, "camera_source", "model") != "model" and dataclasses.is_dataclass(scene):
+            scene = dataclasses.replace(scene, camera_source="model")
+        return np.asarray(self.rt.locate(scene, list(queries)), dtype=np.float64)
+
+    def render(self, scene, poses: np.ndarray):
+        H, W = self.image_size
+        rgbs, depths = [], []
+        for pose in poses:
+            result = self.rt.render(scene, pose, height=H, width=W, depth=True)
+            image = getattr(result, "image_float", None)
+            if image is None:
+                image = np.asarray(getattr(result, "image", result), dtype=np.float64) / 255.0
+            rgbs.append(np.asarray(image, dtype=np.float64))
+            depth = getattr(result, "depth", None)
+            depths.append(np.zeros((H, W)) if depth is None else np.asarray(depth, dtype=np.float64))
+        return np.stack(rgbs), np.stack(depths)
+
+
+def backend_for(model):
+    """``TorchBackend`` for an ``IrisModel``, else ``RuntimeBackend`` (an ``IrisRuntime`` or an
+    object with its interface)."""
+    try:
+        from ..model import IrisModel
+    except ImportError:          # torch missing: only the runtime path is possible
+        IrisModel = ()
+    if isinstance(model, IrisModel):
+        return TorchBackend(model)
+    return RuntimeBackend(model)

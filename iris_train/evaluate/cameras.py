@@ -1,0 +1,214 @@
+"""Where the cameras of an evaluated scene come from: the model's, the epipolar solve's, or the
+data's own ("true"), for the references (the encoded scene) and for the targets (located).
+
+``true_cameras`` puts a scene's own cameras in the frame and unit the renderer works in, by the
+rule the camera solve uses (``iris_runtime.cameras.solve_cameras``): re-based on view 0 of the
+presentation, and scaled so that the median depth of the reference images' triangulated points
+lies ``DEPTH_TARGET`` of the way into the model's [near, far]. The points are the solve's own
+matches triangulated with the true cameras (``iris_runtime.cameras.point_map_from_cameras``),
+never stored depth maps: the same photos then get the same unit whichever cameras they are
+rendered from, so ``--cameras true`` and ``--cameras epipolar`` differ only in the cameras.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+from iris_runtime.errors import InputError
+
+#: Triangulated observations needed to scale true cameras by their depth; with fewer, the mean
+#: baseline is set to DEFAULT_BASELINE.
+MIN_POINTS = 20
+#: Mean distance between camera centres of the 16 held-out synthetic scenes' true cameras, in the
+#: renderer's unit (depths in [0.1, 1.0]).
+DEFAULT_BASELINE = 0.14
+
+from .backends import focal_of
+
+__all__ = ["CAMERA_MODES", "LOCATE_MODES", "TrueCameras", "true_cameras", "PosedScene",
+           "pose_scene", "check_modes", "camera_panel"]
+
+#: ``--cameras``: where the references' cameras come from.
+CAMERA_MODES = ("model", "epipolar", "true")
+#: ``--locate``: where the targets' cameras come from.
+LOCATE_MODES = ("model", "epipolar", "true")
+
+
+def check_modes(default_cameras: str, cameras: str | None, locate: str | None) -> tuple[str, str]:
+    """``(cameras, locate)`` with the defaults filled in (cameras: the model's trained ones;
+    locate: as cameras); ``InputError`` for an unknown mode, or for true target cameras with
+    other reference cameras (they would lie in another frame)."""
+    cameras = default_cameras if cameras is None else cameras
+    if cameras not in CAMERA_MODES:
+        raise InputError(f"cameras: expected one of {list(CAMERA_MODES)}, got {cameras!r}")
+    locate = cameras if locate is None else locate
+    if locate not in LOCATE_MODES:
+        raise InputError(f"locate: expected one of {list(LOCATE_MODES)}, got {locate!r}")
+    if locate == "true" and cameras != "true":
+        raise InputError(f"locate: 'true' needs cameras='true' (true target poses lie in the true "
+                         f"cameras' frame), got cameras={cameras!r}")
+    return cameras, locate
+
+
+@dataclass(frozen=True)
+class TrueCameras:
+    """A scene's own cameras in the renderer's frame and unit.
+
+    world_from_cam:   float64 [V, 4, 4]  every frame's camera, view ``root`` = I, centres scaled
+    focal:            float64 [2]        (fx/W, fy/H) at the model's resolution, the references' mean
+    scale:            the factor applied to the re-based true centres
+    scale_source:     "matches" (the depth rule), "baseline" (too few matches triangulate: the
+                      references' mean baseline becomes ``DEFAULT_BASELINE``) or "none"
+                      (all reference centres coincide: nothing to scale)
+    principal_offset: float64 [2]  the references' mean principal point minus the image centre,
+                      pixels of the model image (the renderer assumes a centred one)
+    """
+    world_from_cam: np.ndarray
+    focal: np.ndarray
+    scale: float
+    scale_source: str
+    principal_offset: np.ndarray
+
+
+def true_cameras(images: np.ndarray, world_from_cam: np.ndarray, K: np.ndarray,
+                 references: Sequence[int], depth_range: tuple[float, float]) -> TrueCameras:
+    """The true cameras of one scene for rendering from ``references`` (presentation order).
+
+    images uint8 [V, H, W, 3] at the model's resolution; world_from_cam [V, 4, 4] the true poses
+    (any world frame and unit); K [V, 3, 3] (or [3, 3]) the true intrinsics in pixels of those
+    images; depth_range (near, far) of the model. The frame is rooted at ``references[0]``; the
+    scale comes from the references alone (sorted, so every presentation order gets the same).
+    """
+    from iris_runtime.cameras import DEPTH_TARGET
+    from iris_runtime.cameras.locate import point_map_from_cameras
+    images = np.asarray(images)
+    T = np.asarray(world_from_cam, dtype=np.float64)
+    V, H, W = images.shape[:3]
+    K = np.broadcast_to(np.asarray(K, dtype=np.float64), (V, 3, 3))
+    refs = [int(r) for r in references]
+    if T.shape != (V, 4, 4) or not np.isfinite(T).all() or not np.isfinite(K).all():
+        raise InputError(f"world_from_cam, K: expected finite [{V}, 4, 4] and [{V}, 3, 3], got "
+                         f"{T.shape} and {K.shape}")
+    near, far = (float(x) for x in depth_range)
+    rebased = np.linalg.inv(T[refs[0]]) @ T
+    rebased[refs[0]] = np.eye(4)
+    focal = np.array([K[refs, 0, 0].mean() / W, K[refs, 1, 1].mean() / H])
+    offset = np.array([K[refs, 0, 2].mean() - W / 2, K[refs, 1, 2].mean() - H / 2])
+    ordered = sorted(refs)
+    points = point_map_from_cameras(list(images[ordered]), rebased[ordered], float(focal[0]) * W)
+    cam_from_world = np.linalg.inv(rebased[ordered])[points.view]             # [N, 4, 4]
+    depths = np.einsum("nj,nj->n", cam_from_world[:, 2, :3], points.points[points.point]) \
+        + cam_from_world[:, 2, 3]
+    depths = depths[depths > 0]
+    if len(depths) >= MIN_POINTS:
+        scale = (near + DEPTH_TARGET * (far - near)) / float(np.median(depths))
+        how = "matches"
+    elif np.ptp(rebased[refs, :3, 3], axis=0).max() > 0:
+        centres = rebased[refs, :3, 3]
+        i, j = np.triu_indices(len(centres), 1)
+        scale = DEFAULT_BASELINE / float(np.linalg.norm(centres[i] - centres[j], axis=1).mean())
+        how = "baseline"
+    else:
+        scale, how = 1.0, "none"
+    out = rebased.copy()
+    out[:, :3, 3] *= scale
+    return TrueCameras(out, focal, float(scale), how, offset)
+
+
+@dataclass
+class PosedScene:
+    """One scene encoded from its references and with every frame posed, in frame order.
+
+    encoded:          the backend's scene (references in presentation order)
+    world_from_cam:   float64 [V, 4, 4]  the cameras rendered from / at (references and targets)
+    source:           "model", "epipolar", "mixed" (the Scene's ``camera_source``) or "true"
+    references_solved: bool [V] over frames (False for targets), which reference cameras the
+                      epipolar solve (or the data) gave; None with the model's cameras
+    targets_located:  bool [V] over frames, which targets ``cameras.locate_views`` posed (or the
+                      data, with ``locate="true"``); None with the model's locate
+    fallbacks:        views that were to get a solved camera and kept the camera head's
+    scale, scale_source, principal_offset: of ``true_cameras`` (None for the other modes)
+    """
+    encoded: object
+    world_from_cam: np.ndarray
+    source: str
+    references_solved: np.ndarray | None
+    targets_located: np.ndarray | None
+    fallbacks: int
+    scale: float | None = None
+    scale_source: str | None = None
+    principal_offset: np.ndarray | None = None
+
+
+def pose_scene(backend, images: np.ndarray, true_poses: np.ndarray | None, true_K: np.ndarray | None,
+               ref_order: Sequence[int], target_order: Sequence[int], cameras: str,
+               locate: str) -> PosedScene:
+    """Encode ``images[ref_order]`` (the references alone) and pose every frame.
+
+    References: the model's cameras, the epipolar solve's (``backend.encode(cameras=
+    "epipolar")``) or ``true_cameras`` (needs ``true_poses`` [V, 4, 4] and ``true_K`` [V, 3, 3]
+    at the model's resolution, else ``InputError``). Targets: the model's ``locate``;
+    ``iris_runtime.cameras.locate_views`` against the references' cameras, the model's pose
+    kept for a target it cannot pose; or the true cameras.
+    """
+    V = images.shape[0]
+    ref_order, target_order = list(ref_order), list(target_order)
+    pred = np.empty((V, 4, 4))
+    truth = None
+    if "true" in (cameras, locate):
+        if true_poses is None or true_K is None:
+            raise InputError("cameras: 'true' needs the data's own cameras, and this scene has "
+                             "none (a folder needs transforms.json or COLMAP text files)")
+        truth = true_cameras(images, true_poses, true_K, ref_order, backend.depth_range)
+    if cameras == "true":
+        encoded = backend.with_cameras(backend.encode(images[ref_order], cameras="model"),
+                                       truth.world_from_cam[ref_order], truth.focal)
+        source, refs_solved = "true", np.ones(len(ref_order), dtype=bool)
+    else:
+        encoded = backend.encode(images[ref_order], cameras=cameras)
+        source, refs_solved = backend.last_source, backend.last_solved
+    pred[ref_order] = backend.poses(encoded)
+    located = None
+    if locate == "true":
+        pred[target_order] = truth.world_from_cam[target_order]
+        located = np.ones(len(target_order), dtype=bool)
+    else:
+        poses = backend.locate(encoded, images[ref_order], images[target_order])
+        if locate == "epipolar":
+            from iris_runtime.cameras import locate_views
+            epi, located = locate_views(images[ref_order], pred[ref_order],
+                                        float(focal_of(encoded)[0]), images[target_order])
+            poses = np.where(located[:, None, None], epi, poses)
+        pred[target_order] = poses
+    fallbacks = 0
+    if cameras == "epipolar" and refs_solved is not None:
+        fallbacks += int((~refs_solved).sum())
+    if locate == "epipolar":
+        fallbacks += int((~located).sum())
+    return PosedScene(
+        encoded, pred, source, _over_frames(refs_solved, ref_order, V),
+        _over_frames(located, target_order, V), fallbacks,
+        None if truth is None else truth.scale, None if truth is None else truth.scale_source,
+        None if truth is None else truth.principal_offset)
+
+
+def _over_frames(flags: np.ndarray | None, frames: Sequence[int], V: int) -> np.ndarray | None:
+    if flags is None:
+        return None
+    out = np.zeros(V, dtype=bool)
+    out[list(frames)] = np.asarray(flags, dtype=bool)
+    return out
+
+
+def camera_panel(pred_poses: np.ndarray, pred_focal, gt_poses: np.ndarray | None, gt_K,
+                 size: tuple[int, int]) -> np.ndarray:
+    """Picture of the predicted cameras (``iris_runtime.camera_plot``), moved into the true frame
+    by a similarity alignment of their centres when true cameras are known."""
+    from iris_runtime.camera_plot import align_poses, draw_cameras
+    if gt_poses is None:
+        return draw_cameras(pred_poses, pred_focal, size=size, title="predicted cameras")
+    aligned, (s, _, _) = align_poses(pred_poses, gt_poses)
+    return draw_cameras(aligned, pred_focal, reference=gt_poses, reference_focal=gt_K, size=size,
+                        title=f"predicted cameras, similarity-aligned to the true ones (scale {s:.3g})")

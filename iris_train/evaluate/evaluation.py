@@ -1,0 +1,232 @@
+"""``evaluate``: the protocol run over scenes, one step per function (prepare the frames, score the
+photo baselines, pose the scene, render the targets, score and record)."""
+from __future__ import annotations
+
+import contextlib
+import os
+import warnings
+from typing import Iterable
+
+import numpy as np
+
+from iris_runtime.errors import InputError
+
+from ..metrics import depth_spearman, rpa
+from .backends import backend_for, focal_of
+from .cameras import PosedScene, camera_panel, check_modes, pose_scene
+from .protocol import (LOCATE_RPA_KEYS, ORDERS, RAND_SEED, DEFAULT_VIEWS, RPA_KEYS, best_reference,
+                       locate_rpa, nearest_reference, nvs_scores, presentation_order, split_frames)
+from .report import save_grid
+from .scenes import PreparedScene, prepare_scene
+
+__all__ = ["evaluate"]
+
+#: Pixel size (H, W) of the camera picture in ``--grid``.
+_CAMERA_PANEL_SIZE = (450, 700)
+_MODEL_KEYS = ("psnr", "ssim", *RPA_KEYS, *LOCATE_RPA_KEYS, "depth_spearman")
+_POSE_KEYS = (*RPA_KEYS, *LOCATE_RPA_KEYS)
+_IMAGE_BASELINES = ("best_reference", "nearest_reference", "mean_colour")
+
+
+def evaluate(model, scenes: Iterable, *, views: int = DEFAULT_VIEWS, seed: int = RAND_SEED,
+             grid: str | os.PathLike | None = None, progress: bool = True,
+             total: int | None = None, cameras: str | None = None, locate: str | None = None) -> dict:
+    """Evaluate ``model`` (an ``IrisModel`` or an ``iris_runtime.IrisRuntime``) on ``scenes``.
+
+    ``scenes``: objects with ``images`` uint8 ``[V, H, W, 3]`` (trajectory order) and
+    ``world_from_cam`` ``[V, 4, 4]`` or None (no ground-truth cameras), optionally ``K`` (true
+    intrinsics, needed by ``cameras="true"``), ``depth`` and ``meta``. Images of another size are
+    brought to the model's resolution by ``iris_runtime.images.fit_to_model``. The Rand order of a
+    scene is ``presentation_order("rand", ..., i, seed)`` with i its position in ``scenes``.
+    ``grid``: write a PNG of the first scene (Seq order). ``total``: number of scenes, for the
+    progress bar.
+
+    Returns ``{"seq": R, "rand": R}`` with ``R = {"model": {"psnr", "ssim", "rpa@5", "rpa@15",
+    "rpa@30", "locate_rpa@5", "locate_rpa@15", "locate_rpa@30", "depth_spearman"}, "baselines":
+    {"best_reference": {"psnr", "ssim"}, "nearest_reference": {"psnr", "ssim"}, "mean_colour":
+    {"psnr", "ssim"}, "identity_poses": {"rpa@5", ..., "locate_rpa@30"}}, "scenes": [...]}``:
+    means over scenes (module docstring of ``iris_train.evaluate``; a value is None when no scene
+    measures it), and one record per scene (``_scene_record``: its name, scores, baselines, the
+    frames each baseline copied, and where its cameras came from). Raises ``InputError`` when no
+    scene has ``views`` frames.
+
+    ``cameras``: None (default): the cameras the model was trained with (an exported model's
+    ``IrisRuntime.default_cameras``, a checkpoint's training config); "model"; "epipolar": the
+    references' cameras (and focal) are the global epipolar solve of the reference images scaled
+    to the model's units (``iris_runtime.cameras.replace_model_cameras``); "true": the data's own
+    cameras (``cameras.true_cameras``: re-based on view 0, scaled by the solve's depth rule, the
+    true focal). ``locate``: how the targets are posed, "model" (``locate``), "epipolar"
+    (``iris_runtime.cameras.locate_views`` against the references' cameras; a target it cannot
+    pose keeps the model's located pose) or "true" (only with ``cameras="true"``); default: the
+    value of ``cameras``. With anything but model cameras each ``R`` also holds ``"cameras":
+    {"references", "targets", "sources": {camera source: scenes}, "targets_epipolar": fraction
+    of targets posed by the epipolar solve, "fallbacks": views that kept the camera head's camera
+    where a solved one was asked for, "scenes_with_fallbacks"}``.
+    """
+    backend = backend_for(model)
+    cameras, locate = check_modes(backend.default_cameras, cameras, locate)
+    refs, targets = split_frames(views)
+    runs = {order: _OrderRecord() for order in ORDERS}
+    n_used, n_skipped = 0, 0
+    from tqdm import tqdm
+    bar = tqdm(scenes, total=total, desc="iris-eval", unit="scene", disable=not progress,
+               dynamic_ncols=True)
+    with _eval_mode(model), contextlib.closing(bar):
+        for index, scene in enumerate(bar):
+            prepared = prepare_scene(scene, views, backend.image_size, index)
+            if prepared is None:
+                n_skipped += 1
+                continue
+            n_used += 1
+            baselines = _image_baselines(prepared, refs, targets)
+            for order in ORDERS:
+                ref_order, target_order = presentation_order(order, refs, targets, index, seed)
+                try:
+                    posed = pose_scene(backend, prepared.images, prepared.poses, prepared.K,
+                                       ref_order, target_order, cameras, locate)
+                except InputError as exc:
+                    raise InputError(f"scene {index} ({prepared.name}): {exc}") from None
+                rgb, depth = _render_targets(backend, posed, targets, f"scene {index} ({order})")
+                runs[order].add(_scene_record(index, prepared, posed, rgb, depth, refs, targets,
+                                              baselines))
+                if grid is not None and order == "seq" and n_used == 1:
+                    _write_grid(grid, prepared, posed, rgb, depth, refs, targets, backend)
+    if n_used == 0:
+        raise InputError(f"no scene with at least {views} frames to evaluate"
+                         + (f" ({n_skipped} skipped)" if n_skipped else ""))
+    if n_skipped:
+        warnings.warn(f"iris-eval: skipped {n_skipped} scene(s) with fewer than {views} frames")
+    report_cameras = cameras != "model" or locate != "model"
+    return {order: runs[order].summary(cameras, locate, report_cameras) for order in ORDERS}
+
+
+@contextlib.contextmanager
+def _eval_mode(model):
+    training = getattr(model, "training", None)
+    if training:
+        model.eval()
+    try:
+        yield
+    finally:
+        if training:
+            model.train()
+
+
+def _image_baselines(prepared: PreparedScene, refs, targets) -> dict:
+    """The photo baselines of one scene (the same frames in either order, so computed once):
+    ``{name: {"psnr", "ssim", "frames"} or None}``, "frames" the reference copied per target."""
+    gt = prepared.gt_images
+    targets_gt = gt[list(targets)]
+    mean_rgb = gt[list(refs)].reshape(-1, 3).mean(0)
+    out = {"mean_colour": nvs_scores([np.broadcast_to(mean_rgb, g.shape) for g in targets_gt],
+                                     targets_gt),
+           "nearest_reference": None}
+    best = best_reference(gt, refs, targets)
+    out["best_reference"] = {**nvs_scores(gt[best], targets_gt), "frames": best}
+    if prepared.poses is not None:
+        nearest = nearest_reference(prepared.poses, refs, targets)
+        out["nearest_reference"] = {**nvs_scores(gt[nearest], targets_gt), "frames": nearest}
+    return out
+
+
+def _render_targets(backend, posed: PosedScene, targets, where: str):
+    rgb, depth = backend.render(posed.encoded, posed.world_from_cam[list(targets)])
+    if not (np.isfinite(rgb).all() and np.isfinite(posed.world_from_cam).all()):
+        raise InputError(f"{where}: the model returned NaN or inf (poses or colours); nothing to "
+                         "score")
+    return np.clip(rgb, 0.0, 1.0), depth
+
+
+def _depth_score(pred_depths: np.ndarray, true_depths: np.ndarray) -> float | None:
+    """Mean ``depth_spearman`` over the targets where it is defined, or None."""
+    values = [depth_spearman(p, t) for p, t in zip(pred_depths, true_depths)]
+    values = [v for v in values if np.isfinite(v)]
+    return float(np.mean(values)) if values else None
+
+
+def _flag_list(flags, frames):
+    return None if flags is None else [bool(flags[f]) for f in frames]
+
+
+def _scene_record(index: int, prepared: PreparedScene, posed: PosedScene, rgb, depth, refs,
+                  targets, baselines: dict) -> dict:
+    """One scene in one order: ``{"index", "name", "model": {...}, "baselines": {...},
+    "cameras": {"source", "references", "references_solved", "targets", "targets_located",
+    "fallbacks", "scale", "scale_source", "principal_offset"}}`` (flags per frame of
+    ``references`` / ``targets``; the last three for true cameras only, the principal point's
+    offset from the centre in pixels of the model image, which the renderer takes as centred)."""
+    targets_a = list(targets)
+    model = dict.fromkeys(_MODEL_KEYS)
+    model.update(nvs_scores(rgb, prepared.gt_images[targets_a]))
+    if prepared.true_depth is not None:
+        model["depth_spearman"] = _depth_score(depth, prepared.true_depth[targets_a])
+    identity = None
+    if prepared.poses is not None:
+        # RPA does not depend on the world frame, so frame order serves both orders.
+        model.update({**rpa(posed.world_from_cam, prepared.poses),
+                      **locate_rpa(posed.world_from_cam, prepared.poses, targets)})
+        eye = np.broadcast_to(np.eye(4), prepared.poses.shape)
+        identity = {**rpa(eye, prepared.poses), **locate_rpa(eye, prepared.poses, targets)}
+    return {
+        "index": index, "name": prepared.name, "model": model,
+        "baselines": {**baselines, "identity_poses": identity},
+        "cameras": {"source": posed.source, "references": list(refs),
+                    "references_solved": _flag_list(posed.references_solved, refs),
+                    "targets": targets_a, "targets_located": _flag_list(posed.targets_located, targets),
+                    "fallbacks": posed.fallbacks, "scale": posed.scale,
+                    "scale_source": posed.scale_source,
+                    "principal_offset": None if posed.principal_offset is None
+                    else [float(x) for x in posed.principal_offset]}}
+
+
+class _OrderRecord:
+    """The scene records of one order and their means."""
+
+    def __init__(self):
+        self.scenes: list[dict] = []
+
+    def add(self, record: dict) -> None:
+        self.scenes.append(record)
+
+    def _mean(self, get) -> float | None:
+        values = [v for v in (get(s) for s in self.scenes) if v is not None]
+        return float(np.mean(values)) if values else None
+
+    def _means(self, keys, where) -> dict:
+        def value(s, k):
+            d = where(s)
+            return None if d is None else d.get(k)
+        return {k: self._mean(lambda s, k=k: value(s, k)) for k in keys}
+
+    def summary(self, cameras: str, locate: str, report_cameras: bool) -> dict:
+        out = {"model": self._means(_MODEL_KEYS, lambda s: s["model"]),
+               "baselines": {name: self._means(("psnr", "ssim"), lambda s, n=name: s["baselines"][n])
+                             for name in _IMAGE_BASELINES}}
+        out["baselines"]["identity_poses"] = self._means(
+            _POSE_KEYS, lambda s: s["baselines"]["identity_poses"])
+        if report_cameras:
+            sources: dict[str, int] = {}
+            located = []                    # targets posed by the epipolar solve
+            for s in self.scenes:
+                c = s["cameras"]
+                sources[c["source"]] = sources.get(c["source"], 0) + 1
+                if locate != "true":
+                    located.extend(c["targets_located"] or [False] * len(c["targets"]))
+            out["cameras"] = {"references": cameras, "targets": locate,
+                              "sources": dict(sorted(sources.items())),
+                              "targets_epipolar": float(np.mean(located)) if located else None,
+                              "fallbacks": sum(s["cameras"]["fallbacks"] for s in self.scenes),
+                              "scenes_with_fallbacks": sum(s["cameras"]["fallbacks"] > 0
+                                                           for s in self.scenes)}
+        out["scenes"] = self.scenes
+        return out
+
+
+def _write_grid(path, prepared: PreparedScene, posed: PosedScene, rgb, depth, refs, targets,
+                backend) -> None:
+    targets_a = list(targets)
+    save_grid(path, prepared.gt_images[list(refs)], prepared.gt_images[targets_a], rgb, depth,
+              backend.depth_range, refs, targets,
+              true_depths=None if prepared.true_depth is None else prepared.true_depth[targets_a],
+              cameras=camera_panel(posed.world_from_cam, focal_of(posed.encoded), prepared.poses,
+                                   prepared.stored_K, _CAMERA_PANEL_SIZE))

@@ -1,0 +1,163 @@
+"""What is evaluated: the MODEL and DATA arguments, and one scene brought to the protocol's frames
+and the model's resolution."""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterable
+
+import numpy as np
+
+from iris_runtime.errors import InputError
+
+from .protocol import DEFAULT_VIEWS
+
+__all__ = ["SYNTHETIC_SETS", "PreparedScene", "prepare_scene", "true_depth_and_K",
+           "load_scenes", "load_evaluable", "scene_name"]
+
+#: DATA values naming a synthetic set: the held-out scenes (the record) and the validation scenes
+#: (where choices are made; iris_train.data.VALIDATION_SEEDS).
+SYNTHETIC_SETS = ("synthetic:heldout", "synthetic:validation")
+
+
+@dataclass
+class PreparedScene:
+    """One scene's ``views`` frames at the model's resolution.
+
+    images:     uint8 [N, H, W, 3]; gt_images: float64 [N, H, W, 3] in [0, 1] (the same)
+    poses:      float64 [N, 4, 4] true world_from_cam, or None
+    K:          float64 [N, 3, 3] true intrinsics in pixels of ``images``, or None
+    true_depth: float64 [N, H, W] or None; stored_K: K as stored (for the camera picture)
+    name:       the scene's folder name, synthetic seed or position
+    """
+    images: np.ndarray
+    gt_images: np.ndarray
+    poses: np.ndarray | None
+    K: np.ndarray | None
+    true_depth: np.ndarray | None
+    stored_K: np.ndarray | None
+    name: str
+
+
+def _frame_index(V: int, views: int) -> np.ndarray:
+    """Frames kept of a V-frame scene: ``views`` evenly along the stored order."""
+    return np.round(np.linspace(0, V - 1, views)).astype(int)
+
+
+def scene_name(scene, index: int) -> str:
+    meta = getattr(scene, "meta", None) or {}
+    if meta.get("path"):
+        return Path(meta["path"]).name
+    if meta.get("seed") is not None:
+        return f"seed {meta['seed']}"
+    return f"scene {index}"
+
+
+def _model_intrinsics(scene, idx: np.ndarray, image_size: tuple[int, int]) -> np.ndarray | None:
+    """True K [N, 3, 3] in pixels of the model-resolution images (the stored K mapped through the
+    same crop and resize as the images, ``iris_runtime.images.plan_crop_resize``), or None."""
+    K = getattr(scene, "K", None)
+    if K is None:
+        return None
+    K = np.asarray(K, dtype=np.float64)
+    V, h, w = np.asarray(scene.images).shape[:3]
+    K = np.broadcast_to(K, (V, 3, 3))[idx] if K.ndim == 2 else K[idx]
+    if (h, w) == tuple(image_size):
+        return np.array(K)
+    from iris_runtime.images import plan_crop_resize
+    plan = plan_crop_resize(h, w, *image_size)
+    return np.stack([plan.adjust_intrinsics(k) for k in K])
+
+
+def prepare_scene(scene, views: int, image_size: tuple[int, int], index: int = 0
+                  ) -> PreparedScene | None:
+    """``scene`` (``images`` uint8 [V, H, W, 3], ``world_from_cam`` [V, 4, 4] or None, optional
+    ``K``, ``depth``, ``meta``) -> its ``views`` frames at the model's size (images of another
+    size through ``iris_runtime.images.fit_to_model``), or None when it has fewer frames."""
+    images = np.asarray(scene.images)
+    if images.ndim != 4 or images.shape[-1] != 3 or images.dtype != np.uint8:
+        raise InputError(f"scene images: expected uint8 [V, H, W, 3], got {images.dtype} {images.shape}")
+    poses = getattr(scene, "world_from_cam", None)
+    V = images.shape[0]
+    if V < views:
+        return None
+    idx = _frame_index(V, views)
+    images = images[idx]
+    if poses is not None:
+        poses = np.asarray(poses, dtype=np.float64)[idx]
+    K = _model_intrinsics(scene, idx, image_size) if poses is not None else None
+    if images.shape[1:3] != tuple(image_size):
+        from iris_runtime.images import fit_to_model
+        images = np.stack([fit_to_model(im, *image_size)[0] for im in images])
+    true_depth, stored_K = true_depth_and_K(scene, views, image_size)
+    return PreparedScene(images, images.astype(np.float64) / 255.0, poses, K, true_depth, stored_K,
+                         scene_name(scene, index))
+
+
+def true_depth_and_K(scene, views: int, image_size: tuple[int, int]):
+    """-> ``(true depth float64 [N, H, W] at the model's size or None, K [3, 3] / [N, 3, 3] or None)``
+    of the frames ``prepare_scene`` keeps. A depth of another size gets the same centre crop as
+    the images and a nearest-neighbour resize (no depths mixed across edges); K is left as stored
+    (only its cx/fx, cy/fy are used, for the camera picture)."""
+    depth = getattr(scene, "depth", None)
+    K = getattr(scene, "K", None)
+    V = np.asarray(scene.images).shape[0]
+    idx = _frame_index(V, views)
+    if K is not None:
+        K = np.asarray(K, dtype=np.float64)
+        K = K[idx] if K.ndim == 3 else K
+    if depth is None:
+        return None, K
+    depth = np.asarray(depth, dtype=np.float64)
+    if depth.ndim != 3 or depth.shape[0] != V:
+        return None, K
+    depth = depth[idx]
+    if depth.shape[1:] != tuple(image_size):
+        import cv2
+
+        from iris_runtime.images import plan_crop_resize
+        H, W = image_size
+        plan = plan_crop_resize(depth.shape[1], depth.shape[2], H, W)
+        depth = np.stack([cv2.resize(np.ascontiguousarray(d[plan.y0:plan.y0 + plan.crop_h,
+                                                            plan.x0:plan.x0 + plan.crop_w]),
+                                     (W, H), interpolation=cv2.INTER_NEAREST) for d in depth])
+    return depth, K
+
+
+def load_evaluable(path: str | os.PathLike, threads: int | None = None):
+    """A checkpoint file -> ``IrisModel``; a directory with ``iris.json`` -> ``IrisRuntime``
+    (``threads``: its ONNX Runtime intra-op threads)."""
+    path = Path(path)
+    if path.is_dir():
+        if not (path / "iris.json").is_file():
+            from iris_runtime.errors import ManifestError
+            raise ManifestError(f"MODEL {str(path)!r} is a directory without iris.json "
+                                "(expected an exported model directory or a .pt checkpoint)")
+        from iris_runtime import IrisRuntime      # lazily: the runtime is optional here
+        return IrisRuntime(path, threads=threads)
+    from ..model import load_model, read_checkpoint, trained_cameras
+    model = load_model(path)
+    model.trained_cameras = trained_cameras(read_checkpoint(path))
+    return model
+
+
+def load_scenes(data: str, image_size: tuple[int, int], views: int = DEFAULT_VIEWS,
+                limit: int | None = None) -> tuple[Iterable, int]:
+    """DATA argument -> (scenes, count). ``synthetic:heldout`` / ``synthetic:validation`` render
+    the held-out / validation synthetic scenes lazily; anything else is a folder of scene folders
+    (``iris_train.data.load_dataset_folder``)."""
+    if data in SYNTHETIC_SETS:
+        from .. import data as D
+        seeds = D.HELDOUT_SEEDS if data == "synthetic:heldout" else D.VALIDATION_SEEDS
+        # Rendered on first use and cached on disk (iris_train.data.default_cache_dir).
+        scenes = D.SyntheticScenes(list(seeds)[:limit], n_views=views, size=tuple(image_size))
+        return (scenes[i] for i in range(len(scenes))), len(scenes)
+    if data.startswith("synthetic:"):
+        raise InputError(f"DATA {data!r}: the synthetic sets are {list(SYNTHETIC_SETS)}")
+    path = Path(data)
+    if not path.is_dir():
+        raise InputError(f"DATA {data!r}: not one of {list(SYNTHETIC_SETS)} and not a folder")
+    from ..data import load_dataset_folder
+    scenes = load_dataset_folder(path, size=tuple(image_size))[:limit]
+    return scenes, len(scenes)
