@@ -96,11 +96,19 @@ def true_cameras(images: np.ndarray, world_from_cam: np.ndarray, K: np.ndarray,
     rebased[refs[0]] = np.eye(4)
     focal = np.array([K[refs, 0, 0].mean() / W, K[refs, 1, 1].mean() / H])
     offset = np.array([K[refs, 0, 2].mean() - W / 2, K[refs, 1, 2].mean() - H / 2])
+    # Depths are measured in a frame rooted at the lowest reference and in units of the
+    # references' mean baseline, not in the data's frame and unit: neither changes them in exact
+    # arithmetic, and the triangulation (float32 inside) then sees the same numbers for every
+    # presentation order, world frame and unit.
     ordered = sorted(refs)
-    points = point_map_from_cameras(list(images[ordered]), rebased[ordered], float(focal[0]) * W)
-    cam_from_world = np.linalg.inv(rebased[ordered])[points.view]             # [N, 4, 4]
-    depths = np.einsum("nj,nj->n", cam_from_world[:, 2, :3], points.points[points.point]) \
-        + cam_from_world[:, 2, 3]
+    measured = np.linalg.inv(T[ordered[0]]) @ T[ordered]
+    i, j = np.triu_indices(len(ordered), 1)
+    unit = float(np.linalg.norm(measured[i, :3, 3] - measured[j, :3, 3], axis=1).mean()) or 1.0
+    measured[:, :3, 3] /= unit
+    points = point_map_from_cameras(list(images[ordered]), measured, float(focal[0]) * W)
+    cam_from_world = np.linalg.inv(measured)[points.view]                      # [N, 4, 4]
+    depths = unit * (np.einsum("nj,nj->n", cam_from_world[:, 2, :3], points.points[points.point])
+                     + cam_from_world[:, 2, 3])
     depths = depths[depths > 0]
     if len(depths) >= MIN_POINTS:
         scale = (near + DEPTH_TARGET * (far - near)) / float(np.median(depths))
