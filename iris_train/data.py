@@ -156,10 +156,11 @@ class SyntheticScenes:
     collate_fn.
 
     ``kind``: None (the classic kinds, drawn from the seed), a kind name, "capture" or a mix
-    ``{kind: weight}`` / ``"walk=2,orbit=1"`` (``parse_mix``). Capture kinds are cached *clean*
-    at ``render_size`` (default ``size``; a multiple of it, e.g. 256 for a 64 or 128 model) and
-    brought to ``size`` on access by ``downsample_scene``, then given their photometric camera
-    effects unless ``clean``. So one 256 cache serves a teacher at 256 and models at 64 and 128.
+    ``{kind: weight}`` / ``"walk=2,orbit=1"`` (``parse_mix``). Scenes are cached at
+    ``render_size`` (default ``size``; a multiple of it, e.g. 256 for a 64 or 128 model) and
+    brought to ``size`` on access by ``downsample_scene``; capture kinds are cached *clean* and
+    then given their photometric camera effects unless ``clean``. So one 256 cache serves a
+    teacher solve at 256 and models at 64 and 128.
     ``memory``: how many scenes to keep in memory once brought to ``size`` (least recently used
     out; a 64x64 8-view scene takes ~230 kB), which spares reading and downsampling them again.
     """
@@ -242,12 +243,10 @@ class SyntheticScenes:
         if seed in self._kept:
             self._kept.move_to_end(seed)
             return self._kept[seed]
-        scene = self.cached(seed)
-        if scene.meta.get("kind") in CAPTURE_KINDS:
-            scene = downsample_scene(scene, self.factor)
-            if not self.clean:
-                scene = SceneData(photometric.apply(scene.images, seed), scene.world_from_cam,
-                                  scene.K, scene.depth, {**scene.meta, "photometric": True})
+        scene = downsample_scene(self.cached(seed), self.factor)
+        if scene.meta.get("kind") in CAPTURE_KINDS and not self.clean:
+            scene = SceneData(photometric.apply(scene.images, seed), scene.world_from_cam,
+                              scene.K, scene.depth, {**scene.meta, "photometric": True})
         if self.memory > 0:
             self._kept[seed] = scene
             while len(self._kept) > self.memory:
@@ -408,6 +407,9 @@ class FolderScene:
     names:          file names relative to the scene folder
     crops:          the CropResize of each photo (source size, crop box, scales)
     meta:           {"path": ..., "camera_source": path of the camera file or None}
+    photos:         the photos as loaded, uint8 [h, w, 3] each at their own size (what a user
+                    hands the runtime; the camera solve works on them)
+    photo_K:        float64 [V, 3, 3] | None  K in pixels of ``photos``
     """
 
     images: np.ndarray
@@ -417,6 +419,8 @@ class FolderScene:
     crops: tuple[CropResize, ...]
     meta: dict = field(default_factory=dict)
     depth: None = None
+    photos: tuple[np.ndarray, ...] = ()
+    photo_K: np.ndarray | None = None
 
     @property
     def n_views(self) -> int:
@@ -482,11 +486,12 @@ def load_scene_folder(path, size: tuple[int, int] = (64, 64)) -> FolderScene:
         return image_size(names[i])
 
     cams = _find_cameras(folder, image_size)
-    images, crops, Ks, poses = [], [], [], []
+    images, crops, Ks, poses, photos, photo_Ks = [], [], [], [], [], []
     for p, name in zip(files, names):
         img = load_image(p, name=str(p))
         out, plan = fit_to_model(img, height, width)
         images.append(out)
+        photos.append(img)
         crops.append(plan)
         if cams is None:
             continue
@@ -504,11 +509,13 @@ def load_scene_folder(path, size: tuple[int, int] = (64, 64)) -> FolderScene:
                                  f"{cw}x{ch} (different aspect ratio)")
             K = np.diag([iw / cw, ih / ch, 1.0]) @ K
         Ks.append(plan.adjust_intrinsics(K))
+        photo_Ks.append(K)
         poses.append(cams.world_from_cam[idx])
     return FolderScene(
         images=np.stack(images), world_from_cam=np.stack(poses) if cams is not None else None,
         K=np.stack(Ks) if cams is not None else None, names=names, crops=tuple(crops),
-        meta={"path": str(folder), "camera_source": cams.source if cams is not None else None})
+        meta={"path": str(folder), "camera_source": cams.source if cams is not None else None},
+        photos=tuple(photos), photo_K=np.stack(photo_Ks) if cams is not None else None)
 
 
 def load_dataset_folder(path, size: tuple[int, int] = (64, 64)) -> list[FolderScene]:

@@ -194,10 +194,9 @@ def load_or_solve(scenes, index: int, depth_range: tuple[float, float]) -> Solve
 
 
 def _work(args) -> int:
-    seeds, index, depth_range = args
+    spec, index, depth_range = args
     cv2.setNumThreads(1)
-    from .data import SyntheticScenes
-    scenes = SyntheticScenes(seeds)
+    scenes = _scenes(*spec)
     if depth_range is None:
         load_or_estimate(scenes, index)
     else:
@@ -205,12 +204,21 @@ def _work(args) -> int:
     return index
 
 
-def pregenerate(seeds, workers: int = 2, depth_range: tuple[float, float] | None = None) -> None:
-    """Fill the cache: the pair teacher, or with ``depth_range`` the solved scene cameras."""
+def _scenes(seeds, kind=None, size=(64, 64), render_size=None):
+    from .data import SyntheticScenes
+    return SyntheticScenes(seeds, size=size, kind=kind, render_size=render_size)
+
+
+def pregenerate(seeds, workers: int = 2, depth_range: tuple[float, float] | None = None,
+                kind: str | None = None, size: tuple[int, int] = (64, 64),
+                render_size: tuple[int, int] | None = None) -> None:
+    """Fill the cache of ``SyntheticScenes(seeds, size=size, kind=kind, render_size=...)``: the
+    pair teacher, or with ``depth_range`` the solved scene cameras (what ``iris-train`` builds
+    lazily, one scene at a time, otherwise)."""
     import multiprocessing as mp
     from tqdm import tqdm
-    seeds = tuple(seeds)
-    jobs = [(seeds, i, depth_range) for i in range(len(seeds))]
+    spec = (tuple(seeds), kind, tuple(size), None if render_size is None else tuple(render_size))
+    jobs = [(spec, i, depth_range) for i in range(len(spec[0]))]
     with mp.get_context("spawn").Pool(workers) as pool:
         for _ in tqdm(pool.imap_unordered(_work, jobs, chunksize=4), total=len(jobs),
                       desc="pseudo-poses" if depth_range is None else "solved cameras",
@@ -242,6 +250,12 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m iris_train.pseudo_poses",
                                      description=__doc__.split("\n\n")[0])
     parser.add_argument("--train", type=int, default=0, help="training seeds 0..N-1 to cache")
+    parser.add_argument("--capture", type=int, default=0,
+                        help="capture-like training seeds 0..N-1 (rendered at iris-train's "
+                             "CAPTURE_RENDER_SIZE, as iris-train --capture-scenes draws them)")
+    parser.add_argument("--classic-render-size", type=int, default=0,
+                        help="with --train: the classic scenes rendered at this square size, as "
+                             "iris-train --classic-render-size (default: the model's)")
     parser.add_argument("--heldout", action="store_true", help="the held-out scenes")
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--solve", action="store_true",
@@ -252,13 +266,20 @@ def main(argv=None) -> int:
                              "over all pairs (pairs with an unposed view count as failures)")
     args = parser.parse_args(argv)
     from .data import HELDOUT_SEEDS, SyntheticScenes
+    from .config import preset
+    cfg = preset("tiny")
+    size = (cfg.image_height, cfg.image_width)
+    depth_range = (cfg.near, cfg.far) if args.solve else None
     if args.train:
-        from .config import preset
-        cfg = preset("tiny")
-        pregenerate(range(args.train), args.workers,
-                    (cfg.near, cfg.far) if args.solve else None)
+        side = args.classic_render_size
+        pregenerate(range(args.train), args.workers, depth_range, size=size,
+                    render_size=(side, side) if side else None)
+    if args.capture:
+        from .train import CAPTURE_RENDER_SIZE
+        pregenerate(range(args.capture), args.workers, depth_range, kind="capture", size=size,
+                    render_size=CAPTURE_RENDER_SIZE)
     if args.heldout:
-        pregenerate(HELDOUT_SEEDS, args.workers)
+        pregenerate(HELDOUT_SEEDS, args.workers, size=size)
         if args.score:
             scenes = SyntheticScenes(HELDOUT_SEEDS)
             errs, trusted, focal_ratio = [], [], []

@@ -86,6 +86,10 @@ class TrainConfig:
     # 0 .. capture_scenes-1, rendered at CAPTURE_RENDER_SIZE and brought to the model's size; drawn
     # beside the classic scenes with equal probability per scene (docs/DATA.md).
     capture_scenes: int = 0
+    # The classic scenes rendered at this square size (0: the model's) and brought to the
+    # model's by area averaging, so that the camera solve of ``render_cameras="epipolar"`` sees
+    # photos at a photo's resolution, as at inference, not the model's thumbnails.
+    classic_render_size: int = 0
     seed: int = 0
     log_every: int = 10
     ckpt_every: int = 250
@@ -460,7 +464,9 @@ def train(cfg: TrainConfig, out: Path, resume: bool = False, scenes=None, thread
             raise ValueError(f"train_scenes: at most {min(VALIDATION_SEEDS)} (the validation "
                              f"scenes start there), got {cfg.train_scenes}")
         size = (mcfg.image_height, mcfg.image_width)
-        scenes = SyntheticScenes(range(cfg.train_scenes), size=size)
+        side = cfg.classic_render_size
+        scenes = SyntheticScenes(range(cfg.train_scenes), size=size,
+                                 render_size=(side, side) if side else None)
         if cfg.capture_scenes:
             capture = SyntheticScenes(range(cfg.capture_scenes), size=size, kind="capture",
                                       render_size=CAPTURE_RENDER_SIZE)

@@ -217,9 +217,10 @@ def test_default_cameras_follow_the_manifest(corner, model_dir, tmp_path):
     assert rt_epi.encode(images, cameras="model").camera_source == "model"
     np.testing.assert_array_equal(rt_epi.render(images, np.eye(4)), rt_epi.render(default, 0))
     backend = _backend(rt_epi)
+    # iris-eval's default is the manifest's; its backend encodes with the model's cameras and
+    # solves the photos itself (evaluate.cameras.pose_scene).
     assert backend.default_cameras == "epipolar"
-    assert backend.encode(np.stack(images), cameras="model").camera_source == "model"
-    assert backend.encode(np.stack(images)).camera_source == "epipolar"
+    assert backend.encode(np.stack(images)).camera_source == "model"
     del doc["cameras"]                                 # manifests written before the key
     (d / "iris.json").write_text(json.dumps(doc))
     assert IrisRuntime(d, threads=1).default_cameras == "model"
@@ -262,42 +263,48 @@ def test_cli_cameras_flag(corner, model_dir, tmp_path):
 
 @pytest.mark.torch
 def test_evaluate_with_epipolar_cameras_on_a_torch_model():
+    """iris-eval solves the cameras from the photos at their own resolution (256 here) while the
+    model sees its 64x64 images, exactly as IrisRuntime.encode does with a user's photos."""
     torch = pytest.importorskip("torch")
     pytest.importorskip("pyrender")
     import dataclasses
 
     from iris_train import build_model, preset
-    from iris_train.evaluate import ORDERS, _TorchBackend, evaluate
+    from iris_train.evaluate import ORDERS, TorchBackend, evaluate, prepare_scene
+    from iris_train.evaluate.cameras import pose_scene
     from iris_train.synthetic import render_scene
     torch.manual_seed(0)
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        # iris-eval gives the encoder (and so the solve) the model's resolution: 128 here, so
-        # that the photos carry enough keypoints.
-        cfg = dataclasses.replace(preset("tiny"), image_height=128, image_width=128, samples=4)
+        cfg = dataclasses.replace(preset("tiny"), samples=4)
         model = build_model(cfg).eval()
-        scene = render_scene(1_000_003, n_views=8, size=(128, 128))
-        # One implementation: the torch backend's cameras are replace_model_cameras of its own.
-        backend = _TorchBackend(model)
-        plain = backend.encode(scene.images[:5])
-        epi = backend.encode(scene.images[:5], cameras="epipolar")
-        ref = replace_model_cameras(scene.images[:5], backend.poses(plain),
-                                    plain.focal.double().numpy(), (128, 128),
-                                    (cfg.near, cfg.far))
-        np.testing.assert_array_equal(epi.world_from_cam.numpy(),
+        scene = render_scene(1_000_003, n_views=8, size=(256, 256))
+        size = (cfg.image_height, cfg.image_width)
+        prepared = prepare_scene(scene, 8, size)
+        assert prepared.images.shape[1:3] == size and prepared.photos[0].shape[:2] == (256, 256)
+        # One implementation: the references' cameras are replace_model_cameras of their photos.
+        backend = TorchBackend(model)
+        refs, targets = (0, 2, 3, 5, 7), (1, 4, 6)
+        posed = pose_scene(backend, prepared, refs, targets, "epipolar", "epipolar")
+        plain = backend.encode(prepared.images[list(refs)])
+        ref = replace_model_cameras([prepared.photos[r] for r in refs], backend.poses(plain),
+                                    plain.focal.double().numpy(), size, (cfg.near, cfg.far))
+        assert ref.camera_size == (256, 256) and ref.source == posed.source == "epipolar"
+        np.testing.assert_array_equal(posed.encoded.world_from_cam.numpy(),
                                       ref.world_from_cam.astype(np.float32))
-        np.testing.assert_array_equal(epi.focal.numpy(), ref.focal.astype(np.float32))
-        assert backend.last_source == ref.source == "epipolar"
+        np.testing.assert_array_equal(posed.encoded.focal.numpy(), ref.focal.astype(np.float32))
+        assert posed.targets_located[list(targets)].all() and posed.fallbacks == 0
         base = evaluate(model, [scene], progress=False)
         got = evaluate(model, [scene], progress=False, cameras="epipolar")
         for order in ORDERS:
             assert "cameras" not in base[order]
             c = got[order]["cameras"]
             assert c["references"] == c["targets"] == "epipolar"
-            assert sum(c["sources"].values()) == 1 and 0.0 <= c["targets_epipolar"] <= 1.0
+            assert c["sources"] == {"epipolar": 1} and c["targets_epipolar"] == 1.0
             for k in ("rpa@15", "rpa@30", "locate_rpa@30"):
                 assert got[order]["model"][k] > base[order]["model"][k]
+            assert got[order]["model"]["rpa@15"] == 1.0
         with pytest.raises(ValueError, match="cameras"):
             evaluate(model, [scene], progress=False, cameras="colmap")
     finally:

@@ -275,6 +275,21 @@ def test_render_cache_serves_smaller_sizes(tmp_path):
         SyntheticScenes([8], size=(16, 16), render_size=(40, 40), kind="capture")
 
 
+def test_classic_scenes_from_a_larger_render_are_downsampled_clean(tmp_path):
+    """The classic kinds at ``render_size`` twice ``size``: the area downsample of the cached
+    render, no photometric effects, poses and K as a direct render at ``size``."""
+    from iris_train.synthetic import downsample_scene
+    ds = SyntheticScenes([5], n_views=2, size=(16, 16), cache_dir=tmp_path, render_size=(32, 32))
+    s = ds[0]
+    cached = load_scene(ds.path(5))
+    assert cached.images.shape == (2, 32, 32, 3) and s.images.shape == (2, 16, 16, 3)
+    assert "photometric" not in s.meta
+    np.testing.assert_array_equal(s.images, downsample_scene(cached, 2).images)
+    direct = render_scene(5, n_views=2, size=(16, 16))
+    np.testing.assert_allclose(s.K, direct.K, rtol=1e-14)
+    np.testing.assert_array_equal(s.world_from_cam, direct.world_from_cam)
+
+
 def test_stale_capture_file_is_regenerated(tmp_path):
     ds = SyntheticScenes([3], n_views=2, size=(16, 16), cache_dir=tmp_path, kind="walk")
     good = ds[0]

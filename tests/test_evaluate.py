@@ -476,33 +476,43 @@ def test_best_reference_matches_a_brute_force_search():
     assert "best reference" in format_table(results)
 
 
-def test_scene_records_say_where_the_cameras_came_from():
+def test_scene_records_say_where_the_cameras_came_from(monkeypatch):
     """A solve that leaves two references to the camera head ("mixed"): the records name them,
     count them as fallbacks, and the summary adds them up; model cameras: no flags."""
     import dataclasses as dc
+
+    import iris_runtime.cameras as C
     from iris_train.evaluate import format_scenes
 
     @dc.dataclass
-    class MixedScene:
+    class OracleScene:
         world_from_cam: np.ndarray
         views: list
         all_poses: np.ndarray
         all_images: np.ndarray
-        camera_source: str = "mixed"
+        focal: np.ndarray = dc.field(default_factory=lambda: np.array([1.2, 1.2]))
+        K: np.ndarray | None = None
+        encoder_focal: np.ndarray | None = None
+        camera_source: str = "model"
 
-    class MixedRuntime(OracleRuntime):
+    class SolvedRuntime(OracleRuntime):
         default_cameras = "epipolar"
 
         def encode(self, images, cameras=None):
+            assert cameras == "model"               # iris-eval solves the photos itself
             plain = super().encode(images)
-            if cameras == "model":
-                return plain
-            poses = plain.world_from_cam.copy()
-            poses[[1, 2, 4], :3, 3] += 0.01         # views 1, 2, 4 "solved", 3 and 0 not changed
-            return MixedScene(poses, plain.views, plain.all_poses, plain.all_images)
+            return OracleScene(plain.world_from_cam, plain.views, plain.all_poses, plain.all_images)
 
+    def mixed_solve(photos, world_from_cam, focal, image_size, depth_range):
+        assert len(photos) == 5 and image_size == SIZE
+        poses = np.array(world_from_cam)
+        poses[[1, 2, 4], :3, 3] += 0.01         # views 1, 2, 4 "solved", 3 and 0 not changed
+        status = ("solved", "solved", "located", "unposed", "solved")
+        return C.ModelCameras(poses, np.asarray(focal), None, "mixed", status, SIZE, None)
+
+    monkeypatch.setattr(C, "replace_model_cameras", mixed_solve)
     scenes = [rotation_scene(9), rotation_scene(10)]
-    results = evaluate(MixedRuntime(scenes), scenes, progress=False, locate="model")
+    results = evaluate(SolvedRuntime(scenes), scenes, progress=False, locate="model")
     refs, targets = split_frames(8)
     for order in ORDERS:
         R = results[order]
@@ -511,8 +521,8 @@ def test_scene_records_say_where_the_cameras_came_from():
         for k, s in enumerate(R["scenes"]):
             c = s["cameras"]
             ref_order, _ = presentation_order(order, refs, targets, k)
-            kept = {ref_order[3]}                   # presentation positions 0 and 3 not solved,
-            assert c["source"] == "mixed" and c["fallbacks"] == 1   # position 0 is the root
+            kept = {ref_order[3]}                   # presentation position 3 not posed
+            assert c["source"] == "mixed" and c["fallbacks"] == 1
             assert c["references_solved"] == [f not in kept for f in refs]
             assert c["targets_located"] is None and s["name"] == f"scene {k}"   # model locate
     table = format_scenes(results)
@@ -615,7 +625,7 @@ def test_evaluate_with_true_cameras_on_a_torch_model():
     from iris_train.evaluate import prepare_scene
     p = prepare_scene(scene, 8, SIZE)
     refs, targets = split_frames(8)
-    posed = pose_scene(TorchBackend(model), p.images, p.poses, p.K, refs, targets, "true", "true")
+    posed = pose_scene(TorchBackend(model), p, refs, targets, "true", "true")
     truth = true_cameras_of(p, refs)
     np.testing.assert_allclose(posed.encoded.world_from_cam.numpy(), truth.world_from_cam[list(refs)],
                                atol=1e-6)
@@ -625,7 +635,8 @@ def test_evaluate_with_true_cameras_on_a_torch_model():
 
 def true_cameras_of(prepared, refs):
     from iris_train.evaluate import true_cameras
-    return true_cameras(prepared.images, prepared.poses, prepared.K, list(refs), (0.1, 1.0))
+    return true_cameras(prepared.images, prepared.poses, prepared.K, list(refs), (0.1, 1.0),
+                        prepared.photos, prepared.photo_K)
 
 
 def test_evaluate_with_true_cameras_on_an_exported_model(model_dir):
@@ -639,7 +650,7 @@ def test_evaluate_with_true_cameras_on_an_exported_model(model_dir):
     check_true_run(evaluate(rt, [scene], progress=False, cameras="true"), 1)
     p = prepare_scene(scene, 8, rt.image_size)
     refs, targets = split_frames(8)
-    posed = pose_scene(RuntimeBackend(rt), p.images, p.poses, p.K, refs, targets, "true", "true")
+    posed = pose_scene(RuntimeBackend(rt), p, refs, targets, "true", "true")
     truth = true_cameras_of(p, refs)
     np.testing.assert_allclose(posed.encoded.world_from_cam, truth.world_from_cam[list(refs)], atol=1e-12)
     np.testing.assert_allclose(posed.encoded.focal, truth.focal, atol=1e-12)

@@ -58,13 +58,14 @@ Protocol (DESIGN.md "Evaluation protocol", the paper's appendix scaled down):
 - Scenes without ground-truth cameras (users' folders) count towards the model's PSNR/SSIM and the
   best-reference and mean-colour baselines only; pose metrics and the nearest-reference baseline
   average over the scenes with cameras (``null`` in the JSON when there are none).
-- ``--cameras epipolar``: the references' cameras (and the focal) are the global epipolar solve
-  of the reference images, scaled to the model's units (``iris_runtime.cameras.replace_model_cameras``:
-  ``IrisRuntime.encode(images, cameras="epipolar")`` for an exported model, the same function on
-  the torch model's poses and focal for a checkpoint), and the targets are posed by
-  ``iris_runtime.cameras.locate_views`` against those fixed reference cameras (a target with
-  fewer than two trusted links to the references keeps the model's located pose); ``--locate
-  model`` keeps the model's ``locate`` for the targets instead.
+- ``--cameras epipolar``: the references' cameras (and the focal) are the camera solve of the
+  references' **photos at their own resolution** (``PreparedScene.photos``: a folder's files as
+  stored, the synthetic sets rendered at ``SYNTHETIC_PHOTO_SIZE``), scaled to the model's units
+  (``iris_runtime.cameras.replace_model_cameras``, as ``IrisRuntime.encode(photos,
+  cameras="epipolar")`` does; the model itself sees the frames at its resolution), and the
+  targets are posed against the solve's points with its cameras fixed
+  (``iris_runtime.cameras.locate_photos``, as ``IrisRuntime.locate``; a target it cannot pose
+  keeps the model's located pose); ``--locate model`` keeps the model's ``locate`` instead.
 - ``--cameras true``: the data's own cameras (a folder's ``transforms.json`` or COLMAP text, the
   synthetic scenes' true cameras; evaluation only, training never sees them), re-based on view 0
   of the presentation and scaled by the solve's depth rule (``cameras.true_cameras``: the median
@@ -75,7 +76,7 @@ Protocol (DESIGN.md "Evaluation protocol", the paper's appendix scaled down):
   alone; only the cameras it predicted are replaced.
 - Every scene's record (JSON ``scenes``, the printed per-scene table) says where its cameras came
   from: the Scene's camera source ("model", "epipolar", "mixed", "true"), which references the
-  solve posed and which targets ``locate_views`` posed, and the number of **fallbacks**: views
+  solve posed and which targets it located, and the number of **fallbacks**: views
   that were to get a solved camera and kept the camera head's instead. With anything but model
   cameras each order's summary counts the scenes per source and the fallbacks.
 - LPIPS is left out: it needs pretrained network weights that cannot be fetched here.

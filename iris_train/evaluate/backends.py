@@ -1,13 +1,13 @@
 """One interface over the two things ``iris-eval`` evaluates: an ``IrisModel`` checkpoint run in
 torch, and an exported model run by ``iris_runtime.IrisRuntime`` (numpy + onnxruntime).
 
-Both backends: ``encode(images uint8 [V, H, W, 3], cameras)`` -> a scene whose references are
-exactly those images; ``poses(scene) -> [V, 4, 4]``; ``locate(scene, references, queries) ->
-[Q, 4, 4]``, the model's own prediction; ``with_cameras(scene, world_from_cam, focal)``: the same
-field maps rendered from other cameras; ``render(scene, poses [N, 4, 4]) -> (rgb [N, H, W, 3],
-depth [N, H, W])`` float64 at the model's resolution. After ``encode`` they hold
-``last_source`` (the scene's camera source) and ``last_solved`` (bool [V]: which views' cameras
-came from the epipolar solve; None with the model's cameras).
+Both backends: ``encode(images uint8 [V, H, W, 3])`` -> a scene whose references are exactly
+those images, with the model's own cameras; ``poses(scene) -> [V, 4, 4]``; ``locate(scene,
+references, queries) -> [Q, 4, 4]``, the model's own prediction; ``with_cameras(scene,
+world_from_cam, focal)``: the same field maps rendered from other cameras (the solve's or the
+data's, ``evaluate.cameras.pose_scene``); ``render(scene, poses [N, 4, 4]) -> (rgb [N, H, W, 3],
+depth [N, H, W])`` float64 at the model's resolution. ``default_cameras``: the cameras the model
+was trained with, ``iris-eval``'s default.
 """
 from __future__ import annotations
 
@@ -35,8 +35,6 @@ class TorchBackend:
         self.model = model
         self.image_size = (model.cfg.image_height, model.cfg.image_width)
         self.depth_range = (model.cfg.near, model.cfg.far)
-        self.last_source = "model"
-        self.last_solved = None
         # A checkpoint loaded by load_evaluable knows the cameras it was trained with.
         self.default_cameras = getattr(model, "trained_cameras", "model")
 
@@ -45,23 +43,10 @@ class TorchBackend:
         import torch
         return torch.from_numpy(np.ascontiguousarray(images)).permute(0, 3, 1, 2).float() / 255.0
 
-    def encode(self, images: np.ndarray, cameras: str | None = None):
-        """``cameras``: None = ``default_cameras``; ``"epipolar"``: the model's poses and focal
-        replaced by ``iris_runtime.cameras.replace_model_cameras`` of the images, as
-        ``IrisRuntime.encode`` does."""
+    def encode(self, images: np.ndarray):
         import torch
-        cameras = self.default_cameras if cameras is None else cameras
         with torch.no_grad():
-            scene = self.model.encode(self._tensor(images))
-        self.last_source, self.last_solved = "model", None
-        if cameras == "epipolar":
-            from iris_runtime.cameras import replace_model_cameras
-            ref = replace_model_cameras(np.ascontiguousarray(images), self.poses(scene),
-                                        focal_of(scene), self.image_size, self.depth_range)
-            scene = self.with_cameras(scene, ref.world_from_cam, ref.focal)
-            self.last_source = ref.source
-            self.last_solved = np.array([st != "unposed" for st in ref.status], dtype=bool)
-        return scene
+            return self.model.encode(self._tensor(images))
 
     def with_cameras(self, scene, world_from_cam: np.ndarray, focal: np.ndarray):
         import torch
@@ -93,35 +78,12 @@ class RuntimeBackend:
         H, W = runtime.image_size
         self.image_size = (int(H), int(W))
         self.depth_range = (float(runtime.near), float(runtime.far))
-        self.last_source = "model"
-        self.last_solved = None
         self.default_cameras = getattr(runtime, "default_cameras", "model")
 
-    def encode(self, images: np.ndarray, cameras: str | None = None):
-        cameras = self.default_cameras if cameras is None else cameras
-        if cameras == self.default_cameras:     # (duck-typed runtimes need not know cameras=)
-            scene = self.rt.encode(list(images))
-        else:
-            scene = self.rt.encode(list(images), cameras=cameras)
-        self.last_source = getattr(scene, "camera_source", "model")
-        self.last_solved = None if cameras == "model" else self._solved(scene, images)
-        return scene
-
-    def _solved(self, scene, images: np.ndarray) -> np.ndarray:
-        """bool [V]: the views whose camera the camera solve gave (``Scene.camera_status``)."""
-        V = len(images)
-        status = getattr(scene, "camera_status", None)
-        if status is not None:
-            return np.array([st != "unposed" for st in status], dtype=bool)
-        if self.last_source == "epipolar":
-            return np.ones(V, dtype=bool)
-        if self.last_source != "mixed":
-            return np.zeros(V, dtype=bool)
-        own = np.asarray(self.rt.encode(list(images), cameras="model").world_from_cam)
-        solved = ~np.all(np.isclose(np.asarray(scene.world_from_cam), own, rtol=0.0, atol=1e-9),
-                         axis=(1, 2))
-        solved[0] = True                        # the frame's root: the identity either way
-        return solved
+    def encode(self, images: np.ndarray):
+        if self.default_cameras == "model":     # (duck-typed runtimes need not know cameras=)
+            return self.rt.encode(list(images))
+        return self.rt.encode(list(images), cameras="model")
 
     def with_cameras(self, scene, world_from_cam: np.ndarray, focal: np.ndarray):
         """The same field maps and images with other cameras; ``encoder_focal`` keeps the

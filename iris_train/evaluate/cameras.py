@@ -26,6 +26,7 @@ MIN_POINTS = 20
 DEFAULT_BASELINE = 0.14
 
 from .backends import focal_of
+from .scenes import PreparedScene
 
 __all__ = ["CAMERA_MODES", "LOCATE_MODES", "TrueCameras", "true_cameras", "PosedScene",
            "pose_scene", "check_modes", "camera_panel"]
@@ -73,13 +74,18 @@ class TrueCameras:
 
 
 def true_cameras(images: np.ndarray, world_from_cam: np.ndarray, K: np.ndarray,
-                 references: Sequence[int], depth_range: tuple[float, float]) -> TrueCameras:
+                 references: Sequence[int], depth_range: tuple[float, float],
+                 photos: Sequence[np.ndarray] | None = None,
+                 photo_K: np.ndarray | None = None) -> TrueCameras:
     """The true cameras of one scene for rendering from ``references`` (presentation order).
 
     images uint8 [V, H, W, 3] at the model's resolution; world_from_cam [V, 4, 4] the true poses
     (any world frame and unit); K [V, 3, 3] (or [3, 3]) the true intrinsics in pixels of those
     images; depth_range (near, far) of the model. The frame is rooted at ``references[0]``; the
-    scale comes from the references alone (sorted, so every presentation order gets the same).
+    scale comes from the references alone (sorted, so every presentation order gets the same),
+    their matches found in ``photos`` (the frames at their own resolution, one size, with
+    ``photo_K`` [V, 3, 3] in their pixels) where given, as the camera solve does, else in
+    ``images``.
     """
     from iris_runtime.cameras import DEPTH_TARGET
     from iris_runtime.cameras.locate import point_map_from_cameras
@@ -96,16 +102,22 @@ def true_cameras(images: np.ndarray, world_from_cam: np.ndarray, K: np.ndarray,
     rebased[refs[0]] = np.eye(4)
     focal = np.array([K[refs, 0, 0].mean() / W, K[refs, 1, 1].mean() / H])
     offset = np.array([K[refs, 0, 2].mean() - W / 2, K[refs, 1, 2].mean() - H / 2])
+    ordered = sorted(refs)
+    match_photos, match_fx = list(images[ordered]), float(focal[0]) * W
+    if photos is not None and photo_K is not None:
+        chosen = [np.asarray(photos[r]) for r in ordered]
+        if all(p.shape == chosen[0].shape for p in chosen):
+            pK = np.broadcast_to(np.asarray(photo_K, dtype=np.float64), (V, 3, 3))
+            match_photos, match_fx = chosen, float(pK[ordered, 0, 0].mean())
     # Depths are measured in a frame rooted at the lowest reference and in units of the
     # references' mean baseline, not in the data's frame and unit: neither changes them in exact
     # arithmetic, and the triangulation (float32 inside) then sees the same numbers for every
     # presentation order, world frame and unit.
-    ordered = sorted(refs)
     measured = np.linalg.inv(T[ordered[0]]) @ T[ordered]
     i, j = np.triu_indices(len(ordered), 1)
     unit = float(np.linalg.norm(measured[i, :3, 3] - measured[j, :3, 3], axis=1).mean()) or 1.0
     measured[:, :3, 3] /= unit
-    points = point_map_from_cameras(list(images[ordered]), measured, float(focal[0]) * W)
+    points = point_map_from_cameras(match_photos, measured, match_fx)
     cam_from_world = np.linalg.inv(measured)[points.view]                      # [N, 4, 4]
     depths = unit * (np.einsum("nj,nj->n", cam_from_world[:, 2, :3], points.points[points.point])
                      + cam_from_world[:, 2, 3])
@@ -150,33 +162,42 @@ class PosedScene:
     principal_offset: np.ndarray | None = None
 
 
-def pose_scene(backend, images: np.ndarray, true_poses: np.ndarray | None, true_K: np.ndarray | None,
-               ref_order: Sequence[int], target_order: Sequence[int], cameras: str,
-               locate: str) -> PosedScene:
-    """Encode ``images[ref_order]`` (the references alone) and pose every frame.
+def pose_scene(backend, scene: PreparedScene, ref_order: Sequence[int],
+               target_order: Sequence[int], cameras: str, locate: str) -> PosedScene:
+    """Encode ``scene``'s references alone (``ref_order``) and pose every frame.
 
-    References: the model's cameras, the epipolar solve's (``backend.encode(cameras=
-    "epipolar")``) or ``true_cameras`` (needs ``true_poses`` [V, 4, 4] and ``true_K`` [V, 3, 3]
-    at the model's resolution, else ``InputError``). Targets: the model's ``locate``;
-    ``iris_runtime.cameras.locate_views`` against the references' cameras, the model's pose
-    kept for a target it cannot pose; or the true cameras.
+    The model sees ``scene.images``; the camera solve sees ``scene.photos``, the frames at their
+    own resolution, as ``IrisRuntime.encode(photos, cameras="epipolar")`` does with a user's.
+    References: the model's cameras, the solve's (``replace_model_cameras``: a view it cannot
+    pose keeps the model's camera) or ``true_cameras`` (needs the scene's true poses and K, else
+    ``InputError``). Targets: the model's ``locate``; ``"epipolar"``: posed against the solve's
+    points with its cameras fixed (``locate_photos``, as ``IrisRuntime.locate``), or with model
+    or true reference cameras against those (``locate_views`` at the model's resolution), the
+    model's pose kept for a target that cannot be posed; or the true cameras.
     """
+    images, photos = scene.images, scene.photos
     V = images.shape[0]
     ref_order, target_order = list(ref_order), list(target_order)
     pred = np.empty((V, 4, 4))
-    truth = None
+    truth = solve = None
     if "true" in (cameras, locate):
-        if true_poses is None or true_K is None:
+        if scene.poses is None or scene.K is None:
             raise InputError("cameras: 'true' needs the data's own cameras, and this scene has "
                              "none (a folder needs transforms.json or COLMAP text files)")
-        truth = true_cameras(images, true_poses, true_K, ref_order, backend.depth_range)
+        truth = true_cameras(images, scene.poses, scene.K, ref_order, backend.depth_range,
+                             photos, scene.photo_K)
+    encoded = backend.encode(images[ref_order])
+    source, refs_solved = "model", None
     if cameras == "true":
-        encoded = backend.with_cameras(backend.encode(images[ref_order], cameras="model"),
-                                       truth.world_from_cam[ref_order], truth.focal)
+        encoded = backend.with_cameras(encoded, truth.world_from_cam[ref_order], truth.focal)
         source, refs_solved = "true", np.ones(len(ref_order), dtype=bool)
-    else:
-        encoded = backend.encode(images[ref_order], cameras=cameras)
-        source, refs_solved = backend.last_source, backend.last_solved
+    elif cameras == "epipolar":
+        from iris_runtime.cameras import replace_model_cameras
+        cams = replace_model_cameras([photos[r] for r in ref_order], backend.poses(encoded),
+                                     focal_of(encoded), backend.image_size, backend.depth_range)
+        encoded = backend.with_cameras(encoded, cams.world_from_cam, cams.focal)
+        source, solve = cams.source, cams.solve
+        refs_solved = np.array([st != "unposed" for st in cams.status], dtype=bool)
     pred[ref_order] = backend.poses(encoded)
     located = None
     if locate == "true":
@@ -185,13 +206,20 @@ def pose_scene(backend, images: np.ndarray, true_poses: np.ndarray | None, true_
     else:
         poses = backend.locate(encoded, images[ref_order], images[target_order])
         if locate == "epipolar":
-            from iris_runtime.cameras import locate_views
-            epi, located = locate_views(images[ref_order], pred[ref_order],
-                                        float(focal_of(encoded)[0]), images[target_order])
+            from iris_runtime.cameras import locate_photos, locate_views
+            if solve is not None:
+                from iris_runtime.images import fit_to_model
+                copies = [fit_to_model(photos[t], *solve.image_size)[0] for t in target_order]
+                epi, located = locate_photos(solve.point_map, solve.focal, solve.image_size, copies)
+            elif cameras == "epipolar":        # view 0 unposed: the runtime keeps the model's
+                epi, located = poses, np.zeros(len(target_order), dtype=bool)
+            else:
+                epi, located = locate_views(images[ref_order], pred[ref_order],
+                                            float(focal_of(encoded)[0]), images[target_order])
             poses = np.where(located[:, None, None], epi, poses)
         pred[target_order] = poses
     fallbacks = 0
-    if cameras == "epipolar" and refs_solved is not None:
+    if cameras == "epipolar":
         fallbacks += int((~refs_solved).sum())
     if locate == "epipolar":
         fallbacks += int((~located).sum())

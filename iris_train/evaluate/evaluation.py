@@ -82,8 +82,8 @@ def evaluate(model, scenes: Iterable, *, views: int = DEFAULT_VIEWS, seed: int =
             for order in ORDERS:
                 ref_order, target_order = presentation_order(order, refs, targets, index, seed)
                 try:
-                    posed = pose_scene(backend, prepared.images, prepared.poses, prepared.K,
-                                       ref_order, target_order, cameras, locate)
+                    posed = pose_scene(backend, prepared, ref_order, target_order, cameras,
+                                       locate)
                 except InputError as exc:
                     raise InputError(f"scene {index} ({prepared.name}): {exc}") from None
                 rgb, depth = _render_targets(backend, posed, targets, f"scene {index} ({order})")

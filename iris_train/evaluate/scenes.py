@@ -13,12 +13,15 @@ from iris_runtime.errors import InputError
 
 from .protocol import DEFAULT_VIEWS
 
-__all__ = ["SYNTHETIC_SETS", "PreparedScene", "prepare_scene", "true_depth_and_K",
+__all__ = ["SYNTHETIC_SETS", "SYNTHETIC_PHOTO_SIZE", "PreparedScene", "prepare_scene", "true_depth_and_K",
            "load_scenes", "load_evaluable", "scene_name"]
 
 #: DATA values naming a synthetic set: the held-out scenes (the record) and the validation scenes
 #: (where choices are made; iris_train.data.VALIDATION_SEEDS).
 SYNTHETIC_SETS = ("synthetic:heldout", "synthetic:validation")
+#: The resolution (H, W) of the synthetic sets' photos, the camera solve's input: what a phone
+#: photo shrunk for upload would be, not the model's thumbnail.
+SYNTHETIC_PHOTO_SIZE = (256, 256)
 
 
 @dataclass
@@ -30,6 +33,9 @@ class PreparedScene:
     K:          float64 [N, 3, 3] true intrinsics in pixels of ``images``, or None
     true_depth: float64 [N, H, W] or None; stored_K: K as stored (for the camera picture)
     name:       the scene's folder name, synthetic seed or position
+    photos:     the same frames at their own resolution, uint8 [h, w, 3] each: what a user hands
+                the runtime, and what the camera solve works on (the model sees ``images``)
+    photo_K:    float64 [N, 3, 3] true intrinsics in pixels of ``photos``, or None
     """
     images: np.ndarray
     gt_images: np.ndarray
@@ -38,6 +44,8 @@ class PreparedScene:
     true_depth: np.ndarray | None
     stored_K: np.ndarray | None
     name: str
+    photos: list[np.ndarray]
+    photo_K: np.ndarray | None
 
 
 def _frame_index(V: int, views: int) -> np.ndarray:
@@ -73,8 +81,10 @@ def _model_intrinsics(scene, idx: np.ndarray, image_size: tuple[int, int]) -> np
 def prepare_scene(scene, views: int, image_size: tuple[int, int], index: int = 0
                   ) -> PreparedScene | None:
     """``scene`` (``images`` uint8 [V, H, W, 3], ``world_from_cam`` [V, 4, 4] or None, optional
-    ``K``, ``depth``, ``meta``) -> its ``views`` frames at the model's size (images of another
-    size through ``iris_runtime.images.fit_to_model``), or None when it has fewer frames."""
+    ``K``, ``depth``, ``meta``, and ``photos`` / ``photo_K``: the frames at their own resolution
+    where ``images`` were brought to the model's) -> its ``views`` frames at the model's size
+    (images of another size through ``iris_runtime.images.fit_to_model``), or None when it has
+    fewer frames."""
     images = np.asarray(scene.images)
     if images.ndim != 4 or images.shape[-1] != 3 or images.dtype != np.uint8:
         raise InputError(f"scene images: expected uint8 [V, H, W, 3], got {images.dtype} {images.shape}")
@@ -83,6 +93,19 @@ def prepare_scene(scene, views: int, image_size: tuple[int, int], index: int = 0
     if V < views:
         return None
     idx = _frame_index(V, views)
+    stored_photos = getattr(scene, "photos", None)
+    if stored_photos is not None and len(stored_photos):
+        if len(stored_photos) != V:
+            raise InputError(f"scene photos: expected {V} (one per image), got {len(stored_photos)}")
+        photos = [np.asarray(stored_photos[i]) for i in idx]
+        photo_K = getattr(scene, "photo_K", None)
+    else:
+        photos, photo_K = list(images[idx]), getattr(scene, "K", None)
+    if photo_K is not None and poses is not None:
+        photo_K = np.asarray(photo_K, dtype=np.float64)
+        photo_K = np.broadcast_to(photo_K, (V, 3, 3))[idx] if photo_K.ndim == 2 else photo_K[idx]
+    else:
+        photo_K = None
     images = images[idx]
     if poses is not None:
         poses = np.asarray(poses, dtype=np.float64)[idx]
@@ -92,7 +115,7 @@ def prepare_scene(scene, views: int, image_size: tuple[int, int], index: int = 0
         images = np.stack([fit_to_model(im, *image_size)[0] for im in images])
     true_depth, stored_K = true_depth_and_K(scene, views, image_size)
     return PreparedScene(images, images.astype(np.float64) / 255.0, poses, K, true_depth, stored_K,
-                         scene_name(scene, index))
+                         scene_name(scene, index), photos, photo_K)
 
 
 def true_depth_and_K(scene, views: int, image_size: tuple[int, int]):
@@ -125,6 +148,24 @@ def true_depth_and_K(scene, views: int, image_size: tuple[int, int]):
     return depth, K
 
 
+def _with_photos(scene, photos):
+    """A synthetic scene with its frames rendered at the photo size too (same seed: the same
+    scene and cameras, K scaled)."""
+    return _PhotoScene(scene.images, scene.world_from_cam, scene.K, scene.depth, scene.meta,
+                       tuple(photos.images), photos.K)
+
+
+@dataclass
+class _PhotoScene:
+    images: np.ndarray
+    world_from_cam: np.ndarray
+    K: np.ndarray
+    depth: np.ndarray
+    meta: dict
+    photos: tuple
+    photo_K: np.ndarray
+
+
 def load_evaluable(path: str | os.PathLike, threads: int | None = None):
     """A checkpoint file -> ``IrisModel``; a directory with ``iris.json`` -> ``IrisRuntime``
     (``threads``: its ONNX Runtime intra-op threads)."""
@@ -149,10 +190,13 @@ def load_scenes(data: str, image_size: tuple[int, int], views: int = DEFAULT_VIE
     (``iris_train.data.load_dataset_folder``)."""
     if data in SYNTHETIC_SETS:
         from .. import data as D
-        seeds = D.HELDOUT_SEEDS if data == "synthetic:heldout" else D.VALIDATION_SEEDS
-        # Rendered on first use and cached on disk (iris_train.data.default_cache_dir).
-        scenes = D.SyntheticScenes(list(seeds)[:limit], n_views=views, size=tuple(image_size))
-        return (scenes[i] for i in range(len(scenes))), len(scenes)
+        seeds = list(D.HELDOUT_SEEDS if data == "synthetic:heldout" else D.VALIDATION_SEEDS)[:limit]
+        # Rendered on first use and cached on disk (iris_train.data.default_cache_dir): at the
+        # model's size (what it sees and is scored against, as it always was) and at
+        # SYNTHETIC_PHOTO_SIZE, the photos' own resolution that the camera solve works on.
+        scenes = D.SyntheticScenes(seeds, n_views=views, size=tuple(image_size))
+        photos = D.SyntheticScenes(seeds, n_views=views, size=SYNTHETIC_PHOTO_SIZE)
+        return (_with_photos(scenes[i], photos[i]) for i in range(len(scenes))), len(scenes)
     if data.startswith("synthetic:"):
         raise InputError(f"DATA {data!r}: the synthetic sets are {list(SYNTHETIC_SETS)}")
     path = Path(data)
