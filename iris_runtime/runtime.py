@@ -30,7 +30,6 @@ import functools
 import os
 import threading
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Sequence
 
@@ -49,7 +48,7 @@ from .limits import (MAX_CHUNK_RAYS, MAX_CHUNK_SAMPLES, MAX_ENCODER_TOKENS, MAX_
                      MAX_OUTPUT_PIXELS, RENDER_BUDGET, render_memory_bound)
 from .manifest import CAMERAS, MANIFEST_NAME, Manifest, read_graph_bytes, read_manifest
 from .quality import PRECISIONS, QUALITY_PRESETS, RenderSettings
-from .scene import CAMERA_SOURCES, RenderResult, Scene, check_pose
+from .scene import CAMERA_SOURCES, RenderJob, RenderResult, Scene, check_pose
 from .validation import check_intrinsics
 
 __all__ = ["IrisRuntime", "Scene", "RenderResult", "check_pose", "CAMERAS", "CAMERA_SOURCES",
@@ -57,36 +56,6 @@ __all__ = ["IrisRuntime", "Scene", "RenderResult", "check_pose", "CAMERAS", "CAM
            "MAX_OUTPUT_PIXELS", "MAX_ENCODER_TOKENS", "MAX_CHUNK_SAMPLES", "MAX_LOCATE_CALLS",
            "render_memory_bound",
            "PRECISIONS", "RenderSettings", "QUALITY_PRESETS"]
-
-
-
-@dataclass(frozen=True, eq=False)
-class _RenderJob:
-    """One ``render`` call, checked: what its ray march needs (arrays as the checks returned them).
-
-    scene:          the Scene rendered from (encoded by the call when it was given images)
-    world_from_cam: float64 [4, 4]   target pose
-    K:              [3, 3]           target intrinsics in pixels of ``march_size``
-    size:           (H, W)           the output's pixels
-    march_size:     (h, w)           the pixels marched (``RenderSettings.march_size``)
-    settings:       RenderSettings   the knobs, resolved
-    samples:        int              samples per ray
-    chunk_rays:     int              rays per renderer call
-    graph:          str              the renderer graph of the call's precision
-    select_views:   bool             per-point top-k on ``renderer_views``
-    photos:         float32 [V, 3, H, W] or None   each view's photo (explicit colour)
-    """
-    scene: Scene
-    world_from_cam: np.ndarray
-    K: np.ndarray
-    size: tuple[int, int]
-    march_size: tuple[int, int]
-    settings: RenderSettings
-    samples: int
-    chunk_rays: int
-    graph: str
-    select_views: bool
-    photos: np.ndarray | None
 
 
 def _check_providers(providers) -> tuple[str, ...]:
@@ -498,7 +467,7 @@ class IrisRuntime:
                             job.settings)
 
     def _render_job(self, images_or_scene, pose, settings: RenderSettings, height, width,
-                    intrinsics, chunk_rays, progress, timings: dict) -> "_RenderJob":
+                    intrinsics, chunk_rays, progress, timings: dict) -> "RenderJob":
         """Every argument of ``render`` checked, in the order its errors are documented (size and
         limits before encoding or allocating), and what the march needs derived once."""
         graph = self._renderer_graph(settings.precision or self.precision)
@@ -529,12 +498,12 @@ class IrisRuntime:
         march_size = settings.march_size(*size)
         if march_size != size:
             K = G.scale_intrinsics(K, size, march_size)
-        return _RenderJob(scene=scene, world_from_cam=world_from_cam, K=K, size=size,
+        return RenderJob(scene=scene, world_from_cam=world_from_cam, K=K, size=size,
                           march_size=march_size, settings=settings, samples=samples,
                           chunk_rays=chunk_rays, graph=graph, select_views=select_views,
                           photos=photos)
 
-    def _march_at(self, job: "_RenderJob", mh: int, mw: int, progress=None,
+    def _march_at(self, job: "RenderJob", mh: int, mw: int, progress=None,
                   **subset) -> raymarch.MarchResult:
         """The ray march of ``job`` at mh x mw pixels (``job.march_size``, or the coarse pass's),
         on ``subset`` (``MarchPlan``'s pixel_index, sample_window, mode_radius)."""
@@ -550,7 +519,7 @@ class IrisRuntime:
         return raymarch.march(plan, session, workers=self.workers, progress=progress)
 
     @staticmethod
-    def _to_output_size(job: "_RenderJob", marched, timings: dict):
+    def _to_output_size(job: "RenderJob", marched, timings: dict):
         """The march's colour and depth at the output size: float32 [H, W, 3] and [H, W] (resized
         with OpenCV when ``scale`` < 1: ``upsample`` for the colour, linear for the depth)."""
         h, w = job.march_size

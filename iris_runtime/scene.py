@@ -254,3 +254,33 @@ class RenderResult:
     timings: dict = field(default_factory=dict)
     work: dict = field(default_factory=dict)
     settings: "RenderSettings | None" = None
+
+
+@dataclass(frozen=True, eq=False)
+class RenderJob:
+    """One ``IrisRuntime.render`` call, checked (internal): what its ray march needs (arrays as
+    the checks returned them).
+
+    scene:          the Scene rendered from (encoded by the call when it was given images)
+    world_from_cam: float64 [4, 4]   target pose
+    K:              [3, 3]           target intrinsics in pixels of ``march_size``
+    size:           (H, W)           the output's pixels
+    march_size:     (h, w)           the pixels marched (``RenderSettings.march_size``)
+    settings:       RenderSettings   the knobs, resolved
+    samples:        int              samples per ray
+    chunk_rays:     int              rays per renderer call
+    graph:          str              the renderer graph of the call's precision
+    select_views:   bool             per-point top-k on ``renderer_views``
+    photos:         float32 [V, 3, H, W] or None   each view's photo (explicit colour)
+    """
+    scene: Scene
+    world_from_cam: np.ndarray
+    K: np.ndarray
+    size: tuple[int, int]
+    march_size: tuple[int, int]
+    settings: RenderSettings
+    samples: int
+    chunk_rays: int
+    graph: str
+    select_views: bool
+    photos: np.ndarray | None

@@ -17,6 +17,7 @@ from typing import Sequence
 import numpy as np
 
 from iris_runtime.errors import InputError
+from iris_runtime.manifest import CAMERAS
 
 #: Triangulated observations needed to scale true cameras by their depth; with fewer, the mean
 #: baseline is set to DEFAULT_BASELINE.
@@ -31,10 +32,10 @@ from .scenes import PreparedScene
 __all__ = ["CAMERA_MODES", "LOCATE_MODES", "TrueCameras", "true_cameras", "PosedScene",
            "pose_scene", "check_modes", "camera_panel"]
 
-#: ``--cameras``: where the references' cameras come from.
-CAMERA_MODES = ("model", "epipolar", "true")
+#: ``--cameras``: where the references' cameras come from (the runtime's, or the data's own).
+CAMERA_MODES = (*CAMERAS, "true")
 #: ``--locate``: where the targets' cameras come from.
-LOCATE_MODES = ("model", "epipolar", "true")
+LOCATE_MODES = CAMERA_MODES
 
 
 def check_modes(default_cameras: str, cameras: str | None, locate: str | None) -> tuple[str, str]:

@@ -13,7 +13,7 @@ import numpy as np
 
 from iris_runtime.errors import InputError
 
-from ..metrics import RPA_THRESHOLDS, psnr, relative_pose_errors, ssim
+from ..metrics import PSNR_CAP, RPA_THRESHOLDS, capped_psnr, relative_pose_errors, ssim  # noqa: F401
 
 __all__ = ["TARGET_FRAMES", "DEFAULT_VIEWS", "RAND_SEED", "ORDERS", "PSNR_CAP", "RPA_KEYS",
            "LOCATE_RPA_KEYS", "split_frames", "rand_permutation", "presentation_order",
@@ -27,8 +27,6 @@ DEFAULT_VIEWS = 8
 RAND_SEED = 2024
 #: Input orders, in the order they are reported.
 ORDERS = ("seq", "rand")
-#: PSNR of one image is capped here (dB), so that a pixel-identical image stays finite.
-PSNR_CAP = 100.0
 RPA_KEYS = tuple(f"rpa@{t:g}" for t in RPA_THRESHOLDS)
 LOCATE_RPA_KEYS = tuple(f"locate_{k}" for k in RPA_KEYS)
 
@@ -107,11 +105,6 @@ def nearest_reference(world_from_cam: np.ndarray, references: Sequence[int],
         cost = angle + (dist / spread if spread > 0 else 0.0)
         out.append(int(refs[int(np.argmin(cost))]))
     return out
-
-
-def capped_psnr(pred: np.ndarray, gt: np.ndarray) -> float:
-    """``metrics.psnr`` capped at ``PSNR_CAP``."""
-    return min(psnr(pred, gt), PSNR_CAP)
 
 
 def best_reference(images: np.ndarray, references: Sequence[int],

@@ -5,23 +5,14 @@ import math
 
 import numpy as np
 
-def look_at(eye: np.ndarray, target: np.ndarray, up=(0.0, 0.0, 1.0), roll: float = 0.0) -> np.ndarray:
-    """``world_from_cam [4, 4]`` (OpenCV: x right, y down, z forward) at ``eye`` looking at ``target``.
+from iris_runtime.orbit import look_at as _look_at
 
-    ``roll`` (radians) turns the camera about its optical axis.
-    """
-    eye = np.asarray(eye, dtype=np.float64)
-    z = np.asarray(target, dtype=np.float64) - eye
-    z /= np.linalg.norm(z)
-    x = np.cross(z, np.asarray(up, dtype=np.float64))     # right = forward x up
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)                                    # down, so that x, y, z is right-handed
-    if roll:
-        c, s = math.cos(roll), math.sin(roll)
-        x, y = c * x + s * y, -s * x + c * y
-    T = np.eye(4)
-    T[:3, 0], T[:3, 1], T[:3, 2], T[:3, 3] = x, y, z, eye
-    return T
+def look_at(eye: np.ndarray, target: np.ndarray, up=(0.0, 0.0, 1.0), roll: float = 0.0) -> np.ndarray:
+    """``world_from_cam [4, 4]`` (OpenCV: x right, y down, z forward) at ``eye`` looking at
+    ``target`` with ``up`` up in the image, turned by ``roll`` radians about the optical axis:
+    ``iris_runtime.orbit.look_at`` (bitwise) in the z-up terms of the scene generator."""
+    return _look_at(np.asarray(eye, dtype=np.float64), target, -np.asarray(up, dtype=np.float64),
+                    roll=roll)
 
 
 def arc_cameras(rng: np.random.Generator, n_views: int, target: np.ndarray, az_centre: float,

@@ -6,6 +6,8 @@ from typing import Any
 
 import numpy as np
 
+from iris_runtime.camera_io import GL_FROM_CV  # noqa: F401 (the renderer's axis flip)
+
 #: Supersampling factor per axis (odd: see the module docstring). 3 -> 9 samples per pixel.
 SUPERSAMPLE = 3
 #: Marker colours (RGB, emissive on black metal: a fully covered pixel has this colour to within a
@@ -15,8 +17,6 @@ MARKER_COLORS = ((255, 0, 255), (0, 255, 255), (255, 255, 0), (0, 255, 0))
 MARKER_RADIUS = 0.015
 #: Icosphere subdivisions of markers: its faces lie at least 0.993 r from the centre.
 MARKER_SUBDIVISIONS = 3
-#: Flip between OpenCV and OpenGL camera axes (its own inverse).
-GL_FROM_CV = np.diag([1.0, -1.0, -1.0, 1.0])
 #: OpenGL clip planes (world units): far enough for every kind before its depth scaling.
 ZNEAR, ZFAR = 0.02, 5.0
 
