@@ -681,3 +681,20 @@ def test_true_cameras_bad_arguments(tmp_path, capsys):
     assert main([str(ckpt), str(tmp_path / "data"), "--cameras", "true", "--no-progress"]) == 2
     err = capsys.readouterr().err
     assert err.startswith("iris-eval: error: scene 0 (scene_a)") and len(err.splitlines()) == 1
+
+
+def test_synthetic_sets_give_the_solve_photos_at_their_own_resolution():
+    """iris-eval's synthetic sets: the model's images at its size, the photos (what the camera
+    solve sees) at SYNTHETIC_PHOTO_SIZE, the true K of each in its own pixels."""
+    pytest.importorskip("pyrender")
+    from iris_train.evaluate import SYNTHETIC_SETS, load_scenes, prepare_scene
+    from iris_train.evaluate.scenes import SYNTHETIC_PHOTO_SIZE
+    assert "synthetic:capture-heldout" in SYNTHETIC_SETS
+    for data in ("synthetic:heldout", "synthetic:capture-heldout"):
+        scenes, count = load_scenes(data, (64, 64), limit=1)
+        assert count == 1
+        p = prepare_scene(next(iter(scenes)), 8, (64, 64))
+        assert p.images.shape == (8, 64, 64, 3)
+        assert all(ph.shape == (*SYNTHETIC_PHOTO_SIZE, 3) for ph in p.photos)
+        scale = SYNTHETIC_PHOTO_SIZE[0] / 64
+        np.testing.assert_allclose(p.photo_K[:, :2, :3], scale * p.K[:, :2, :3], rtol=1e-9)

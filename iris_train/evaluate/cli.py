@@ -31,7 +31,8 @@ def build_parser() -> argparse.ArgumentParser:
                         help="checkpoint (.pt) or exported model directory (with iris.json)")
     parser.add_argument("data", metavar="DATA",
                         help="'synthetic:heldout' (the record), 'synthetic:validation' (where "
-                             "choices are made) or a folder of scene folders")
+                             "choices are made), 'synthetic:capture-heldout' (capture-like "
+                             "held-out scenes) or a folder of scene folders")
     parser.add_argument("--json", metavar="FILE", type=Path, default=None,
                         help='write {"seq": ..., "rand": ...} (means and one record per scene) '
                              "to FILE (atomically)")

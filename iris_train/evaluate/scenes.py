@@ -16,9 +16,11 @@ from .protocol import DEFAULT_VIEWS
 __all__ = ["SYNTHETIC_SETS", "SYNTHETIC_PHOTO_SIZE", "PreparedScene", "prepare_scene", "true_depth_and_K",
            "load_scenes", "load_evaluable", "scene_name"]
 
-#: DATA values naming a synthetic set: the held-out scenes (the record) and the validation scenes
-#: (where choices are made; iris_train.data.VALIDATION_SEEDS).
-SYNTHETIC_SETS = ("synthetic:heldout", "synthetic:validation")
+#: DATA values naming a synthetic set: the held-out scenes (the record), the validation scenes
+#: (where choices are made; iris_train.data.VALIDATION_SEEDS), and the held-out capture-like
+#: scenes (object walks, orbits, hand-held and indoor paths with photometric camera effects;
+#: iris_train.data.CAPTURE_HELDOUT_SEEDS).
+SYNTHETIC_SETS = ("synthetic:heldout", "synthetic:validation", "synthetic:capture-heldout")
 #: The resolution (H, W) of the synthetic sets' photos, the camera solve's input: what a phone
 #: photo shrunk for upload would be, not the model's thumbnail.
 SYNTHETIC_PHOTO_SIZE = (256, 256)
@@ -188,6 +190,13 @@ def load_scenes(data: str, image_size: tuple[int, int], views: int = DEFAULT_VIE
     """DATA argument -> (scenes, count). ``synthetic:heldout`` / ``synthetic:validation`` render
     the held-out / validation synthetic scenes lazily; anything else is a folder of scene folders
     (``iris_train.data.load_dataset_folder``)."""
+    if data == "synthetic:capture-heldout":
+        from .. import data as D
+        # The photos are the 256x256 renders with their camera effects, brought to the model's
+        # size by prepare_scene like any user's photos.
+        scenes = D.SyntheticScenes(list(D.CAPTURE_HELDOUT_SEEDS)[:limit], n_views=views,
+                                   size=SYNTHETIC_PHOTO_SIZE, kind="capture")
+        return (scenes[i] for i in range(len(scenes))), len(scenes)
     if data in SYNTHETIC_SETS:
         from .. import data as D
         seeds = list(D.HELDOUT_SEEDS if data == "synthetic:heldout" else D.VALIDATION_SEEDS)[:limit]
