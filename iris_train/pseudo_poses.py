@@ -33,11 +33,10 @@ import numpy as np
 from iris_runtime.cameras import DEPTH_TARGET, solve_cameras  # noqa: F401 (DEPTH_TARGET: docs)
 from iris_runtime.images import plan_crop_resize
 
-#: Version of both caches (part of the file; another version is recomputed). 5 / 3: the solve of
-#: ``iris_runtime.cameras`` on the photos at the dataset's own resolution; before, DIS flow and
-#: essential matrices at 64x64.
-TEACHER_VERSION = 5
-SOLVE_VERSION = 3
+#: Version of both caches (part of the file; another version is recomputed): raised whenever the
+#: solve's results change (docs/TRAINING.md lists which runs used which).
+TEACHER_VERSION = 6
+SOLVE_VERSION = 4
 #: The teacher's depth range when none is given (the models' [near, far]).
 DEFAULT_DEPTH_RANGE = (0.1, 1.0)
 

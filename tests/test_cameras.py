@@ -305,6 +305,24 @@ def test_solve_cameras_on_a_ray_cast_scene(corner):
     np.testing.assert_allclose(c, k * ct, atol=0.01 * np.abs(k * ct).max())
 
 
+def test_solve_cameras_on_a_plane_seen_from_a_short_baseline():
+    """A camera moved 24 cm in front of one textured wall: every pair is "planar_or_panoramic",
+    so the mapper starts from the planar pair that moves most; every view is posed to within a
+    degree and the focal found."""
+    truth = np.stack([np_scenes.look_at(np.array([x, 0.0, 0.75 + 0.02 * k]),
+                                        np.array([0.3 * x, 1.0, 0.75]))
+                      for k, x in enumerate(np.linspace(-0.12, 0.12, 6))])
+    photos = np_scenes.render(truth, 200.0, SIZE)
+    feats = [extract_features(p) for p in photos]
+    g = estimate_two_view(feats[0].uv, feats[5].uv, match_features(feats[0], feats[5]), 240.0,
+                          SIZE, 1.0)
+    assert g.config == "planar_or_panoramic"
+    s = solve_cameras(list(photos), DEPTH_RANGE)
+    assert s.status == ("solved",) * 6
+    assert _pair_errors(s.world_from_cam, truth).max() < 1.0
+    assert s.focal == pytest.approx(200.0, rel=0.05)
+
+
 def test_solve_cameras_is_deterministic_and_order_free(corner):
     photos, truth, s = corner
     order = [3, 0, 5, 1, 4, 2]

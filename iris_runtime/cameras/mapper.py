@@ -2,7 +2,8 @@
 
 As COLMAP's incremental mapper does: start from the pair with the most F-consistent matches
 seen under a wide enough angle (its essential matrix gives the two poses), triangulate the tracks
-it sees, then repeatedly register the view that sees the most of the triangulated points (PnP),
+it sees (when every pair sees a plane, from the planar pair that moves most), then repeatedly
+register the view that sees the most of the triangulated points (PnP),
 extend and add tracks, and bundle-adjust everything (the focal too, once three views fix it),
 dropping observations that reproject badly. A view that never gathers enough inliers stays
 unregistered: it is reported, not guessed. Every choice is a function of the data (ties broken
@@ -28,6 +29,10 @@ class MapperOptions:
     """Thresholds of the mapper, in degrees and in pixels of photos of ``REFERENCE_SIZE``.
 
     init_min_inliers:   fewest F-consistent matches of the starting pair (COLMAP's relaxed value)
+    planar_min_angle:   where no pair is "general" (every pair sees a plane, as a camera moved
+                        over a poster or a facade does), planar pairs seen under at least this
+                        triangulation angle may start, as COLMAP starts from a homography
+    planar_point_angle: ... and points then need only this angle (``min_angle`` otherwise)
     init_trials:        starting pairs tried when one does not register every view
     init_angle:         triangulation angle (median, degrees) at which a starting pair counts in
                         full; narrower pairs are scored down in proportion
@@ -43,6 +48,8 @@ class MapperOptions:
                         adjusts all)
     """
     init_min_inliers: int = 30
+    planar_min_angle: float = 0.5
+    planar_point_angle: float = 0.25
     init_trials: int = 2
     init_angle: float = 16.0
     two_view_error: float = MAX_ERROR
@@ -79,16 +86,24 @@ class Reconstruction:
                 & self.point_ok[:, None])
 
 
-def _init_pairs(geometries: dict[tuple[int, int], TwoViewGeometry], opts: MapperOptions):
+def _init_pairs(geometries: dict[tuple[int, int], TwoViewGeometry], opts: MapperOptions,
+                planar: bool = False):
     """Candidate starting pairs, best first: general pairs with a pose and enough inliers, scored
     by the inliers the homography does not explain (those that fix the essential matrix) x
-    min(1, angle / init_angle); ties by the pair's indices."""
+    min(1, angle / init_angle); ties by the pair's indices. ``planar``: the planar-or-panoramic
+    pairs instead, seen under at least ``planar_min_angle`` (a plane, not a rotation), scored by
+    their inliers x min(1, angle / init_angle)."""
     scored = []
     for (i, j), g in geometries.items():
-        if (g.config == "general" and g.cam2_from_cam1 is not None
-                and len(g.inliers) >= opts.init_min_inliers):
+        if g.cam2_from_cam1 is None or len(g.inliers) < opts.init_min_inliers:
+            continue
+        if not planar and g.config == "general":
             off_plane = len(g.inliers) - g.num_h_inliers
             scored.append((-off_plane * min(1.0, g.triangulation_angle / opts.init_angle), i, j))
+        elif (planar and g.config == "planar_or_panoramic"
+              and g.triangulation_angle >= opts.planar_min_angle):
+            scored.append((-len(g.inliers) * min(1.0, g.triangulation_angle / opts.init_angle),
+                           i, j))
     return [(i, j) for _, i, j in sorted(scored)]
 
 
@@ -238,6 +253,12 @@ def incremental_mapping(features, tracks: Tracks,
     centre = np.array([W / 2.0, H / 2.0])
     starts = _init_pairs(geometries, opts) or _init_pairs(
         geometries, MapperOptions(**{**opts.__dict__, "init_min_inliers": MIN_INLIERS}))
+    if not starts:
+        # Every pair sees a plane (a poster, a facade, a table top) or barely moves: start from
+        # the pair that moves most, and keep points seen under narrower angles, which many
+        # matches on a plane still place.
+        starts = _init_pairs(geometries, opts, planar=True)
+        opts = MapperOptions(**{**opts.__dict__, "min_angle": opts.planar_point_angle})
     # A view with fewer track observations than a registration needs can never be registered:
     # a reconstruction holding every other view is as complete as this data allows.
     possible = tracks.observed.sum(0) >= opts.pnp_min_inliers
