@@ -698,3 +698,13 @@ def test_synthetic_sets_give_the_solve_photos_at_their_own_resolution():
         assert all(ph.shape == (*SYNTHETIC_PHOTO_SIZE, 3) for ph in p.photos)
         scale = SYNTHETIC_PHOTO_SIZE[0] / 64
         np.testing.assert_allclose(p.photo_K[:, :2, :3], scale * p.K[:, :2, :3], rtol=1e-9)
+
+
+def test_grid_of_another_scene(tmp_path):
+    from iris_runtime.errors import InputError
+    scenes = [rotation_scene(21), rotation_scene(22)]
+    grid = tmp_path / "grid.png"
+    evaluate(OracleRuntime(scenes), scenes, progress=False, grid=grid, grid_scene=1, total=2)
+    assert grid.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    with pytest.raises(InputError, match="grid_scene"):
+        evaluate(OracleRuntime(scenes), scenes, progress=False, grid=grid, grid_scene=2, total=2)

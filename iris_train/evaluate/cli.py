@@ -43,8 +43,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--seed", type=int, default=RAND_SEED,
                         help=f"seed of the Rand-order permutations (default {RAND_SEED})")
     parser.add_argument("--grid", metavar="FILE.png", type=Path, default=None,
-                        help="write a PNG grid of the first scene (references, targets, renders, "
+                        help="write a PNG grid of one scene (references, targets, renders, "
                              "soft and true depth, predicted vs true cameras)")
+    parser.add_argument("--grid-scene", metavar="I", type=int, default=0,
+                        help="the scene of --grid, by position (default 0, the first)")
     parser.add_argument("--threads", type=int, default=None,
                         help="intra-op threads of torch (checkpoint) or ONNX Runtime (exported "
                              "model); default: the library's choice. On a busy machine 1 can be "
@@ -85,7 +87,7 @@ def main(argv: list[str] | None = None) -> int:
                                     args.scenes)
         results = evaluate(model, scenes, views=args.views, seed=args.seed, grid=args.grid,
                            progress=not args.no_progress, total=count, cameras=args.cameras,
-                           locate=args.locate)
+                           locate=args.locate, grid_scene=args.grid_scene)
     except (IrisError, ValueError, FileNotFoundError) as exc:   # bad model, data or arguments
         print(f"iris-eval: error: {exc}", file=sys.stderr)
         return 2

@@ -30,7 +30,8 @@ _IMAGE_BASELINES = ("best_reference", "nearest_reference", "mean_colour")
 
 def evaluate(model, scenes: Iterable, *, views: int = DEFAULT_VIEWS, seed: int = RAND_SEED,
              grid: str | os.PathLike | None = None, progress: bool = True,
-             total: int | None = None, cameras: str | None = None, locate: str | None = None) -> dict:
+             total: int | None = None, cameras: str | None = None, locate: str | None = None,
+             grid_scene: int = 0) -> dict:
     """Evaluate ``model`` (an ``IrisModel`` or an ``iris_runtime.IrisRuntime``) on ``scenes``.
 
     ``scenes``: objects with ``images`` uint8 ``[V, H, W, 3]`` (trajectory order) and
@@ -38,8 +39,8 @@ def evaluate(model, scenes: Iterable, *, views: int = DEFAULT_VIEWS, seed: int =
     intrinsics, needed by ``cameras="true"``), ``depth`` and ``meta``. Images of another size are
     brought to the model's resolution by ``iris_runtime.images.fit_to_model``. The Rand order of a
     scene is ``presentation_order("rand", ..., i, seed)`` with i its position in ``scenes``.
-    ``grid``: write a PNG of the first scene (Seq order). ``total``: number of scenes, for the
-    progress bar.
+    ``grid``: write a PNG of scene ``grid_scene`` (default the first; Seq order). ``total``:
+    number of scenes, for the progress bar.
 
     Returns ``{"seq": R, "rand": R}`` with ``R = {"model": {"psnr", "ssim", "rpa@5", "rpa@15",
     "rpa@30", "locate_rpa@5", "locate_rpa@15", "locate_rpa@30", "depth_spearman"}, "baselines":
@@ -65,6 +66,8 @@ def evaluate(model, scenes: Iterable, *, views: int = DEFAULT_VIEWS, seed: int =
     """
     backend = backend_for(model)
     cameras, locate = check_modes(backend.default_cameras, cameras, locate)
+    if grid is not None and not (0 <= grid_scene and (total is None or grid_scene < total)):
+        raise InputError(f"grid_scene: expected a scene position in [0, {total}), got {grid_scene}")
     refs, targets = split_frames(views)
     runs = {order: _OrderRecord() for order in ORDERS}
     n_used, n_skipped = 0, 0
@@ -89,7 +92,7 @@ def evaluate(model, scenes: Iterable, *, views: int = DEFAULT_VIEWS, seed: int =
                 rgb, depth = _render_targets(backend, posed, targets, f"scene {index} ({order})")
                 runs[order].add(_scene_record(index, prepared, posed, rgb, depth, refs, targets,
                                               baselines))
-                if grid is not None and order == "seq" and n_used == 1:
+                if grid is not None and order == "seq" and index == grid_scene:
                     _write_grid(grid, prepared, posed, rgb, depth, refs, targets, backend)
     if n_used == 0:
         raise InputError(f"no scene with at least {views} frames to evaluate"
