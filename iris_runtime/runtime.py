@@ -405,9 +405,7 @@ class IrisRuntime:
         located = np.zeros(len(photos), bool)
         solve = scene.camera_solve
         if solve is not None:
-            from .cameras import locate_photos
-            copies = [fit_to_model(p, *solve.image_size)[0] for p in photos]
-            solved, located = locate_photos(solve.point_map, solve.focal, solve.image_size, copies)
+            solved, located = solve.locate(photos)
             poses = np.where(located[:, None, None], solved, poses)
         if not with_status:
             return poses[0] if single else poses

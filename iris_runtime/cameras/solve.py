@@ -14,7 +14,7 @@ import numpy as np
 
 from ..errors import InputError
 from .features import canonical_order, enlarge, enlargement, extract_features, match_features
-from .locate import PointMap, pose_from_points
+from .locate import PointMap, locate_photos, pose_from_points
 from .mapper import MapperOptions, Reconstruction, incremental_mapping
 from .tracks import Tracks, build_tracks
 from .two_view import MAX_ERROR, estimate_two_view, intrinsics, pixel_scale
@@ -68,6 +68,15 @@ class CameraSolve:
     def posed(self) -> np.ndarray:
         """bool [V]: the views with a camera ("solved" or "located")."""
         return np.array([s != "unposed" for s in self.status])
+
+    def locate(self, photos) -> tuple[np.ndarray, np.ndarray]:
+        """Poses of new ``photos`` (uint8, any size: brought to ``image_size`` by
+        ``images.fit_to_model``, a centre crop where the aspect differs, as from the same
+        camera) against this scene's points, its cameras fixed: ``locate.locate_photos``.
+        Returns ``(world_from_cam [Q, 4, 4]`` (NaN where not posed), ``located bool [Q])``."""
+        from ..images import fit_to_model
+        copies = [fit_to_model(np.asarray(p), *self.image_size)[0] for p in photos]
+        return locate_photos(self.point_map, self.focal, self.image_size, copies)
 
 
 def check_photos(photos, name: str = "photos") -> list[np.ndarray]:

@@ -65,7 +65,7 @@ Protocol (DESIGN.md "Evaluation protocol", the paper's appendix scaled down):
   (``iris_runtime.cameras.replace_model_cameras``, as ``IrisRuntime.encode(photos,
   cameras="epipolar")`` does; the model itself sees the frames at its resolution), and the
   targets are posed against the solve's points with its cameras fixed
-  (``iris_runtime.cameras.locate_photos``, as ``IrisRuntime.locate``; a target it cannot pose
+  (``CameraSolve.locate``, as ``IrisRuntime.locate``; a target it cannot pose
   keeps the model's located pose); ``--locate model`` keeps the model's ``locate`` instead.
 - ``--cameras true``: the data's own cameras (a folder's ``transforms.json`` or COLMAP text, the
   synthetic scenes' true cameras; evaluation only, training never sees them), re-based on view 0

@@ -172,7 +172,7 @@ def pose_scene(backend, scene: PreparedScene, ref_order: Sequence[int],
     References: the model's cameras, the solve's (``replace_model_cameras``: a view it cannot
     pose keeps the model's camera) or ``true_cameras`` (needs the scene's true poses and K, else
     ``InputError``). Targets: the model's ``locate``; ``"epipolar"``: posed against the solve's
-    points with its cameras fixed (``locate_photos``, as ``IrisRuntime.locate``), or with model
+    points with its cameras fixed (``CameraSolve.locate``, as ``IrisRuntime.locate``), or with model
     or true reference cameras against those (``locate_views`` at the model's resolution), the
     model's pose kept for a target that cannot be posed; or the true cameras.
     """
@@ -207,11 +207,9 @@ def pose_scene(backend, scene: PreparedScene, ref_order: Sequence[int],
     else:
         poses = backend.locate(encoded, images[ref_order], images[target_order])
         if locate == "epipolar":
-            from iris_runtime.cameras import locate_photos, locate_views
-            if solve is not None:
-                from iris_runtime.images import fit_to_model
-                copies = [fit_to_model(photos[t], *solve.image_size)[0] for t in target_order]
-                epi, located = locate_photos(solve.point_map, solve.focal, solve.image_size, copies)
+            from iris_runtime.cameras import locate_views
+            if solve is not None:                 # as IrisRuntime.locate of a solved Scene
+                epi, located = solve.locate([photos[t] for t in target_order])
             elif cameras == "epipolar":        # view 0 unposed: the runtime keeps the model's
                 epi, located = poses, np.zeros(len(target_order), dtype=bool)
             else:
