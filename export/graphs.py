@@ -94,7 +94,7 @@ class EncoderGraph(nn.Module):
 
     def forward(self, images: torch.Tensor, is_reference: torch.Tensor):
         features, camera_tokens = self.model.encoder(images[None], is_reference)
-        world_from_cam, focal = self.model.camera_head(camera_tokens)
+        world_from_cam, focal = self.model.camera_head(camera_tokens, images[None])
         return self.model.field.prepare(features[0]), world_from_cam[0], focal[0]
 
 

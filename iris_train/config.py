@@ -6,6 +6,12 @@ from dataclasses import dataclass
 
 from iris_runtime.errors import InputError    # an IrisError and a ValueError
 
+#: The camera heads (``ModelConfig.camera_head``): "tokens" regresses each pose from the pooled
+#: camera tokens (``camera_head.CameraHead``); "correlation" adds explicit cross-view evidence, a
+#: correlation volume of each view's fine feature map with view 0's
+#: (``correlation.CorrelationCameraHead``).
+CAMERA_HEADS = ("tokens", "correlation")
+
 
 @dataclass(frozen=True)
 class ModelConfig:
@@ -39,6 +45,11 @@ class ModelConfig:
     # others'. Without it no token knows which view the poses are relative to, and the camera head
     # cannot learn relative rotations (docs/TRAINING.md). Views 1..V-1 stay order-free.
     canonical_marker: bool = False
+    # Camera head, one of CAMERA_HEADS. "tokens": pose of view i from [camera token i, camera
+    # token 0] (what checkpoints without this field hold). "correlation": the same tokens plus
+    # the correlation volume of view i's fine (2x the token grid) feature map with view 0's
+    # (docs/TRAINING.md, "Correlation camera head"); needs patch_size a multiple of 8.
+    camera_head: str = "tokens"
     # Ray sampling (DESIGN.md: camera depths in [0.1, 1.0], 64 samples).
     near: float = 0.1
     far: float = 1.0
@@ -54,11 +65,24 @@ class ModelConfig:
             raise InputError(f"need 0 < near < far, got near={self.near}, far={self.far}")
         if not 0 < self.focal_min < self.focal_max:
             raise InputError("need 0 < focal_min < focal_max")
+        if self.camera_head not in CAMERA_HEADS:
+            raise InputError(f"camera_head: expected one of {list(CAMERA_HEADS)}, got "
+                             f"{self.camera_head!r}")
+        if self.camera_head == "correlation" and self.patch_size % 8:
+            raise InputError(f"camera_head 'correlation' needs patch_size a multiple of 8 (its "
+                             f"stem has stride 4 and correlates at twice the token grid), got "
+                             f"patch_size {self.patch_size}")
 
     @property
     def feature_grid(self) -> tuple[int, int]:
         """(h, w) of the encoder's feature maps."""
         return self.image_height // self.patch_size, self.image_width // self.patch_size
+
+    @property
+    def correlation_grid(self) -> tuple[int, int]:
+        """(h, w) of the correlation camera head's fine feature maps: twice the token grid."""
+        h, w = self.feature_grid
+        return 2 * h, 2 * w
 
     @property
     def field_channels(self) -> int:

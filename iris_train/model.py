@@ -33,6 +33,7 @@ from iris_runtime.fileio import atomic_write
 from . import geometry as G
 from .camera_head import CameraHead
 from .config import ModelConfig
+from .correlation import CorrelationCameraHead
 from .encoder import MultiViewEncoder
 from .latent_field import LatentField
 from .ray_renderer import RayRenderer
@@ -128,7 +129,8 @@ class RaySamples:
 
 
 class IrisModel(nn.Module):
-    def __init__(self, cfg: ModelConfig, encoder: MultiViewEncoder, camera_head: CameraHead,
+    def __init__(self, cfg: ModelConfig, encoder: MultiViewEncoder,
+                 camera_head: CameraHead | CorrelationCameraHead,
                  field: LatentField, renderer: RayRenderer):
         super().__init__()
         self.cfg = cfg
@@ -145,7 +147,8 @@ class IrisModel(nn.Module):
         if is_reference is not None and not bool(is_reference[..., 0].all()):
             raise ValueError("is_reference: view 0 is the canonical frame and must be a reference")
         features, camera_tokens = self.encoder(images, is_reference)
-        world_from_cam, focal = self.camera_head(camera_tokens)
+        # The correlation head also reads the images (each view against view 0, a reference).
+        world_from_cam, focal = self.camera_head(camera_tokens, images)
         return features, world_from_cam, focal
 
     def _check_images(self, images: torch.Tensor, name: str) -> None:
@@ -264,7 +267,11 @@ class IrisModel(nn.Module):
 
 def build_model(cfg: ModelConfig) -> IrisModel:
     """The one place that builds IRIS from its config."""
-    return IrisModel(cfg, MultiViewEncoder(cfg), CameraHead(cfg), LatentField(cfg), RayRenderer(cfg))
+    # Built in this order (the encoder first): a seeded token-head model gets the same weights
+    # as before ``camera_head`` existed.
+    encoder = MultiViewEncoder(cfg)
+    head = CorrelationCameraHead(cfg) if cfg.camera_head == "correlation" else CameraHead(cfg)
+    return IrisModel(cfg, encoder, head, LatentField(cfg), RayRenderer(cfg))
 
 
 # -- checkpoints ------------------------------------------------------------------------------

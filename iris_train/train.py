@@ -14,6 +14,11 @@ photometric MSE. AdamW with linear warm-up and cosine decay; the encoder and cam
 renderer at inference) instead of the head's, and distils the head on the same cameras; with
 ``--init CKPT`` it fine-tunes a trained model (models/README.md has the command of the shipped one).
 
+``--camera-head {tokens,correlation}`` picks the camera head of the model (``ModelConfig.camera_head``;
+default: the preset's, or the head of the ``--init`` / ``--resume`` checkpoint). ``--init`` from a
+"tokens" checkpoint with ``--camera-head correlation`` loads every weight the two models share and
+starts the correlation head's own parameters fresh (``load_init_weights``).
+
 Multi-process runs use DistributedDataParallel with the gloo backend (CPU); each rank draws its
 own scenes. Checkpoints (``last.pt``, atomic) carry the model config, the training config, the
 optimiser state and the step, so ``--resume`` continues a run exactly where it stopped.
@@ -42,13 +47,16 @@ from iris_runtime.manifest import CAMERAS
 
 from . import geometry as G
 from . import ibr, pseudo_poses
-from .config import ModelConfig, preset
+from .config import CAMERA_HEADS, ModelConfig, preset
 from .model import IrisModel, Scene, build_model, read_checkpoint, save_checkpoint
 
 
 @dataclass(frozen=True)
 class TrainConfig:
     preset: str = "tiny"
+    # The model's camera head (``config.CAMERA_HEADS``); "": the head of the checkpoint the run
+    # starts from (``--resume``, ``--init``), else the preset's (``model_config``).
+    camera_head: str = ""
     steps: int = 20_000
     scenes_per_step: int = 2          # per process
     views_min: int = 4                # views drawn per scene (all predicted, split ref/target)
@@ -414,6 +422,54 @@ def _last_focal(model: IrisModel):
         return torch.exp(head.log_focal_min + head.log_focal_range * torch.sigmoid(z)).tolist()
 
 
+def model_config(cfg: TrainConfig, start: dict | None = None) -> ModelConfig:
+    """The run's model config: preset ``cfg.preset`` with the camera head ``cfg.camera_head``,
+    or, when that is "", the head of the checkpoint the run starts from (``start``: its config
+    dict; a checkpoint without the field has the token head), else the preset's own."""
+    base = preset(cfg.preset)
+    head = cfg.camera_head or (start.get("camera_head", "tokens") if isinstance(start, dict)
+                               else base.camera_head)
+    return dataclasses.replace(base, camera_head=head)
+
+
+#: State-dict prefix of the camera head: the only weights an ``--init`` may leave unloaded.
+CAMERA_HEAD_PREFIX = "camera_head."
+
+
+def load_init_weights(model: IrisModel, payload: dict, what: str = "init") -> list[str]:
+    """Load checkpoint ``payload`` (``read_checkpoint``) into ``model`` for a fine-tune; return
+    the state-dict keys left at their fresh initialisation (sorted; empty unless the head changes).
+
+    The checkpoint's model config must be ``model.cfg`` up to ``camera_head``. Same head: every
+    weight loads (strict). Another head (a "tokens" checkpoint into a "correlation" model, the
+    case this is for): every weight the two models share by name loads, the new head's own
+    parameters (keys under ``camera_head.`` the checkpoint lacks) stay fresh and the old head's
+    (keys under ``camera_head.`` the model lacks) are dropped. Any other missing or unexpected key,
+    or a shared key of another shape, is a ``ValueError`` naming them (``what``: its prefix)."""
+    try:
+        source = ModelConfig.from_dict(payload["config"])
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{what}: unreadable model config ({exc})") from None
+    if dataclasses.replace(source, camera_head=model.cfg.camera_head) != model.cfg:
+        raise ValueError(f"{what} holds another model config than this run's "
+                         f"(only camera_head may differ)")
+    state = payload["model"]
+    if source.camera_head == model.cfg.camera_head:
+        model.load_state_dict(state)
+        return []
+    own = model.state_dict()
+    missing, unexpected = set(own) - set(state), set(state) - set(own)
+    outside = sorted(k for k in missing | unexpected if not k.startswith(CAMERA_HEAD_PREFIX))
+    reshaped = sorted(k for k in set(own) & set(state) if own[k].shape != state[k].shape)
+    if outside or reshaped:
+        raise ValueError(f"{what}: the checkpoint does not match the model outside the new "
+                         f"camera head: missing or unexpected {outside[:5]}, other shapes "
+                         f"{reshaped[:5]}")
+    result = model.load_state_dict({k: v for k, v in state.items() if k in own}, strict=False)
+    assert not result.unexpected_keys and set(result.missing_keys) == missing
+    return sorted(missing)
+
+
 def _setup_distributed() -> tuple[int, int]:
     world = int(os.environ.get("WORLD_SIZE", "1"))
     if world > 1 and not dist.is_initialized():
@@ -425,28 +481,37 @@ def train(cfg: TrainConfig, out: Path, resume: bool = False, scenes=None, thread
           max_seconds: float | None = None, init: Path | None = None) -> Path:
     """Run (or resume) training; returns the path of the last checkpoint. ``init``: start from
     this checkpoint's weights (a fine-tune: fresh optimiser, step 0; its model config must be
-    the preset's); ``resume`` from ``out/last.pt`` takes precedence."""
+    the preset's up to the camera head, ``load_init_weights``); ``resume`` from ``out/last.pt``
+    takes precedence. The model config: ``model_config``."""
     rank, world = _setup_distributed()
     if threads:
         torch.set_num_threads(threads)
-    mcfg = preset(cfg.preset)
     out.mkdir(parents=True, exist_ok=True)
     ckpt_path = out / "last.pt"
+    resuming = resume and ckpt_path.exists()
+    init_payload = read_checkpoint(init) if init is not None and not resuming else None
+    resume_payload = read_checkpoint(ckpt_path) if resuming else None
+    start = resume_payload or init_payload
+    mcfg = model_config(cfg, start["config"] if start is not None else None)
     torch.manual_seed(cfg.seed)
     model = build_model(mcfg)
     loss_module = PhotometricLoss(model, cfg)
     optimizer = make_optimizer(model, cfg, loss_module.aux_parameters())
     start_step, elapsed_before = 0, 0.0
-    if init is not None and not (resume and ckpt_path.exists()):
-        payload = read_checkpoint(init)
-        if payload["config"] != mcfg.to_dict():
-            raise ValueError(f"init: {str(init)!r} holds another model config than preset "
-                             f"{cfg.preset!r}")
-        model.load_state_dict(payload["model"])
-        if loss_module.sample_logit is not None and payload.get("aux"):
-            loss_module.sample_logit.load_state_dict(payload["aux"])
-    if resume and ckpt_path.exists():
-        payload = read_checkpoint(ckpt_path)
+    if init_payload is not None:
+        fresh = load_init_weights(model, init_payload, f"init: {str(init)!r}")
+        if fresh and rank == 0:
+            print(f"iris-train: --init {init}: {len(fresh)} tensors of the new "
+                  f"{mcfg.camera_head!r} camera head start fresh", file=sys.stderr)
+        if loss_module.sample_logit is not None and init_payload.get("aux"):
+            loss_module.sample_logit.load_state_dict(init_payload["aux"])
+    if resume_payload is not None:
+        payload = resume_payload
+        resumed = payload["config"] if isinstance(payload["config"], dict) else {}
+        resumed_head = resumed.get("camera_head", "tokens")
+        if resumed_head != mcfg.camera_head:
+            raise ValueError(f"resume: {str(ckpt_path)!r} has the {resumed_head!r} camera head, "
+                             f"not {mcfg.camera_head!r} (--camera-head)")
         model.load_state_dict(payload["model"])
         if loss_module.sample_logit is not None:
             loss_module.sample_logit.load_state_dict(payload["aux"])
@@ -554,6 +619,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--max-minutes", type=float, default=None,
                         help="stop (with a checkpoint) after this wall time; --resume continues")
     for field in dataclasses.fields(TrainConfig):
+        if field.name == "camera_head":
+            parser.add_argument("--camera-head", choices=CAMERA_HEADS, default=field.default,
+                                help="camera head of the model (default: the --init/--resume "
+                                     "checkpoint's, else the preset's)")
+            continue
         parser.add_argument("--" + field.name.replace("_", "-"), type=type(field.default),
                             default=field.default, help=f"(default: {field.default})")
     args = parser.parse_args(argv)
