@@ -7,7 +7,8 @@
 Datasets (photos with true cameras):
 
 - ``heldout``: the 16 held-out synthetic scenes (``iris_train.data.HELDOUT_SEEDS``) rendered at
-  256x256, 8 views on arcs of 10-90 degrees;
+  256x256, 8 views on arcs of 10-90 degrees (``validation``: the first 24 validation scenes,
+  ``VALIDATION_SEEDS``, rendered alike: where a setting is chosen before held-out reports it);
 - ``wide``: 8 synthetic turntables (seeds ``WIDE_SEEDS``) whose 8 cameras are moved onto arcs of
   120-180 degrees around the same target (``iris_train.synthetic``'s ``look_at`` and renderer,
   the generator itself unchanged), 256x256;
@@ -72,13 +73,24 @@ class Scene:
 
 
 # -- datasets --------------------------------------------------------------------------------
-def heldout_scenes():
-    from iris_train.data import HELDOUT_SEEDS, SyntheticScenes
-    scenes = SyntheticScenes(HELDOUT_SEEDS, size=SIZE)
-    for i, seed in enumerate(HELDOUT_SEEDS):
+def _synthetic(name: str, seeds):
+    from iris_train.data import SyntheticScenes
+    scenes = SyntheticScenes(seeds, size=SIZE)
+    for i, seed in enumerate(seeds):
         s = scenes[i]
-        yield Scene(f"heldout {seed} ({s.meta['kind']}, arc {s.meta['arc_deg']:.0f})",
+        yield Scene(f"{name} {seed} ({s.meta['kind']}, arc {s.meta['arc_deg']:.0f})",
                     list(s.images), s.world_from_cam, s.K[0, 0] / SIZE[1])
+
+
+def heldout_scenes():
+    from iris_train.data import HELDOUT_SEEDS
+    return _synthetic("heldout", HELDOUT_SEEDS)
+
+
+def validation_scenes():
+    """The first 24 validation scenes: where solve settings are chosen (held-out reports)."""
+    from iris_train.data import VALIDATION_SEEDS
+    return _synthetic("validation", VALIDATION_SEEDS[:24])
 
 
 def wide_scenes():
@@ -122,7 +134,8 @@ def castle_scenes():
             yield Scene(f"castle {name} {W}x{H}", photos, T, CASTLE_FOCAL)
 
 
-DATASETS = {"heldout": heldout_scenes, "wide": wide_scenes, "castle": castle_scenes}
+DATASETS = {"heldout": heldout_scenes, "validation": validation_scenes, "wide": wide_scenes,
+            "castle": castle_scenes}
 
 
 # -- solvers ---------------------------------------------------------------------------------

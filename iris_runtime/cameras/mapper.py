@@ -50,7 +50,7 @@ class MapperOptions:
     init_min_inliers: int = 30
     planar_min_angle: float = 0.5
     planar_point_angle: float = 0.25
-    init_trials: int = 2
+    init_trials: int = 4
     init_angle: float = 16.0
     two_view_error: float = MAX_ERROR
     pnp_error: float = PNP_ERROR
