@@ -63,19 +63,55 @@ def training_sets(classic: int, capture: int):
     return [(s, solutions_of(k)) for k, s in enumerate(sets)]
 
 
-def draw(sets, batch: int, rng: np.random.Generator):
-    """``images [B, V, 3, 64, 64]``, solved ``world_from_cam [B, V, 4, 4]``, ``focal [B, 2]``."""
+def augment(images: torch.Tensor, world_from_cam: torch.Tensor, focal: torch.Tensor,
+            rng: np.random.Generator, max_roll_deg: float):
+    """One scene's ``images [V, 3, H, W]`` (square), cameras ``[V, 4, 4]`` (view 0 = I) and
+    ``focal [2]`` as another scene the same cameras would see: mirrored left-right with
+    probability 1/2 (the world mirrored too: ``T -> S T S``, S = diag(-1, 1, 1, 1)), each view
+    rolled about its optical axis by its own angle in [-max_roll, max_roll], and all views zoomed
+    by ``1 / (cos + sin)(max_roll)`` so that no rolled view shows a corner outside the photo (a
+    corner would tell the roll by itself); the focal grows by the zoom, the cameras are re-based
+    on the rolled view 0. Exact for a pinhole with the principal point at the centre."""
+    import math
+
+    import torch.nn.functional as F
+    V = images.shape[0]
+    if rng.random() < 0.5:
+        S = torch.diag(torch.tensor([-1.0, 1.0, 1.0, 1.0]))
+        images, world_from_cam = images.flip(-1), S @ world_from_cam @ S
+    a = math.radians(max_roll_deg)
+    zoom = 1.0 / (math.cos(a) + math.sin(a))
+    theta = torch.as_tensor(rng.uniform(-a, a, V), dtype=torch.float32)
+    c, s = torch.cos(theta), torch.sin(theta)
+    # The rolled camera sees normalised image point Q p where the old one saw p (Q: rotation by
+    # theta in the image plane), so the new image at p' samples the old at Q^T p' (times zoom).
+    Qt = torch.stack([torch.stack([c, s], -1), torch.stack([-s, c], -1)], -2)     # [V, 2, 2]
+    grid = F.affine_grid(torch.cat([Qt * zoom, torch.zeros(V, 2, 1)], -1), list(images.shape),
+                         align_corners=False)
+    images = F.grid_sample(images, grid, mode="bilinear", align_corners=False)
+    roll = torch.eye(4).repeat(V, 1, 1)
+    roll[:, :2, :2] = Qt.transpose(-1, -2)                        # cam'_from_cam = Q (in 3D)
+    world_from_cam = world_from_cam @ torch.linalg.inv(roll)       # world_from_cam'
+    world_from_cam = torch.linalg.inv(world_from_cam[0]) @ world_from_cam
+    return images, world_from_cam, focal / zoom
+
+
+def draw(sets, batch: int, rng: np.random.Generator, max_roll_deg: float = 0.0):
+    """``images [B, V, 3, 64, 64]``, solved ``world_from_cam [B, V, 4, 4]``, ``focal [B, 2]``
+    (``augment``-ed when ``max_roll_deg`` > 0)."""
     from iris_train.train import _draw_solved
     n_views = int(rng.integers(4, 9))
     images, cams, focals = [], [], []
     for _ in range(batch):
         scenes, solutions = sets[int(rng.integers(len(sets)))]
         index, order, (T, f) = _draw_solved(scenes, solutions, rng, n_views)
-        images.append(scenes[index].images[order])
+        x = torch.as_tensor(scenes[index].images[order]).permute(0, 3, 1, 2).float() / 255.0
+        if max_roll_deg > 0:
+            x, T, f = augment(x, T, f, rng, max_roll_deg)
+        images.append(x)
         cams.append(T)
         focals.append(f)
-    x = torch.as_tensor(np.stack(images)).permute(0, 1, 4, 2, 3).float() / 255.0
-    return x, torch.stack(cams), torch.stack(focals)
+    return torch.stack(images), torch.stack(cams), torch.stack(focals)
 
 
 def build(args):
@@ -104,6 +140,8 @@ def main(argv=None) -> int:
     ap.add_argument("--steps", type=int, default=100_000)
     ap.add_argument("--max-minutes", type=float, default=20.0)
     ap.add_argument("--eval-every", type=int, default=200)
+    ap.add_argument("--augment-roll", type=float, default=0.0,
+                    help="augment: mirror and roll each view by up to this many degrees (0: off)")
     ap.add_argument("--heldout-scenes", type=int, default=16, help="held-out scenes scored")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--seed", type=int, default=0)
@@ -147,7 +185,7 @@ def main(argv=None) -> int:
     model.train()
     evaluate()
     while step < args.steps and time.time() - t0 < 60 * args.max_minutes:
-        images, cams, focal = draw(sets, args.batch, rng)
+        images, cams, focal = draw(sets, args.batch, rng, args.augment_roll)
         _, world_from_cam, pred_focal = model.encode_batch(images)
         terms: dict = {}
         for b in range(images.shape[0]):

@@ -6,6 +6,7 @@ import importlib.util
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -40,3 +41,64 @@ def test_head_distill_trains_the_encoder_and_head_only(tmp_path, monkeypatch):
             assert torch.equal(value, after[f"{name}.{key}"]), key
     moved = [k for k in before if k.startswith("encoder.") and not torch.equal(before[k], after[k])]
     assert moved, "the encoder did not train"
+
+
+def _blob_images(X: torch.Tensor, world_from_cam: torch.Tensor, focal: float, size: int = 64):
+    """One Gaussian blob per view where the world point ``X [3]`` projects (pixel centres at
+    +0.5, principal point at the centre, ``focal`` fx / W) -> ``[V, 3, size, size]``, and the
+    projections ``[V, 2]``."""
+    cam = torch.linalg.inv(world_from_cam) @ torch.cat([X, torch.ones(1)])
+    uv = focal * size * cam[:, :2] / cam[:, 2:3] + size / 2
+    grid = torch.arange(size, dtype=torch.float32) + 0.5
+    d2 = (grid[None, None, :] - uv[:, 0, None, None]) ** 2 \
+        + (grid[None, :, None] - uv[:, 1, None, None]) ** 2
+    return torch.exp(-d2 / (2 * 1.5 ** 2))[:, None].repeat(1, 3, 1, 1), uv
+
+
+def _centroids(images: torch.Tensor) -> torch.Tensor:
+    size = images.shape[-1]
+    w = images[:, 0]
+    grid = torch.arange(size, dtype=torch.float32) + 0.5
+    total = w.sum((1, 2))
+    return torch.stack([(w.sum(1) * grid).sum(1) / total, (w.sum(2) * grid).sum(1) / total], 1)
+
+
+def _triangulate(uv: np.ndarray, world_from_cam: np.ndarray, focal_px: float, size: int):
+    """Linear (DLT) triangulation of one point seen at pixels ``uv [V, 2]``."""
+    rows = []
+    for (u, v), T in zip(uv, world_from_cam):
+        K = np.array([[focal_px, 0, size / 2], [0, focal_px, size / 2], [0, 0, 1]])
+        P = K @ np.linalg.inv(T)[:3]
+        rows += [u * P[2] - P[0], v * P[2] - P[1]]
+    X = np.linalg.svd(np.array(rows))[2][-1]
+    return X[:3] / X[3]
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_augment_moves_the_images_as_the_cameras_say(seed):
+    """The augmented photos are what the augmented cameras (and focal) see: a point's blobs in
+    the four augmented views, triangulated with the augmented cameras, reproject onto themselves to
+    a fifth of a pixel (a wrong roll sign is pixels off), and each blob's distance from the centre
+    grows by the focal's factor."""
+    from iris_runtime.orbit import look_at
+    rng = np.random.default_rng(seed)
+    centre = np.zeros(3)
+    eyes = [np.array([0.6 * np.sin(a), -0.6 * np.cos(a), 0.15]) for a in rng.uniform(-0.4, 0.4, 4)]
+    T = np.stack([look_at(e, centre, np.array([0.0, 0.0, -1.0])) for e in eyes])
+    T = torch.as_tensor(np.linalg.inv(T[0]) @ T, dtype=torch.float32)
+    X = torch.as_tensor(np.array([0.08, 0.05, 0.6]) + rng.normal(0, 0.02, 3), dtype=torch.float32)
+    images, _ = _blob_images(X, T, 1.0)
+    aug_images, aug_T, aug_focal = _script().augment(images, T, torch.full((2,), 1.0), rng, 15.0)
+    assert torch.allclose(aug_T[0], torch.eye(4), atol=1e-5)
+    assert torch.allclose(torch.linalg.det(aug_T[:, :3, :3]), torch.ones(4), atol=1e-5)
+    uv = _centroids(aug_images).double().numpy()
+    Tn, f_px = aug_T.double().numpy(), float(aug_focal[0]) * 64
+    Xn = _triangulate(uv, Tn, f_px, 64)
+    cam = np.linalg.inv(Tn) @ np.append(Xn, 1.0)
+    reprojected = f_px * cam[:, :2] / cam[:, 2:3] + 32
+    assert np.abs(reprojected - uv).max() < 0.2, (reprojected, uv)
+    # mirror and roll keep a point's distance from the centre; the zoom scales it as the focal
+    ratio = (_centroids(aug_images) - 32).norm(dim=1) / (_centroids(images) - 32).norm(dim=1)
+    assert torch.allclose(ratio, aug_focal[0] / 1.0 * torch.ones(4), atol=0.02), ratio
+    # and the augmentation did something: rolled or mirrored views differ from the originals
+    assert not torch.allclose(_centroids(aug_images), _centroids(images), atol=0.5)
