@@ -53,7 +53,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from .camera_head import _IDENTITY_6D, POSE_INIT_STD, world_from_cam_from_residual
+from .camera_head import _IDENTITY_6D, POSE_INIT_STD, CameraHead, world_from_cam_from_residual
 from .config import ModelConfig
 from .layers import MLP
 
@@ -126,7 +126,7 @@ class CorrelationCameraHead(nn.Module):
             *_conv_block(EVIDENCE_CHANNELS, EVIDENCE_CHANNELS, 3, 1),
             *_conv_block(EVIDENCE_CHANNELS, EVIDENCE_CHANNELS, 3, 2))
         # Not ``pose_mlp``: its input differs from the token head's, and a token-head checkpoint
-        # must not half-load into it (``iris_train.train.load_weights``).
+        # must not half-load into it (``iris_train.train.load_init_weights``).
         self.fused_pose_mlp = MLP(3 * EVIDENCE_CHANNELS + 2 * d, d, 9)
         self.focal_mlp = MLP(d, d // 2, 2)
         # Small last layers, as the token head's (camera_head.CameraHead): cameras start near the
@@ -163,8 +163,5 @@ class CorrelationCameraHead(nn.Module):
         out = self.fused_pose_mlp(features)                                     # [B, V, 9]
         return world_from_cam_from_residual(out, self.identity_6d), self.focal(camera_tokens)
 
-    def focal(self, camera_tokens: torch.Tensor) -> torch.Tensor:
-        """``camera_tokens [B, V, D]`` -> the shared ``focal [B, 2]`` (fx/W, fy/H) from token 0,
-        exactly as ``CameraHead.focal``."""
-        return torch.exp(self.log_focal_min + self.log_focal_range
-                         * torch.sigmoid(self.focal_mlp(camera_tokens[:, 0])))   # [B, 2]
+    #: The shared focal from token 0: the token head's own (same ``focal_mlp`` and bounds).
+    focal = CameraHead.focal
