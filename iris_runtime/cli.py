@@ -41,7 +41,9 @@ Written to OUT (created if needed; files of the same name are replaced):
 - ``cameras.json``: where the cameras come from (``source``: "model", "epipolar" or "mixed"),
   ``solved_at`` [H, W] the resolution of the photos they were solved at (null for the model's),
   ``status`` per view ("solved", "located", "unposed"; null for the model's), ``focal`` [fx/W,
-  fy/H] at the model's resolution and the model's own ``encoder_focal``.
+  fy/H] at the model's resolution and the model's own ``encoder_focal`` and
+  ``encoder_world_from_cam`` (the camera head's poses, one 4x4 per view, in the head's own frame
+  and unit; equal to the written cameras when those are the model's).
 
 Everything is checked (model, images, poses, view indices) before anything is written. Errors
 print one line on stderr and exit with code 2, without a traceback.
@@ -372,7 +374,10 @@ def _write_cameras(out: Path, req: _Request, scene, orbit, located) -> Path:
         "status": None if scene.camera_status is None else list(scene.camera_status),
         "focal": scene.focal.tolist(),
         "encoder_focal": (scene.focal if scene.encoder_focal is None
-                          else scene.encoder_focal).tolist()}, indent=1) + "\n")
+                          else scene.encoder_focal).tolist(),
+        "encoder_world_from_cam": (cams if scene.encoder_world_from_cam is None
+                                   else scene.encoder_world_from_cam).tolist()},
+        indent=1) + "\n")
     what = "predicted" if scene.camera_source == "model" else scene.camera_source
     _write_png(out / "cameras.png", draw_cameras(cams, scene.K, size=(480, 640),
                                                  title=f"{what} cameras of the {V} input(s)"))

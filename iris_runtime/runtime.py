@@ -303,8 +303,9 @@ class IrisRuntime:
                  poses and the focal; the centres scaled so that the scene's median point
                  depth lies ``cameras.DEPTH_TARGET`` of the way into the renderer's depth range
                  [near, far]. The solved focal, carried through the crop and resize to the
-                 model's resolution, becomes the Scene's ``focal`` and ``K`` (the encoder's is
-                 kept in ``Scene.encoder_focal``); ``Scene.camera_size`` says the resolution
+                 model's resolution, becomes the Scene's ``focal`` and ``K`` (the encoder's
+                 focal and poses are kept in ``Scene.encoder_focal`` and
+                 ``Scene.encoder_world_from_cam``); ``Scene.camera_size`` says the resolution
                  the cameras were solved at and ``Scene.camera_status`` how each view was
                  posed. A view the solve cannot pose keeps the encoder's camera
                  (``camera_status`` "unposed", ``camera_source`` "mixed"; all of them, and
@@ -343,7 +344,8 @@ class IrisRuntime:
                      camera_source=cams.source,
                      encoder_focal=None if cams.source == "model" else focal64,
                      camera_size=cams.camera_size, camera_status=cams.status,
-                     camera_solve=cams.solve)
+                     camera_solve=cams.solve,
+                     encoder_world_from_cam=None if cams.source == "model" else poses64)
 
     # -- locating ---------------------------------------------------------------------------
     def locate(self, scene: Scene, image, *, with_status: bool = False):

@@ -77,6 +77,11 @@ class Scene:
     camera_solve:   the ``iris_runtime.cameras.CameraSolve`` behind the cameras (its points and
                     descriptors, in this scene's frame and unit), what ``locate`` poses new
                     photos against; None for the model's cameras
+    encoder_world_from_cam: float64 [V, 4, 4], the poses the encoder's camera head predicted
+                    when ``world_from_cam`` holds other cameras (as ``encoder_focal``: None when
+                    ``world_from_cam`` is the encoder's). Rigid, in the head's own frame and unit
+                    (its view 0 = I before ``subset``), so compare it with other cameras only
+                    after a similarity alignment. ``subset`` keeps it in step with the views
     """
     field_maps: np.ndarray
     world_from_cam: np.ndarray
@@ -91,6 +96,8 @@ class Scene:
     camera_size: tuple[int, int] | None = None
     camera_status: tuple[str, ...] | None = None
     camera_solve: "CameraSolve | None" = field(default=None, repr=False)
+    # Last, not beside encoder_focal: callers build Scenes with positional arguments.
+    encoder_world_from_cam: np.ndarray | None = field(default=None, repr=False)
 
     def __post_init__(self):
         arrays = {}
@@ -159,6 +166,13 @@ class Scene:
                                                and np.all(enc_focal > 0)):
                 raise InputError(f"encoder_focal: expected [2] positive finite numbers or None, "
                                  f"got {enc_focal.tolist()}")
+        enc_poses = self.encoder_world_from_cam
+        if enc_poses is not None:
+            enc_poses = check_world_from_cam(enc_poses, "encoder_world_from_cam", batch=True)
+            if enc_poses.shape != (V, 4, 4):
+                raise InputError(f"encoder_world_from_cam: expected [{V}, 4, 4] (one pose per "
+                                 f"view) or None, got {enc_poses.shape}")
+            enc_poses = _readonly(enc_poses, np.float64)
         cam_size = self.camera_size
         if cam_size is not None:
             try:
@@ -182,7 +196,8 @@ class Scene:
         for name, value in (("field_maps", maps), ("world_from_cam", poses), ("focal", focal),
                             ("image_size", size), ("K", K), ("reference_images", refs),
                             ("image_index", index), ("encoder_focal", enc_focal),
-                            ("camera_size", cam_size), ("camera_status", status)):
+                            ("camera_size", cam_size), ("camera_status", status),
+                            ("encoder_world_from_cam", enc_poses)):
             object.__setattr__(self, name, value)
 
     @property
@@ -218,7 +233,9 @@ class Scene:
                      self.camera_source, self.encoder_focal, self.camera_size,
                      None if self.camera_status is None
                      else tuple(self.camera_status[i] for i in idx.tolist()),
-                     self.camera_solve)
+                     self.camera_solve,
+                     None if self.encoder_world_from_cam is None
+                     else self.encoder_world_from_cam[idx])
 
     def __repr__(self) -> str:
         solved = "" if self.camera_size is None else f", camera_size={self.camera_size}"

@@ -129,6 +129,9 @@ def test_runtime_solves_the_cameras_on_the_photos_at_their_own_resolution(corner
     assert epi.camera_status == ("solved",) * 6 and "camera_size=(192, 256)" in repr(epi)
     np.testing.assert_array_equal(epi.field_maps, model.field_maps)     # the encoder's, as always
     np.testing.assert_array_equal(epi.encoder_focal, model.focal)
+    # The camera head's poses are kept beside the solve's (read-only, like every Scene array).
+    np.testing.assert_array_equal(epi.encoder_world_from_cam, model.world_from_cam)
+    assert not epi.encoder_world_from_cam.flags.writeable
     # The same solve as solve_cameras of the photos, its K carried to the model's resolution.
     s = solve_cameras(images, (rt.near, rt.far))
     np.testing.assert_array_equal(epi.world_from_cam, s.world_from_cam)
@@ -141,6 +144,10 @@ def test_runtime_solves_the_cameras_on_the_photos_at_their_own_resolution(corner
     # locate: a view left out comes back at the camera the full solve gave it, at any size.
     left_out = epi.subset([0, 1, 2, 4, 5])
     assert left_out.camera_status == ("solved",) * 5 and left_out.camera_solve is epi.camera_solve
+    np.testing.assert_array_equal(left_out.encoder_world_from_cam,
+                                  model.world_from_cam[[0, 1, 2, 4, 5]])
+    assert epi.subset([3, 1]).encoder_world_from_cam.shape == (2, 4, 4)
+    assert model.subset([1, 0]).encoder_world_from_cam is None
     bigger = np.repeat(np.repeat(photos[3], 2, axis=0), 2, axis=1)       # the same photo, 2x
     for photo in (photos[3], bigger):
         T, status = rt.locate(left_out, photo, with_status=True)
@@ -170,6 +177,7 @@ def test_runtime_model_cameras_are_bitwise_unchanged(corner, model_dir):
         np.testing.assert_array_equal(scene.world_from_cam, poses.astype(np.float64))
         np.testing.assert_array_equal(scene.focal, focal.astype(np.float64))
         assert scene.camera_source == "model" and scene.encoder_focal is None
+        assert scene.encoder_world_from_cam is None
     np.testing.assert_array_equal(rt.render(default, 1), rt.render(model, 1))
 
 
@@ -184,12 +192,26 @@ def test_bad_camera_values_raise_typed_errors(model_dir):
     scene = rt.encode(images, cameras="model")
     kwargs = dict(field_maps=scene.field_maps, world_from_cam=scene.world_from_cam,
                   focal=scene.focal, K=scene.K, image_size=scene.image_size)
+    mirrored = np.tile(np.eye(4), (2, 1, 1))
+    mirrored[1, 0, 0] = -1.0
+    nan = np.tile(np.eye(4), (2, 1, 1))
+    nan[1, 2, 3] = np.nan
     for name, value in (("camera_source", "colmap"), ("encoder_focal", [0.0, 1.0]),
                         ("camera_size", (0, 64)), ("camera_size", "64x64"),
                         ("camera_status", ("solved",)), ("camera_status", ("done", "solved")),
-                        ("camera_solve", "solve")):
+                        ("camera_solve", "solve"),
+                        ("encoder_world_from_cam", np.tile(np.eye(4), (3, 1, 1))),   # V = 2
+                        ("encoder_world_from_cam", np.eye(4)),
+                        ("encoder_world_from_cam", mirrored), ("encoder_world_from_cam", nan),
+                        ("encoder_world_from_cam", "poses")):
         with pytest.raises(InputError, match=name):
             Scene(**kwargs, **{name: value})
+    # A good value is kept as a read-only float64 copy.
+    given = np.tile(np.eye(4, dtype=np.float32), (2, 1, 1))
+    kept = Scene(**kwargs, encoder_world_from_cam=given).encoder_world_from_cam
+    assert kept.dtype == np.float64 and not kept.flags.writeable
+    given[0, 0, 3] = 5.0
+    assert kept[0, 0, 3] == 0.0
 
 
 @pytest.mark.torch
@@ -247,11 +269,15 @@ def test_cli_cameras_flag(corner, model_dir, tmp_path):
     cams = json.loads((tmp_path / "o" / "cameras.json").read_text())
     assert cams["source"] == "epipolar" and cams["solved_at"] == [192, 256]
     assert cams["status"] == ["solved"] * 4 and len(cams["focal"]) == 2
+    head = np.array(cams["encoder_world_from_cam"])           # the camera head's poses
+    assert head.shape == (4, 4, 4)
+    np.testing.assert_allclose(head[0], np.eye(4), atol=1e-6)
     plain = subprocess.run(base + ["-o", str(tmp_path / "m"), "--cameras", "model", "--view", "0",
                                    "--no-depth"], capture_output=True, text=True, cwd=REPO)
     assert plain.returncode == 0, plain.stderr
     cams = json.loads((tmp_path / "m" / "cameras.json").read_text())
     assert cams["source"] == "model" and cams["solved_at"] is None and cams["status"] is None
+    np.testing.assert_allclose(cams["encoder_world_from_cam"], head, atol=1e-6)
     bad = subprocess.run(base + ["-o", str(tmp_path / "p"), "--cameras", "sfm"],
                          capture_output=True, text=True, cwd=REPO)
     assert bad.returncode == 2 and "--cameras" in bad.stderr and len(bad.stderr.splitlines()) == 1

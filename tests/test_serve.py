@@ -9,6 +9,7 @@ process on the same photos and pose. Also here: the ONNX Runtime ``providers`` p
 """
 from __future__ import annotations
 
+import dataclasses
 import io
 import json
 import os
@@ -457,6 +458,9 @@ def test_scene_store_is_lru_and_bounded(rt):
     from iris_runtime.serve.store import SceneStore, scene_nbytes
     scene = rt.encode(PHOTOS[:2])
     size = scene_nbytes(scene)
+    # The camera head's poses kept beside solved cameras count too.
+    with_head = dataclasses.replace(scene, encoder_world_from_cam=scene.world_from_cam)
+    assert scene_nbytes(with_head) == size + scene.world_from_cam.nbytes
     evicted = []
     store = SceneStore(max_bytes=3 * size, max_scenes=2, on_evict=lambda: evicted.append(1))
     a, b = store.put(scene, "model"), store.put(scene, "model")

@@ -24,7 +24,8 @@ __all__ = ["StoredScene", "SceneStore", "scene_nbytes"]
 def scene_nbytes(scene: Scene) -> int:
     """Bytes of the arrays a ``Scene`` holds (what keeping it costs)."""
     arrays = (scene.field_maps, scene.world_from_cam, scene.focal, scene.K,
-              scene.reference_images, scene.image_index, scene.encoder_focal)
+              scene.reference_images, scene.image_index, scene.encoder_focal,
+              scene.encoder_world_from_cam)
     return sum(a.nbytes for a in arrays if a is not None)
 
 
