@@ -4,6 +4,9 @@
     aligned, _ = align_poses(pred_world_from_cam, true_world_from_cam)   # predicted, in the true frame
     image = draw_cameras(aligned, pred_K, reference=true_world_from_cam, reference_focal=true_K)
 
+More sets in the same frame (e.g. a second estimate of some of the cameras, aligned the same way)
+go in ``others``, one ``CameraSet`` each.
+
 ``draw_cameras`` draws every camera as a frustum (apex at the centre, the image rectangle at a
 fixed distance along the optical axis, a small filled triangle on the image's top edge so that roll
 is visible) with its index, in an **orthographic** view from a fixed elevated viewpoint: 30 degrees
@@ -27,6 +30,7 @@ predictions have their own frame and scale).
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Sequence
 
 import cv2
@@ -35,12 +39,14 @@ import numpy as np
 from .errors import InputError
 from .geometry import nearest_rotation
 
-__all__ = ["draw_cameras", "align_similarity", "apply_similarity", "align_poses",
-           "PRED_COLOUR", "TRUE_COLOUR"]
+__all__ = ["draw_cameras", "CameraSet", "align_similarity", "apply_similarity", "align_poses",
+           "PRED_COLOUR", "TRUE_COLOUR", "OTHER_COLOUR"]
 
-#: Default colours (RGB): predicted cameras red, reference (true) cameras blue.
+#: Default colours (RGB): predicted cameras red, reference (true) cameras blue, a further set
+#: (``CameraSet``) green.
 PRED_COLOUR = (214, 39, 40)
 TRUE_COLOUR = (31, 119, 180)
+OTHER_COLOUR = (44, 160, 44)
 
 _ELEVATION_DEG = 30.0
 _AZIMUTH_DEG = 35.0
@@ -293,10 +299,29 @@ def _is_collapsed(C: np.ndarray) -> bool:
     return not (spread > _COLLAPSE_RTOL * float(np.abs(C).max()) and spread > 1e-250)
 
 
+@dataclass(frozen=True)
+class CameraSet:
+    """A further set of cameras for ``draw_cameras(..., others=[...])``, in the picture's frame.
+
+    world_from_cam: [N, 4, 4]  OpenCV camera-to-world
+    focal:          their intrinsics, as ``draw_cameras``' ``focal`` (None: focal 1)
+    name:           the legend entry
+    colour:         RGB
+    labels:         [N] ints drawn beside the cameras (None: 0..N-1); e.g. frame indices when
+                    the set holds some of the frames
+    """
+    world_from_cam: np.ndarray
+    focal: object = None
+    name: str = "other"
+    colour: tuple[int, int, int] = OTHER_COLOUR
+    labels: Sequence[int] | None = None
+
+
 def draw_cameras(world_from_cam, focal=None, *, reference=None, reference_focal=None,
                  colours: Sequence[Sequence[int]] | None = None, size: tuple[int, int] = (360, 480),
                  labels: bool = True, title: str | None = None,
-                 names: tuple[str, str] = ("predicted", "true")) -> np.ndarray:
+                 names: tuple[str, str] = ("predicted", "true"),
+                 others: Sequence[CameraSet] = ()) -> np.ndarray:
     """Picture of camera frustums -> RGB ``uint8 [H, W, 3]`` (white background).
 
     ``world_from_cam [N, 4, 4]`` (OpenCV camera-to-world; one 4x4 also accepted): the cameras
@@ -304,9 +329,11 @@ def draw_cameras(world_from_cam, focal=None, *, reference=None, reference_focal=
     ``[N, 3, 3]`` in pixels (the image is taken as 2 cx by 2 cy pixels), a normalised focal fx/W
     or ``[fx/W, fy/H]`` (the model's), or None (focal 1). ``reference [M, 4, 4]``: other cameras
     in the same frame (e.g. the true ones), drawn underneath in ``colours[1]`` with
-    ``reference_focal`` (default: ``focal``). ``labels``: index of each camera beside its centre.
-    ``names``: legend entries of the two sets (shown when ``reference`` is given). ``title``: one
-    line at the top. Camera k and reference k are joined by a thin grey line when N == M.
+    ``reference_focal`` (default: ``focal``). ``others``: further ``CameraSet``s in the same
+    frame, drawn between the two, each in its colour, with its labels and legend entry.
+    ``labels``: index of each camera beside its centre. ``names``: legend entries of the two
+    sets (the second shown when ``reference`` is given). ``title``: one line at the top. Camera
+    k and reference k are joined by a thin grey line when N == M.
 
     See the module docstring for the viewpoint and the degenerate cases.
     """
@@ -321,6 +348,24 @@ def draw_cameras(world_from_cam, focal=None, *, reference=None, reference_focal=
     if ref is not None:
         sets.insert(0, ("ref", ref, _half_extents(focal if reference_focal is None else
                                                   reference_focal, len(ref), "reference_focal")))
+    # Per set: legend name, colour, labels, drawing rank (reference under the others under pred).
+    style = {"pred": (names[0], colour_pred, None, 2), "ref": (names[1], colour_ref, None, 0)}
+    if isinstance(others, CameraSet):
+        others = (others,)
+    for k, other in enumerate(others):
+        if not isinstance(other, CameraSet):
+            raise InputError(f"others[{k}]: expected a CameraSet, got {type(other).__name__}")
+        T = _check_cameras(other.world_from_cam, f"others[{k}].world_from_cam")
+        tags = None
+        if other.labels is not None:
+            tags = np.asarray(other.labels)
+            if tags.shape != (len(T),) or not np.issubdtype(tags.dtype, np.integer):
+                raise InputError(f"others[{k}].labels: expected {len(T)} integers (one per "
+                                 f"camera) or None, got {other.labels!r}")
+        key = f"other{k}"
+        sets.insert(1 + k if ref is not None else k,
+                    (key, T, _half_extents(other.focal, len(T), f"others[{k}].focal")))
+        style[key] = (str(other.name), tuple(int(c) for c in other.colour), tags, 1)
     notes = []
     kept = {}
     for key, T, half in sets:
@@ -358,10 +403,12 @@ def draw_cameras(world_from_cam, focal=None, *, reference=None, reference_focal=
     else:
         origin = centres.mean(0)
         unit = _spread(centres)
-    if ref is not None and len(kept["pred"][0]) > 1 and len(kept["ref"][0]) > 1 and not all_collapsed:
-        sp, sr = _spread(kept["pred"][1][:, :3, 3]), _spread(kept["ref"][1][:, :3, 3])
-        if sr > 0 and sp < _PRED_COLLAPSE_FRACTION * sr:
-            notes.append(f"{names[0]} cameras collapsed (spread {100 * sp / sr:.2g} % of {names[1]})")
+    for key in [k for k in kept if k != "ref"] if ref is not None and not all_collapsed else ():
+        if len(kept[key][0]) > 1 and len(kept["ref"][0]) > 1:
+            sp, sr = _spread(kept[key][1][:, :3, 3]), _spread(kept["ref"][1][:, :3, 3])
+            if sr > 0 and sp < _PRED_COLLAPSE_FRACTION * sr:
+                notes.append(f"{style[key][0]} cameras collapsed (spread {100 * sp / sr:.2g} % "
+                             f"of {names[1]})")
     length = 1.0 if all_collapsed else 2.0 * _FRUSTUM_FRACTION     # extent = 2 x spread
 
     frusta = {}
@@ -379,7 +426,18 @@ def draw_cameras(world_from_cam, focal=None, *, reference=None, reference_focal=
     font = cv2.FONT_HERSHEY_SIMPLEX
     fs = max(0.3, min(H, W) / 900.0)
     line_h = int(round(26 * fs)) + 4
-    top = line_h * (1 + (title is not None)) + 4
+    # Legend: (x, line, text, colour) per entry. A further set's entry starts a new line when it
+    # would cross the right edge (the first two stay on one line whatever the width).
+    entries = [(names[0], colour_pred)] + ([(names[1], colour_ref)] if ref is not None else []) \
+        + [style[key][:2] for key in style if key.startswith("other")]
+    legend, x, line = [], 6, 0
+    for k, (text, colour) in enumerate(entries):
+        width = int(24 * fs * 2) + cv2.getTextSize(text, font, fs, 1)[0][0]
+        if k >= 2 and x > 6 and x + width > W - 6:
+            x, line = 6, line + 1
+        legend.append((x, line, text, colour))
+        x += width + int(16 * fs * 2)
+    top = line_h * (1 + line + (title is not None)) + 4
     bottom = line_h * (1 + len(notes)) + 6
     margin = max(8, W // 25)
     pts = np.concatenate([f.reshape(-1, 3) for f in frusta.values()]) if frusta else np.zeros((0, 3))
@@ -413,13 +471,13 @@ def draw_cameras(world_from_cam, focal=None, *, reference=None, reference_focal=
         for p, q in zip(a, b):
             cv2.line(img, ipt(p), ipt(q), (170, 170, 170), 1, cv2.LINE_AA, SHIFT)
 
-    # Frustums of both sets, far to near (painter's order).
+    # Frustums of all sets, far to near (painter's order).
     items = []
     for key, F in frusta.items():
-        colour = colour_pred if key == "pred" else colour_ref
+        colour = style[key][1]
         for k, f in enumerate(F):
             items.append((float(f[0] @ axes[2]), key, kept[key][0][k], f, colour))
-    items.sort(key=lambda it: (-it[0], it[1] == "pred"))
+    items.sort(key=lambda it: (-it[0], style[it[1]][3]))
     for _, key, index, f, colour in items:
         p = to_px(f)
         tk = thick
@@ -430,15 +488,14 @@ def draw_cameras(world_from_cam, focal=None, *, reference=None, reference_focal=
         cv2.fillConvexPoly(img, tri, colour, cv2.LINE_AA, SHIFT)
         cv2.circle(img, ipt(p[0]), (tk + 1) << SHIFT, colour, -1, cv2.LINE_AA, SHIFT)
     if labels:
-        for key in ("ref", "pred"):
-            if key not in frusta:
-                continue
-            colour = colour_pred if key == "pred" else colour_ref
+        for key in sorted(frusta, key=lambda k: style[k][3]):
+            _, colour, tags, _ = style[key]
             # Cameras drawn at the same spot (a collapsed set) share one label "0-7" / "1,4".
             groups: dict[tuple[int, int], list] = {}
             for index, f in zip(kept[key][0], frusta[key]):
                 c = to_px(f[0])
-                groups.setdefault((int(c[0] // 4), int(c[1] // 4)), []).append((int(index), f, c))
+                label = int(index) if tags is None else int(tags[index])
+                groups.setdefault((int(c[0] // 4), int(c[1] // 4)), []).append((label, f, c))
             for members in groups.values():
                 _, f, c = members[0]
                 text = _index_label([m[0] for m in members])
@@ -457,13 +514,11 @@ def draw_cameras(world_from_cam, focal=None, *, reference=None, reference_focal=
     if title is not None:
         cv2.putText(img, title, (6, y), font, fs, (0, 0, 0), 1, cv2.LINE_AA)
         y += line_h
-    x = 6
-    entries = [(names[0], colour_pred)] + ([(names[1], colour_ref)] if ref is not None else [])
-    for text, colour in entries:
-        cv2.rectangle(img, (x, y - int(14 * fs * 2) // 2 - 2), (x + int(20 * fs * 2), y - 2), colour, -1)
-        x += int(24 * fs * 2)
-        cv2.putText(img, text, (x, y), font, fs, (0, 0, 0), 1, cv2.LINE_AA)
-        x += cv2.getTextSize(text, font, fs, 1)[0][0] + int(16 * fs * 2)
+    for x, line, text, colour in legend:
+        yl = y + line * line_h
+        cv2.rectangle(img, (x, yl - int(14 * fs * 2) // 2 - 2), (x + int(20 * fs * 2), yl - 2),
+                      colour, -1)
+        cv2.putText(img, text, (x + int(24 * fs * 2), yl), font, fs, (0, 0, 0), 1, cv2.LINE_AA)
 
     # Scale bar (scene units) and notes.
     y = H - 6 - line_h * len(notes)

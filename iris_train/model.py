@@ -67,13 +67,18 @@ class Scene:
     the name of the encoder graph's output and of ``iris_runtime.Scene.field_maps``),
     ``world_from_cam [V, 4, 4]`` the predicted poses (view 0 = I), ``focal [2]`` (fx/W, fy/H) and
     ``image_size`` (H, W) the model's resolution; ``images [V, 3, H, W]`` in [0, 1] the reference
-    photos (needed by models with ``explicit_rgb``, None otherwise).
+    photos (needed by models with ``explicit_rgb``, None otherwise). When ``world_from_cam`` and
+    ``focal`` are other cameras than the camera head's (``iris-eval --cameras``),
+    ``encoder_world_from_cam [V, 4, 4]`` and ``encoder_focal [2]`` keep the head's, as
+    ``iris_runtime.Scene`` does; None when the cameras are the head's.
     """
     field_maps: torch.Tensor
     world_from_cam: torch.Tensor
     focal: torch.Tensor
     image_size: tuple[int, int]
     images: torch.Tensor | None = None
+    encoder_world_from_cam: torch.Tensor | None = None
+    encoder_focal: torch.Tensor | None = None
 
     @property
     def num_views(self) -> int:
@@ -88,7 +93,9 @@ class Scene:
         idx = torch.as_tensor(list(indices), dtype=torch.long)
         return dataclasses.replace(self, field_maps=self.field_maps[idx],
                                    world_from_cam=self.world_from_cam[idx],
-                                   images=None if self.images is None else self.images[idx])
+                                   images=None if self.images is None else self.images[idx],
+                                   encoder_world_from_cam=None if self.encoder_world_from_cam
+                                   is None else self.encoder_world_from_cam[idx])
 
     def project_samples(self, origins: torch.Tensor, directions: torch.Tensor,
                         depths: torch.Tensor, colours: bool | None = None) -> "RaySamples":

@@ -169,6 +169,32 @@ def test_picture_of_predicted_and_true_cameras(size):
     assert blue > 20 and red > 20                     # both sets visible
 
 
+@pytest.mark.parametrize("size", [(450, 700), (64, 96)])
+def test_a_further_set_of_cameras_is_drawn_in_its_colour(size):
+    """Three sets (true, predicted, and a further one holding some of the frames, e.g. the camera
+    head's references beside a solve): the further set's frustums appear in its colour (and
+    nowhere without it), also in a small picture whose legend takes a second line."""
+    from iris_runtime.camera_plot import OTHER_COLOUR, CameraSet
+    from iris_runtime.errors import InputError
+    true = arc()
+    frames = [0, 2, 3, 5, 7]
+    head = true[frames].copy()
+    head[:, :3, 3] += np.array([0.0, -0.15, 0.0])          # beside the true ones, not on them
+    other = CameraSet(head, [1.1, 1.1], "camera head (references)", labels=frames)
+    two = draw_cameras(true, K, reference=true, size=size, names=("rendered (epipolar)", "true"))
+    three = draw_cameras(true, K, reference=true, size=size, others=[other],
+                         names=("rendered (epipolar)", "true"))
+    check_image(three, size)
+    green = (np.abs(three.astype(int) - OTHER_COLOUR).sum(-1) < 30).sum()
+    assert green > 20 and (np.abs(two.astype(int) - OTHER_COLOUR).sum(-1) < 30).sum() == 0
+    with pytest.raises(InputError, match=r"others\[0\].labels"):
+        draw_cameras(true, K, others=[CameraSet(head, labels=[0, 1])])
+    with pytest.raises(InputError, match=r"others\[0\].world_from_cam"):
+        draw_cameras(true, K, others=[CameraSet(np.zeros((2, 3)))])
+    with pytest.raises(InputError, match="CameraSet"):
+        draw_cameras(true, K, others=[head])
+
+
 @pytest.mark.parametrize("case", ["one-camera", "all-at-one-point", "collapsed-vs-true", "huge",
                                   "tiny", "non-rigid", "non-finite", "per-view-K", "no-focal"])
 def test_degenerate_cameras_still_give_a_picture(case):

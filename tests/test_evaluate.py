@@ -27,6 +27,8 @@ ROOT = Path(__file__).resolve().parents[1]
 SIZE = (16, 16)          # smallest size of the tiny preset's 8-px patches that SSIM (11 taps) takes
 RPA_KEYS = ("rpa@5", "rpa@15", "rpa@30")
 LOCATE_KEYS = ("locate_rpa@5", "locate_rpa@15", "locate_rpa@30")
+REFERENCE_KEYS = ("reference_rpa@5", "reference_rpa@15", "reference_rpa@30")
+HEAD_KEYS = ("head_reference_rpa@5", "head_reference_rpa@15", "head_reference_rpa@30")
 YAWS = (0.0, 2.0, 4.0, 8.0, 12.0, 20.0, 31.0, 45.0)    # no pair differs by exactly 5, 15 or 30 deg
 
 
@@ -91,7 +93,8 @@ def check_structure(results):
     assert set(results) == {"seq", "rand"}
     for R in results.values():
         assert set(R) == {"model", "baselines", "scenes"}
-        assert set(R["model"]) == {"psnr", "ssim", *RPA_KEYS, *LOCATE_KEYS, "depth_spearman"}
+        assert set(R["model"]) == {"psnr", "ssim", *RPA_KEYS, *LOCATE_KEYS, "depth_spearman",
+                                   *REFERENCE_KEYS, *HEAD_KEYS}
         assert set(R["baselines"]) == {"nearest_reference", "mean_colour", "identity_poses",
                                        "best_reference"}
         assert set(R["baselines"]["nearest_reference"]) == {"psnr", "ssim"}
@@ -272,14 +275,14 @@ def test_evaluate_tiny_model_structure_and_ranges(tiny_results):
     for R in results.values():
         for name, values in [("model", R["model"]), *R["baselines"].items()]:
             for key, v in values.items():
-                if key == "depth_spearman" and not has_depth:
-                    assert v is None
+                if (key == "depth_spearman" and not has_depth) or key in HEAD_KEYS:
+                    assert v is None          # HEAD_KEYS: model cameras are the head's
                     continue
                 assert v is not None and np.isfinite(v), (name, key)
                 if key == "psnr":
                     assert 0 < v <= 100
                 else:
-                    assert 0 <= v <= 1 if key.startswith("rpa") else -1 <= v <= 1
+                    assert 0 <= v <= 1 if "rpa@" in key else -1 <= v <= 1
     # Baselines see the same frames in either order.
     assert results["seq"]["baselines"] == results["rand"]["baselines"]
     assert grid.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
@@ -476,24 +479,26 @@ def test_best_reference_matches_a_brute_force_search():
     assert "best reference" in format_table(results)
 
 
+@dataclasses.dataclass
+class OracleScene:
+    """An ``OracleRuntime`` scene with the ``iris_runtime.Scene`` fields that ``evaluate`` reads
+    and ``RuntimeBackend.with_cameras`` replaces."""
+    world_from_cam: np.ndarray
+    views: list
+    all_poses: np.ndarray
+    all_images: np.ndarray
+    focal: np.ndarray = dataclasses.field(default_factory=lambda: np.array([1.2, 1.2]))
+    K: np.ndarray | None = None
+    encoder_focal: np.ndarray | None = None
+    camera_source: str = "model"
+    encoder_world_from_cam: np.ndarray | None = None
+
+
 def test_scene_records_say_where_the_cameras_came_from(monkeypatch):
     """A solve that leaves two references to the camera head ("mixed"): the records name them,
     count them as fallbacks, and the summary adds them up; model cameras: no flags."""
-    import dataclasses as dc
-
     import iris_runtime.cameras as C
     from iris_train.evaluate import format_scenes
-
-    @dc.dataclass
-    class OracleScene:
-        world_from_cam: np.ndarray
-        views: list
-        all_poses: np.ndarray
-        all_images: np.ndarray
-        focal: np.ndarray = dc.field(default_factory=lambda: np.array([1.2, 1.2]))
-        K: np.ndarray | None = None
-        encoder_focal: np.ndarray | None = None
-        camera_source: str = "model"
 
     class SolvedRuntime(OracleRuntime):
         default_cameras = "epipolar"
@@ -530,6 +535,53 @@ def test_scene_records_say_where_the_cameras_came_from(monkeypatch):
     plain = evaluate(OracleRuntime(scenes), scenes, progress=False)
     assert all(s["cameras"]["references_solved"] is None and s["cameras"]["fallbacks"] == 0
                for s in plain["seq"]["scenes"])
+
+
+def test_grid_and_records_show_the_camera_head_beside_the_solve(tmp_path, monkeypatch):
+    """The runtime path with a camera head that is wrong on two references and a solve that is
+    right: the records score both on the reference pairs (the head's against an independent
+    computation from its poses), and the grid's camera picture draws the three sets."""
+    import iris_runtime.cameras as C
+    from iris_train.evaluate.report import format_cameras
+
+    class HeadRuntime(OracleRuntime):
+        """An oracle whose camera head turns the references at positions 1 and 3."""
+        default_cameras = "epipolar"
+
+        def __init__(self, scenes):
+            super().__init__(scenes)
+            self.heads = []                                  # per encode: Seq, then Rand
+
+        def encode(self, images, cameras=None):
+            plain = super().encode(images)
+            self.clean = plain.world_from_cam
+            head = plain.world_from_cam.copy()
+            head[1, :3, :3] = rot_x(40.0) @ head[1, :3, :3]
+            head[3, :3, :3] = rot_y(-50.0) @ head[3, :3, :3]
+            self.heads.append(head)
+            return OracleScene(head, plain.views, plain.all_poses, plain.all_images)
+
+    def perfect_solve(photos, world_from_cam, focal, image_size, depth_range):
+        np.testing.assert_array_equal(world_from_cam, rt.heads[-1])   # the head's, replaced
+        return C.ModelCameras(rt.clean, np.asarray(focal), None, "epipolar", ("solved",) * 5,
+                              SIZE, None)
+
+    monkeypatch.setattr(C, "replace_model_cameras", perfect_solve)
+    panels = record_camera_panels(monkeypatch)
+    scene = rotation_scene(23)
+    rt = HeadRuntime([scene])
+    grid = tmp_path / "grid.png"
+    results = evaluate(rt, [scene], progress=False, locate="model", grid=grid)
+    assert grid.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    refs, _ = split_frames(8)
+    want = rpa(rt.heads[0], scene.world_from_cam[list(refs)])   # Seq: presentation = frames
+    record = results["seq"]["scenes"][0]["model"]
+    assert {k: record[f"head_reference_{k}"] for k in want} == want
+    assert want["rpa@30"] < 1.0 and all(record[k] == 1.0 for k in REFERENCE_KEYS)
+    assert results["seq"]["model"]["head_reference_rpa@30"] == want["rpa@30"]
+    assert "the camera head's" in format_cameras(results)[0]
+    check_head_panel(panels, scene.world_from_cam, refs, rt.heads[0])
+    assert panels[0][1]["source"] == "epipolar"
 
 
 def plane_scene(size=64, views=8, seed=3):
@@ -615,12 +667,14 @@ def check_true_run(results, n_scenes):
         assert 0 < R["model"]["psnr"] <= 100 and np.isfinite(R["model"]["ssim"])
 
 
-def test_evaluate_with_true_cameras_on_a_torch_model():
+def test_evaluate_with_true_cameras_on_a_torch_model(tmp_path, monkeypatch):
     from iris_train.evaluate import TorchBackend
     from iris_train.evaluate.cameras import pose_scene
     model = tiny_model()
     scene = plane_scene(size=SIZE[0] * 2)               # 32 x 32 photos, fitted to 16 x 16
-    check_true_run(evaluate(model, [scene], progress=False, cameras="true"), 1)
+    panels = record_camera_panels(monkeypatch)
+    results = evaluate(model, [scene], progress=False, cameras="true", grid=tmp_path / "g.png")
+    check_true_run(results, 1)
     # The encoded scene renders from exactly the true cameras, the targets at theirs.
     from iris_train.evaluate import prepare_scene
     p = prepare_scene(scene, 8, SIZE)
@@ -631,6 +685,52 @@ def test_evaluate_with_true_cameras_on_a_torch_model():
                                atol=1e-6)
     np.testing.assert_allclose(posed.encoded.focal.numpy(), truth.focal, atol=1e-6)
     np.testing.assert_allclose(posed.world_from_cam, truth.world_from_cam, atol=1e-12)
+    # The camera head's cameras of the references are kept beside the true ones, scored on the
+    # reference pairs and drawn in the grid.
+    with torch.no_grad():
+        head = model.encode(torch.from_numpy(p.images[list(refs)]).permute(0, 3, 1, 2).float()
+                            / 255.0).world_from_cam.double().numpy()
+    np.testing.assert_allclose(posed.head_world_from_cam[list(refs)], head, atol=1e-6)
+    assert np.isnan(posed.head_world_from_cam[list(targets)]).all()
+    np.testing.assert_allclose(posed.encoded.subset([3, 1]).encoder_world_from_cam.numpy(),
+                               head[[3, 1]], atol=1e-6)
+    want = {f"head_reference_{k}": v for k, v in rpa(head, p.poses[list(refs)]).items()}
+    record = results["seq"]["scenes"][0]["model"]
+    assert {k: record[k] for k in HEAD_KEYS} == want
+    assert all(record[k] == 1.0 for k in REFERENCE_KEYS)
+    assert all(results[o]["model"][k] is not None for o in ORDERS for k in HEAD_KEYS)
+    check_head_panel(panels, p.poses, refs, head)
+    # With the model's own cameras the head is what is rendered: the same score, no head keys.
+    plain = evaluate(model, [scene], progress=False, cameras="model")["seq"]["scenes"][0]["model"]
+    assert {f"head_{k}": plain[k] for k in REFERENCE_KEYS} == want
+    assert all(plain[k] is None for k in HEAD_KEYS)
+
+
+def record_camera_panels(monkeypatch) -> list:
+    """Every ``camera_panel`` call of ``evaluate``'s grid: ``(args, kwargs, picture)``."""
+    import iris_train.evaluate.evaluation as E
+    calls, real = [], E.camera_panel
+
+    def recording(*args, **kwargs):
+        picture = real(*args, **kwargs)
+        calls.append((args, kwargs, picture))
+        return picture
+    monkeypatch.setattr(E, "camera_panel", recording)
+    return calls
+
+
+def check_head_panel(panels, gt_poses, refs, head):
+    """One grid's camera picture with three sets: the rendered, the true and the head's cameras
+    (``head`` [5, 4, 4], the references' in frame order), the head's drawn in green."""
+    from iris_runtime.camera_plot import OTHER_COLOUR
+    assert len(panels) == 1
+    (_, _, gt, *_), kwargs, picture = panels[0]
+    np.testing.assert_array_equal(gt, gt_poses)
+    given = kwargs["head_poses"]
+    assert np.flatnonzero(np.isfinite(given).all(axis=(1, 2))).tolist() == list(refs)
+    np.testing.assert_allclose(given[list(refs)], head, atol=1e-6)
+    green = (np.abs(picture.astype(int) - OTHER_COLOUR).sum(-1) < 30).sum()
+    assert green > 50, "the camera head's cameras are not in the picture"
 
 
 def true_cameras_of(prepared, refs):
@@ -656,6 +756,10 @@ def test_evaluate_with_true_cameras_on_an_exported_model(model_dir):
     np.testing.assert_allclose(posed.encoded.focal, truth.focal, atol=1e-12)
     assert posed.encoded.encoder_focal is not None          # locate still recognises the images
     rt.locate(posed.encoded, p.images[1])
+    # The camera head's poses ride along in the runtime's Scene (encoder_world_from_cam).
+    head = rt.encode(list(p.images[list(refs)]), cameras="model").world_from_cam
+    np.testing.assert_array_equal(posed.encoded.encoder_world_from_cam, head)
+    np.testing.assert_array_equal(posed.head_world_from_cam[list(refs)], head)
 
 
 def test_true_cameras_bad_arguments(tmp_path, capsys):

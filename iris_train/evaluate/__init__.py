@@ -80,6 +80,14 @@ Protocol (DESIGN.md "Evaluation protocol", the paper's appendix scaled down):
   solve posed and which targets it located, and the number of **fallbacks**: views
   that were to get a solved camera and kept the camera head's instead. With anything but model
   cameras each order's summary counts the scenes per source and the fallbacks.
+- The camera head beside the cameras that replaced it: ``reference_rpa@5/15/30`` is the RPA of
+  the rendered cameras over the pairs of two references (the 10 of 28 pairs that
+  ``locate_rpa`` leaves out), and with ``--cameras epipolar`` or ``true``
+  ``head_reference_rpa@5/15/30`` the same for the camera head's own cameras of the references
+  (kept in ``Scene.encoder_world_from_cam``; ``null`` with model cameras). References only: a
+  scene's head cameras are its references' (the targets' poses come from ``--locate``). ``--grid``
+  draws the head's cameras (green, references) beside the rendered (red) and true (blue) ones,
+  each set similarity-aligned to the true cameras on its own.
 - LPIPS is left out: it needs pretrained network weights that cannot be fetched here.
 
 PSNR per image is capped at ``PSNR_CAP`` dB (an identical image would otherwise give inf).

@@ -5,9 +5,11 @@ Both backends: ``encode(images uint8 [V, H, W, 3])`` -> a scene whose references
 those images, with the model's own cameras; ``poses(scene) -> [V, 4, 4]``; ``locate(scene,
 references, queries) -> [Q, 4, 4]``, the model's own prediction; ``with_cameras(scene,
 world_from_cam, focal)``: the same field maps rendered from other cameras (the solve's or the
-data's, ``evaluate.cameras.pose_scene``); ``render(scene, poses [N, 4, 4]) -> (rgb [N, H, W, 3],
-depth [N, H, W])`` float64 at the model's resolution. ``default_cameras``: the cameras the model
-was trained with, ``iris-eval``'s default.
+data's, ``evaluate.cameras.pose_scene``), the camera head's kept beside them;
+``head_cameras(scene) -> (world_from_cam [V, 4, 4], focal [2])`` those kept cameras of the head,
+or None when the scene's cameras are the head's; ``render(scene, poses [N, 4, 4]) -> (rgb [N, H,
+W, 3], depth [N, H, W])`` float64 at the model's resolution. ``default_cameras``: the cameras the
+model was trained with, ``iris-eval``'s default.
 """
 from __future__ import annotations
 
@@ -50,12 +52,22 @@ class TorchBackend:
 
     def with_cameras(self, scene, world_from_cam: np.ndarray, focal: np.ndarray):
         import torch
+        head_poses = (scene.world_from_cam if scene.encoder_world_from_cam is None
+                      else scene.encoder_world_from_cam)
+        head_focal = scene.focal if scene.encoder_focal is None else scene.encoder_focal
         return dataclasses.replace(
             scene, world_from_cam=torch.as_tensor(np.asarray(world_from_cam)).to(scene.world_from_cam),
-            focal=torch.as_tensor(np.asarray(focal)).to(scene.focal))
+            focal=torch.as_tensor(np.asarray(focal)).to(scene.focal),
+            encoder_world_from_cam=head_poses, encoder_focal=head_focal)
 
     def poses(self, scene) -> np.ndarray:
         return scene.world_from_cam.detach().double().numpy()
+
+    def head_cameras(self, scene) -> tuple[np.ndarray, np.ndarray] | None:
+        if scene.encoder_world_from_cam is None:
+            return None
+        return (scene.encoder_world_from_cam.detach().double().numpy(),
+                scene.encoder_focal.detach().double().numpy())
 
     def locate(self, scene, references: np.ndarray, queries: np.ndarray) -> np.ndarray:
         """The model's poses [Q, 4, 4] of ``queries`` in the frame of ``encode(references)``."""
@@ -87,17 +99,30 @@ class RuntimeBackend:
 
     def with_cameras(self, scene, world_from_cam: np.ndarray, focal: np.ndarray):
         """The same field maps and images with other cameras; ``encoder_focal`` keeps the
-        encoder's focal so that ``IrisRuntime.locate`` still recognises the reference images."""
+        encoder's focal so that ``IrisRuntime.locate`` still recognises the reference images,
+        and ``encoder_world_from_cam`` the camera head's poses (``head_cameras``)."""
         from iris_runtime import geometry as G
         H, W = self.image_size
         focal = np.asarray(focal, dtype=np.float64)
         encoder_focal = scene.focal if scene.encoder_focal is None else scene.encoder_focal
+        encoder_poses = (scene.world_from_cam if scene.encoder_world_from_cam is None
+                         else scene.encoder_world_from_cam)
         return dataclasses.replace(scene, world_from_cam=np.asarray(world_from_cam, np.float64),
                                    focal=focal, K=G.intrinsics_from_focal(focal, H, W),
-                                   encoder_focal=encoder_focal, camera_source="model")
+                                   encoder_focal=encoder_focal, camera_source="model",
+                                   encoder_world_from_cam=encoder_poses)
 
     def poses(self, scene) -> np.ndarray:
         return np.asarray(scene.world_from_cam, dtype=np.float64)
+
+    def head_cameras(self, scene) -> tuple[np.ndarray, np.ndarray] | None:
+        # getattr: duck-typed runtimes' scenes need not carry the head's cameras.
+        poses = getattr(scene, "encoder_world_from_cam", None)
+        if poses is None:
+            return None
+        focal = getattr(scene, "encoder_focal", None)
+        return (np.asarray(poses, dtype=np.float64),
+                np.asarray(scene.focal if focal is None else focal, dtype=np.float64))
 
     def locate(self, scene, references: np.ndarray, queries: np.ndarray) -> np.ndarray:
         """The model's poses [Q, 4, 4] of ``queries`` in ``scene``'s frame (the scene keeps its

@@ -151,6 +151,12 @@ class PosedScene:
                       data, with ``locate="true"``); None with the model's locate
     fallbacks:        views that were to get a solved camera and kept the camera head's
     scale, scale_source, principal_offset: of ``true_cameras`` (None for the other modes)
+    head_world_from_cam: float64 [V, 4, 4] over frames, the camera head's cameras of the
+                      references where other cameras replaced them (``cameras`` "epipolar" or
+                      "true"), in the head's own frame and unit; the targets' rows are NaN (the
+                      scene the head posed holds the references only). None with the model's
+                      cameras (then ``world_from_cam`` is the head's)
+    head_focal:       float64 [2] the head's focal (fx/W, fy/H) beside ``head_world_from_cam``
     """
     encoded: object
     world_from_cam: np.ndarray
@@ -161,6 +167,8 @@ class PosedScene:
     scale: float | None = None
     scale_source: str | None = None
     principal_offset: np.ndarray | None = None
+    head_world_from_cam: np.ndarray | None = None
+    head_focal: np.ndarray | None = None
 
 
 def pose_scene(backend, scene: PreparedScene, ref_order: Sequence[int],
@@ -174,7 +182,9 @@ def pose_scene(backend, scene: PreparedScene, ref_order: Sequence[int],
     ``InputError``). Targets: the model's ``locate``; ``"epipolar"``: posed against the solve's
     points with its cameras fixed (``CameraSolve.locate``, as ``IrisRuntime.locate``), or with model
     or true reference cameras against those (``locate_views`` at the model's resolution), the
-    model's pose kept for a target that cannot be posed; or the true cameras.
+    model's pose kept for a target that cannot be posed; or the true cameras. Where the
+    references' cameras are not the model's, the model's are kept beside them
+    (``PosedScene.head_world_from_cam``, from the backend's ``head_cameras``).
     """
     images, photos = scene.images, scene.photos
     V = images.shape[0]
@@ -200,6 +210,12 @@ def pose_scene(backend, scene: PreparedScene, ref_order: Sequence[int],
         source, solve = cams.source, cams.solve
         refs_solved = np.array([st != "unposed" for st in cams.status], dtype=bool)
     pred[ref_order] = backend.poses(encoded)
+    head_poses = head_focal = None
+    head = backend.head_cameras(encoded)
+    if head is not None:
+        head_poses = np.full((V, 4, 4), np.nan)
+        head_poses[ref_order] = head[0]
+        head_focal = head[1]
     located = None
     if locate == "true":
         pred[target_order] = truth.world_from_cam[target_order]
@@ -226,7 +242,7 @@ def pose_scene(backend, scene: PreparedScene, ref_order: Sequence[int],
         encoded, pred, source, _over_frames(refs_solved, ref_order, V),
         _over_frames(located, target_order, V), fallbacks,
         None if truth is None else truth.scale, None if truth is None else truth.scale_source,
-        None if truth is None else truth.principal_offset)
+        None if truth is None else truth.principal_offset, head_poses, head_focal)
 
 
 def _over_frames(flags: np.ndarray | None, frames: Sequence[int], V: int) -> np.ndarray | None:
@@ -238,12 +254,38 @@ def _over_frames(flags: np.ndarray | None, frames: Sequence[int], V: int) -> np.
 
 
 def camera_panel(pred_poses: np.ndarray, pred_focal, gt_poses: np.ndarray | None, gt_K,
-                 size: tuple[int, int]) -> np.ndarray:
-    """Picture of the predicted cameras (``iris_runtime.camera_plot``), moved into the true frame
-    by a similarity alignment of their centres when true cameras are known."""
-    from iris_runtime.camera_plot import align_poses, draw_cameras
+                 size: tuple[int, int], *, source: str = "model",
+                 head_poses: np.ndarray | None = None, head_focal=None) -> np.ndarray:
+    """Picture of the cameras rendered from (``pred_poses [V, 4, 4]`` over frames, their
+    ``pred_focal``; ``iris_runtime.camera_plot``), moved into the true frame (``gt_poses [V, 4,
+    4]``, ``gt_K``) by a similarity alignment of their centres when true cameras are known.
+
+    ``head_poses [V, 4, 4]`` (``PosedScene.head_world_from_cam``: the camera head's cameras where
+    ``source`` cameras replaced them; NaN rows, the targets, are left out) are drawn too, in
+    green, labelled with their frames, aligned on their own (each set has its own frame and
+    unit): to the true cameras of the same frames, or without those to the rendered ones.
+    """
+    from iris_runtime.camera_plot import CameraSet, align_poses, draw_cameras
+    others, head_scale = [], None
+    if head_poses is not None:
+        frames = np.flatnonzero(np.isfinite(head_poses).all(axis=(1, 2)))
+        target = pred_poses if gt_poses is None else gt_poses
+        aligned_head, (head_scale, _, _) = align_poses(head_poses[frames], target[frames])
+        others.append(CameraSet(aligned_head, head_focal, "camera head (references)",
+                                labels=frames))
     if gt_poses is None:
-        return draw_cameras(pred_poses, pred_focal, size=size, title="predicted cameras")
+        if not others:
+            return draw_cameras(pred_poses, pred_focal, size=size, title="predicted cameras")
+        return draw_cameras(pred_poses, pred_focal, size=size, others=others,
+                            names=(f"rendered ({source})", "true"),
+                            title=f"camera head similarity-aligned to the rendered cameras "
+                                  f"(scale {head_scale:.3g})")
     aligned, (s, _, _) = align_poses(pred_poses, gt_poses)
+    if not others:
+        return draw_cameras(aligned, pred_focal, reference=gt_poses, reference_focal=gt_K,
+                            size=size, title=f"predicted cameras, similarity-aligned to the true "
+                                             f"ones (scale {s:.3g})")
     return draw_cameras(aligned, pred_focal, reference=gt_poses, reference_focal=gt_K, size=size,
-                        title=f"predicted cameras, similarity-aligned to the true ones (scale {s:.3g})")
+                        others=others, names=(f"rendered ({source})", "true"),
+                        title=f"similarity-aligned to the true cameras: rendered (scale {s:.3g}), "
+                              f"camera head (scale {head_scale:.3g})")

@@ -44,7 +44,8 @@ def build_parser() -> argparse.ArgumentParser:
                         help=f"seed of the Rand-order permutations (default {RAND_SEED})")
     parser.add_argument("--grid", metavar="FILE.png", type=Path, default=None,
                         help="write a PNG grid of one scene (references, targets, renders, "
-                             "soft and true depth, predicted vs true cameras)")
+                             "soft and true depth, and the cameras: those rendered from, the "
+                             "true ones and, where --cameras replaced them, the camera head's)")
     parser.add_argument("--grid-scene", metavar="I", type=int, default=0,
                         help="the scene of --grid, by position (default 0, the first)")
     parser.add_argument("--threads", type=int, default=None,

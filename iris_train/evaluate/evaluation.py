@@ -14,8 +14,10 @@ from iris_runtime.errors import InputError
 from ..metrics import depth_spearman, rpa
 from .backends import backend_for, focal_of
 from .cameras import PosedScene, camera_panel, check_modes, pose_scene
-from .protocol import (LOCATE_RPA_KEYS, ORDERS, RAND_SEED, DEFAULT_VIEWS, RPA_KEYS, best_reference,
-                       locate_rpa, nearest_reference, nvs_scores, presentation_order, split_frames)
+from .protocol import (HEAD_RPA_KEYS, LOCATE_RPA_KEYS, ORDERS, RAND_SEED, DEFAULT_VIEWS,
+                       REFERENCE_RPA_KEYS, RPA_KEYS, best_reference, locate_rpa,
+                       nearest_reference, nvs_scores, presentation_order, reference_rpa,
+                       split_frames)
 from .report import save_grid
 from .scenes import PreparedScene, prepare_scene
 
@@ -23,7 +25,8 @@ __all__ = ["evaluate"]
 
 #: Pixel size (H, W) of the camera picture in ``--grid``.
 _CAMERA_PANEL_SIZE = (450, 700)
-_MODEL_KEYS = ("psnr", "ssim", *RPA_KEYS, *LOCATE_RPA_KEYS, "depth_spearman")
+_MODEL_KEYS = ("psnr", "ssim", *RPA_KEYS, *LOCATE_RPA_KEYS, "depth_spearman",
+               *REFERENCE_RPA_KEYS, *HEAD_RPA_KEYS)
 _POSE_KEYS = (*RPA_KEYS, *LOCATE_RPA_KEYS)
 _IMAGE_BASELINES = ("best_reference", "nearest_reference", "mean_colour")
 
@@ -43,7 +46,8 @@ def evaluate(model, scenes: Iterable, *, views: int = DEFAULT_VIEWS, seed: int =
     number of scenes, for the progress bar.
 
     Returns ``{"seq": R, "rand": R}`` with ``R = {"model": {"psnr", "ssim", "rpa@5", "rpa@15",
-    "rpa@30", "locate_rpa@5", "locate_rpa@15", "locate_rpa@30", "depth_spearman"}, "baselines":
+    "rpa@30", "locate_rpa@5", "locate_rpa@15", "locate_rpa@30", "depth_spearman",
+    "reference_rpa@5", ..., "head_reference_rpa@5", ...}, "baselines":
     {"best_reference": {"psnr", "ssim"}, "nearest_reference": {"psnr", "ssim"}, "mean_colour":
     {"psnr", "ssim"}, "identity_poses": {"rpa@5", ..., "locate_rpa@30"}}, "scenes": [...]}``:
     means over scenes (module docstring of ``iris_train.evaluate``; a value is None when no scene
@@ -63,6 +67,14 @@ def evaluate(model, scenes: Iterable, *, views: int = DEFAULT_VIEWS, seed: int =
     {"references", "targets", "sources": {camera source: scenes}, "targets_epipolar": fraction
     of targets posed by the epipolar solve, "fallbacks": views that kept the camera head's camera
     where a solved one was asked for, "scenes_with_fallbacks"}``.
+
+    ``reference_rpa@t``: RPA of the rendered cameras over the pairs of two references (with
+    ``locate_rpa@t``'s pairs, all pairs). ``head_reference_rpa@t``: the same pairs posed by the
+    camera head, where other cameras (``cameras`` "epipolar" or "true") replaced its own: the
+    head's own score beside the cameras that replaced it (None with model cameras, where it
+    equals ``reference_rpa@t``). References only: a scene's head cameras are its references'
+    (the targets' poses come from ``locate``). ``grid``'s camera picture then draws the head's
+    cameras too.
     """
     backend = backend_for(model)
     cameras, locate = check_modes(backend.default_cameras, cameras, locate)
@@ -167,7 +179,11 @@ def _scene_record(index: int, prepared: PreparedScene, posed: PosedScene, rgb, d
     if prepared.poses is not None:
         # RPA does not depend on the world frame, so frame order serves both orders.
         model.update({**rpa(posed.world_from_cam, prepared.poses),
-                      **locate_rpa(posed.world_from_cam, prepared.poses, targets)})
+                      **locate_rpa(posed.world_from_cam, prepared.poses, targets),
+                      **reference_rpa(posed.world_from_cam, prepared.poses, refs)})
+        if posed.head_world_from_cam is not None:
+            model.update(reference_rpa(posed.head_world_from_cam, prepared.poses, refs,
+                                       prefix="head_reference_"))
         eye = np.broadcast_to(np.eye(4), prepared.poses.shape)
         identity = {**rpa(eye, prepared.poses), **locate_rpa(eye, prepared.poses, targets)}
     return {
@@ -232,4 +248,6 @@ def _write_grid(path, prepared: PreparedScene, posed: PosedScene, rgb, depth, re
               backend.depth_range, refs, targets,
               true_depths=None if prepared.true_depth is None else prepared.true_depth[targets_a],
               cameras=camera_panel(posed.world_from_cam, focal_of(posed.encoded), prepared.poses,
-                                   prepared.stored_K, _CAMERA_PANEL_SIZE))
+                                   prepared.stored_K, _CAMERA_PANEL_SIZE, source=posed.source,
+                                   head_poses=posed.head_world_from_cam,
+                                   head_focal=posed.head_focal))

@@ -13,11 +13,13 @@ import numpy as np
 
 from iris_runtime.errors import InputError
 
-from ..metrics import PSNR_CAP, RPA_THRESHOLDS, capped_psnr, relative_pose_errors, ssim  # noqa: F401
+from ..metrics import (PSNR_CAP, RPA_THRESHOLDS, capped_psnr,  # noqa: F401
+                       relative_pose_errors, rpa, ssim)
 
 __all__ = ["TARGET_FRAMES", "DEFAULT_VIEWS", "RAND_SEED", "ORDERS", "PSNR_CAP", "RPA_KEYS",
-           "LOCATE_RPA_KEYS", "split_frames", "rand_permutation", "presentation_order",
-           "nearest_reference", "best_reference", "locate_rpa", "capped_psnr", "nvs_scores"]
+           "LOCATE_RPA_KEYS", "REFERENCE_RPA_KEYS", "HEAD_RPA_KEYS", "split_frames",
+           "rand_permutation", "presentation_order", "nearest_reference", "best_reference",
+           "locate_rpa", "reference_rpa", "capped_psnr", "nvs_scores"]
 
 #: Target frames of an 8-frame scene (the fixed split); the other frames are references.
 TARGET_FRAMES = (1, 4, 6)
@@ -29,6 +31,10 @@ RAND_SEED = 2024
 ORDERS = ("seq", "rand")
 RPA_KEYS = tuple(f"rpa@{t:g}" for t in RPA_THRESHOLDS)
 LOCATE_RPA_KEYS = tuple(f"locate_{k}" for k in RPA_KEYS)
+REFERENCE_RPA_KEYS = tuple(f"reference_{k}" for k in RPA_KEYS)
+#: The camera head's RPA where other cameras replaced its own: reference pairs only (the head's
+#: cameras of a scene are the references'; ``reference_rpa`` with prefix "head_reference_").
+HEAD_RPA_KEYS = tuple(f"head_reference_{k}" for k in RPA_KEYS)
 
 
 def split_frames(n_views: int = DEFAULT_VIEWS) -> tuple[tuple[int, ...], tuple[int, ...]]:
@@ -77,6 +83,15 @@ def locate_rpa(pred: np.ndarray, gt: np.ndarray, targets: Sequence[int]) -> dict
     is_target = np.isin(np.arange(len(pred)), list(targets))
     pairs = is_target[i] | is_target[j]
     return {f"locate_rpa@{t:g}": float(np.mean(err[pairs] < t)) for t in RPA_THRESHOLDS}
+
+
+def reference_rpa(pred: np.ndarray, gt: np.ndarray, references: Sequence[int],
+                  prefix: str = "reference_") -> dict[str, float]:
+    """RPA over the frame pairs (i < j) of two ``references``: ``{prefix + "rpa@5": ...}``;
+    with ``locate_rpa``'s pairs, exactly the pairs of ``rpa``. ``pred, gt [V, 4, 4]`` over
+    frames; rows of other frames are not read (they may be NaN)."""
+    refs = sorted(int(r) for r in references)      # pairs i < j, as rpa over all frames
+    return {f"{prefix}{k}": v for k, v in rpa(pred[refs], gt[refs]).items()}
 
 
 def _rotation_angle(Ra: np.ndarray, Rb: np.ndarray) -> np.ndarray:

@@ -78,19 +78,25 @@ def format_scenes(results: dict) -> str:
 
 
 def format_cameras(results: dict) -> list[str]:
-    """One line per order saying where the cameras came from (only when not the model's)."""
+    """One line per order saying where the cameras came from (only when not the model's), with
+    the reference pairs' RPA@15 of the rendered cameras and of the camera head they replaced."""
     out = []
     for order in ORDERS:
         c = results[order].get("cameras")
         if c is None:
             continue
+        m = results[order]["model"]
+        rendered, head = m.get("reference_rpa@15"), m.get("head_reference_rpa@15")
         frac = c["targets_epipolar"]
         out.append(f"{order.capitalize()}: references' cameras {c['references']} (scenes by "
                    f"source: {c['sources']}), targets {c['targets']}"
                    + ("" if frac is None or c["targets"] != "epipolar" else
                       f" ({100 * frac:.0f}% of targets posed by the epipolar solve)")
                    + f"; {c['fallbacks']} view(s) fell back to the camera head in "
-                     f"{c['scenes_with_fallbacks']} scene(s)")
+                     f"{c['scenes_with_fallbacks']} scene(s)"
+                   + ("" if rendered is None or head is None else
+                      f"; RPA@15 over reference pairs {rendered:.3f}, the camera head's "
+                      f"{head:.3f}"))
     return out
 
 
