@@ -15,8 +15,9 @@ import pytest
 from iris_runtime.cameras import (DEPTH_TARGET, canonical_order, locate_photos, locate_views,
                                   solve_cameras)
 from iris_runtime.cameras.bundle import bundle_adjust, reprojection_errors
-from iris_runtime.cameras.features import Features, extract_features, match_features
-from iris_runtime.cameras.locate import pose_from_points
+from iris_runtime.cameras.features import (TWIN_MIN_PIXELS, Features, extract_features,
+                                           match_features, twin_distance)
+from iris_runtime.cameras.locate import pose_distinct_first, pose_from_points
 from iris_runtime.cameras.tracks import build_tracks
 from iris_runtime.cameras.triangulation import triangulate
 from iris_runtime.cameras.two_view import estimate_two_view, intrinsics
@@ -159,6 +160,74 @@ def test_two_view_geometry_of_exact_matches():
     t = truth[:3, 3] / np.linalg.norm(truth[:3, 3])
     assert np.degrees(np.arccos(min(1.0, g.cam2_from_cam1[:3, 3] @ t))) < 0.05   # with its sign
     assert g.triangulation_angle > 1.0
+
+
+def test_twin_distance_matches_a_float64_reference():
+    rng = np.random.default_rng(11)
+    uv = rng.uniform(0, 100, (300, 2))
+    uv[1] = uv[0] + [3.0, 4.0]                          # 5 px away: too close to count as a twin
+    desc = rng.integers(0, 256, (300, 128)).astype(np.uint8)
+    desc[1] = desc[0]
+    desc[2] = desc[0]
+    uv[2] = uv[0] + [40.0, 0.0]                         # a twin of keypoint 0, 40 px away
+    got = twin_distance(Features(uv, desc, (100, 100)))
+    unit = desc / np.linalg.norm(desc.astype(np.float64), axis=1, keepdims=True)
+    want = np.array([min(np.linalg.norm(unit[i] - unit[j]) for j in range(len(uv))
+                         if np.linalg.norm(uv[i] - uv[j]) >= TWIN_MIN_PIXELS)
+                     for i in range(len(uv))])
+    np.testing.assert_allclose(got, want, atol=1e-4)
+    assert got[0] < 1e-3 and got[1] < 1e-3               # 0 and 2 are twins; so are 1 and 2 (37 px)
+    assert twin_distance(Features(uv[:1], desc[:1], (100, 100)))[0] == 2.0
+
+
+def _shifted_consensus(rng, n_right, n_shifted, shift):
+    """Two cameras; ``n_right`` matches of true points and ``n_shifted`` of points matched one
+    "period" ``shift`` off in the second view (a repeated texture): those agree with a camera
+    moved by -shift, and outnumber the right ones."""
+    T = _forward_cameras(rng, 2, spread=0.5)
+    X = _cloud(rng, n_right + n_shifted)
+    p, _ = _project(T[0], X)
+    q, _ = _project(T[1], X + np.r_[np.zeros((n_right, 3)), np.tile(shift, (n_shifted, 1))])
+    return T, X, p, q
+
+
+def test_two_view_trusts_distinct_matches_over_a_shifted_consensus():
+    rng = np.random.default_rng(12)
+    T, _, p, q = _shifted_consensus(rng, 40, 90, np.array([0.4, 0.25, 0.0]))
+    idx = np.arange(len(p))
+    matches = np.stack([idx, idx], 1)
+    truth = np.linalg.inv(T[1]) @ T[0]
+    t = truth[:3, 3] / np.linalg.norm(truth[:3, 3])
+
+    def t_error(g):
+        return np.degrees(np.arccos(min(1.0, abs(g.cam2_from_cam1[:3, 3] @ t))))
+    plain = estimate_two_view(p, q, matches, FOCAL, SIZE, 1.0)
+    assert t_error(plain) > 5.0 and set(plain.inliers[:, 0]) >= set(range(40, 130))
+    distinct = idx < 40
+    g = estimate_two_view(p, q, matches, FOCAL, SIZE, 1.0, distinct)
+    assert g.config == "general" and t_error(g) < 0.5
+    assert set(g.inliers[:, 0]) >= set(range(40))                    # the right ones, all
+    assert len(g.inliers) < 60                                      # few shifted ones by chance
+    few = idx < 10                                                  # too few distinct: as before
+    np.testing.assert_array_equal(
+        estimate_two_view(p, q, matches, FOCAL, SIZE, 1.0, few).inliers, plain.inliers)
+
+
+def test_pose_distinct_first_trusts_distinct_points_over_a_shifted_consensus():
+    rng = np.random.default_rng(13)
+    T = _forward_cameras(rng, 2)
+    X = _cloud(rng, 130)
+    uv, _ = _project(T[1], X)
+    shifted, _ = _project(T[1], X + [0.3, 0.2, 0.0])
+    uv[40:] = shifted[40:]                                          # 90 points one period off
+    cfw = np.linalg.inv(T[1])
+    R, t, _ = pose_from_points(X, uv, FOCAL, SIZE, max_error=1.0)
+    assert np.linalg.norm(t - cfw[:3, 3]) > 0.1
+    R, t, inliers = pose_distinct_first(X, uv, np.arange(130) < 40, FOCAL, SIZE, max_error=1.0)
+    assert _angle_deg(R, cfw[:3, :3]) < 1e-4 and np.linalg.norm(t - cfw[:3, 3]) < 1e-4
+    assert inliers[:40].all() and inliers[40:].sum() < 10
+    R2, t2, _ = pose_distinct_first(X, uv, np.arange(130) < 5, FOCAL, SIZE, max_error=1.0)
+    np.testing.assert_allclose(t2, pose_from_points(X, uv, FOCAL, SIZE, max_error=1.0)[1])
 
 
 def test_two_view_calls_a_plane_or_a_pure_rotation_planar_or_panoramic():

@@ -16,7 +16,7 @@ from ..errors import InputError
 
 __all__ = ["Features", "extract_features", "match_features", "canonical_order", "grey",
            "enlargement", "enlarge", "MAX_FEATURES", "CONTRAST_THRESHOLD", "MAX_RATIO",
-           "MAX_DISTANCE", "MIN_SIZE"]
+           "MAX_DISTANCE", "MIN_SIZE", "twin_distance", "DISTINCT_DISTANCE", "TWIN_MIN_PIXELS"]
 
 #: Keypoints kept per photo (the strongest by SIFT response); matching costs grow with the square.
 MAX_FEATURES = 2048
@@ -125,6 +125,27 @@ def match_features(a: Features, b: Features) -> np.ndarray:
     ib = nearest[ia]
     mutual = np.argmax(sim[:, ib], axis=0) == ia
     return np.stack([ia[mutual], ib[mutual]], axis=1).astype(np.int64)
+
+
+#: A keypoint is distinct when no other keypoint of its own photo (more than ``TWIN_MIN_PIXELS``
+#: away) has a descriptor this close (RootSIFT, unit vectors): on a repeated texture every
+#: keypoint has near twins, and a match one period off is as close as the right one
+#: (docs/CAMERAS.md, "Repeated patterns"; 0.35 chosen on the validation scenes; 0: off).
+DISTINCT_DISTANCE = 0.35
+TWIN_MIN_PIXELS = 8.0
+
+
+def twin_distance(f: Features) -> np.ndarray:
+    """float [N]: each keypoint's descriptor distance to its nearest twin in its own photo (the
+    closest other keypoint more than ``TWIN_MIN_PIXELS`` away; 2.0, the largest, when none)."""
+    if len(f) < 2:
+        return np.full(len(f), 2.0)
+    u = _unit(f.descriptors)
+    sim = u @ u.T
+    x, y = f.uv[:, 0].astype(np.float32), f.uv[:, 1].astype(np.float32)
+    near = (x[:, None] - x[None]) ** 2 + (y[:, None] - y[None]) ** 2 < TWIN_MIN_PIXELS ** 2
+    sim[near] = -1.0
+    return np.sqrt(np.maximum(2.0 - 2.0 * sim.max(axis=1), 0.0))
 
 
 def canonical_order(photos) -> np.ndarray:

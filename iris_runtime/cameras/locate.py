@@ -15,13 +15,14 @@ import cv2
 import numpy as np
 
 from ..errors import InputError
-from .features import (Features, canonical_order, enlarge, enlargement, extract_features,
-                       match_features)
+from .features import (DISTINCT_DISTANCE, Features, canonical_order, enlarge, enlargement,
+                       extract_features, match_features, twin_distance)
 from .tracks import build_tracks
 from .triangulation import triangulate
-from .two_view import CONFIDENCE, MAX_ERROR, intrinsics, pixel_scale
+from .two_view import (CONFIDENCE, MAX_ERROR, fundamental_matrix, intrinsics, pixel_scale,
+                       sampson_distances)
 
-__all__ = ["PointMap", "pose_from_points", "locate_photos", "point_map_from_cameras",
+__all__ = ["PointMap", "pose_from_points", "pose_distinct_first", "locate_photos", "point_map_from_cameras",
            "locate_views", "PNP_ERROR", "PNP_MIN_INLIERS", "PNP_MIN_INLIER_RATIO",
            "PNP_ITERATIONS", "MIN_TRIANGULATION_ANGLE"]
 
@@ -87,6 +88,50 @@ def pose_from_points(points: np.ndarray, uv: np.ndarray, focal: float,
     return R, t, inliers
 
 
+def pose_distinct_first(points: np.ndarray, uv: np.ndarray, distinct: np.ndarray, focal: float,
+                        image_size: tuple[int, int], *, max_error: float,
+                        min_inliers: int = PNP_MIN_INLIERS):
+    """``pose_from_points`` of the correspondences whose keypoints are distinct (``distinct``
+    bool [N]: no near twin in their photo, ``features.twin_distance``), then refined on every
+    correspondence it explains; ``pose_from_points`` of all of them when the distinct ones
+    give no pose. On a repeated texture a keypoint matched one period off points at a pose one
+    period off, and such correspondences agree with one another (docs/CAMERAS.md)."""
+    if distinct.sum() >= min_inliers:
+        first = pose_from_points(points[distinct], uv[distinct], focal, image_size,
+                                 max_error=max_error, min_inliers=min_inliers)
+        if first is not None:
+            pose = _refine(first[0], first[1], points, uv, focal, image_size, max_error,
+                           min_inliers)
+            if pose is not None:
+                return pose
+    return pose_from_points(points, uv, focal, image_size, max_error=max_error,
+                            min_inliers=min_inliers)
+
+
+def _refine(R: np.ndarray, t: np.ndarray, points: np.ndarray, uv: np.ndarray, focal: float,
+            image_size: tuple[int, int], max_error: float, min_inliers: int):
+    """``(R, t, inliers)``: the pose refined (LM) on every correspondence ``points [N, 3] ->
+    uv [N, 2]`` it reprojects within ``max_error``; None when fewer than ``min_inliers``."""
+    K = intrinsics(focal, image_size)
+    obj, img = np.ascontiguousarray(points, np.float64), np.ascontiguousarray(uv, np.float64)
+
+    def inliers_of(R, t):
+        Y = obj @ R.T + t
+        with np.errstate(divide="ignore", invalid="ignore"):
+            err = np.linalg.norm(focal * Y[:, :2] / Y[:, 2:] + K[:2, 2] - img, axis=1)
+        return (Y[:, 2] > 0) & (err <= max_error)
+    inl = inliers_of(R, t)
+    if inl.sum() < max(min_inliers, 6):
+        return None
+    rvec, tvec = cv2.solvePnPRefineLM(obj[inl], img[inl], K, None, cv2.Rodrigues(R)[0],
+                                      t.reshape(3, 1).copy())
+    R, t = cv2.Rodrigues(rvec)[0], tvec.ravel()
+    inl = inliers_of(R, t)
+    if inl.sum() < max(min_inliers, 6):
+        return None
+    return R, t, inl
+
+
 def correspondences(point_map: PointMap, features: Features) -> tuple[np.ndarray, np.ndarray]:
     """2D-3D correspondences of a photo's ``features`` against ``point_map``: ``(keypoint int64
     [N], point int64 [N])``, from its matches with each solved view's keypoints (ratio test and
@@ -116,8 +161,8 @@ def locate_photos(point_map: PointMap, focal: float, image_size: tuple[int, int]
     camera: ``focal`` pixels, principal point centred) against the fixed ``point_map``.
 
     Returns ``(world_from_cam float64 [Q, 4, 4]`` (NaN for a photo that cannot be posed),
-    ``located bool [Q])``. Each photo is posed on its own, so the order of the photos does not
-    matter."""
+    ``located bool [Q])``. Each photo is posed on its own (``pose_distinct_first``: its distinct
+    keypoints' correspondences first), so the order of the photos does not matter."""
     Q = len(photos)
     k = enlargement(image_size)                   # as the solve saw photos of this size
     size = (image_size[0] * k, image_size[1] * k)
@@ -127,8 +172,10 @@ def locate_photos(point_map: PointMap, focal: float, image_size: tuple[int, int]
     for q, photo in enumerate(photos):
         feats = extract_features(enlarge(np.asarray(photo), k))
         kp, pt = correspondences(point_map, feats)
-        pose = pose_from_points(point_map.points[pt], feats.uv[kp], focal * k, size,
-                                max_error=max_error)
+        distinct = (twin_distance(feats)[kp] > DISTINCT_DISTANCE if DISTINCT_DISTANCE > 0
+                    else np.zeros(len(kp), bool))
+        pose = pose_distinct_first(point_map.points[pt], feats.uv[kp], distinct, focal * k, size,
+                                   max_error=max_error)
         if pose is None:
             continue
         R, t, _ = pose
@@ -136,15 +183,6 @@ def locate_photos(point_map: PointMap, focal: float, image_size: tuple[int, int]
         out[q, :3, :3], out[q, :3, 3] = R.T, -R.T @ t
         ok[q] = True
     return out, ok
-
-
-def _sampson(p, q, F):
-    """Sampson distance (pixels) of matches p -> q [N, 2] to the fundamental matrix F."""
-    ph, qh = np.c_[p, np.ones(len(p))], np.c_[q, np.ones(len(q))]
-    Fp, Ftq = ph @ F.T, qh @ F
-    num = np.sum(qh * Fp, axis=1) ** 2
-    den = Fp[:, 0] ** 2 + Fp[:, 1] ** 2 + Ftq[:, 0] ** 2 + Ftq[:, 1] ** 2
-    return np.sqrt(num / np.maximum(den, 1e-300))
 
 
 def point_map_from_cameras(photos, world_from_cam: np.ndarray, focal: float) -> PointMap:
@@ -166,17 +204,13 @@ def point_map_from_cameras(photos, world_from_cam: np.ndarray, focal: float) -> 
     cam_from_world = np.linalg.inv(T[perm])
     R, t = cam_from_world[:, :3, :3], cam_from_world[:, :3, 3]
     K = intrinsics(focal, size)
-    Kinv = np.linalg.inv(K)
     max_error = MAX_ERROR * pixel_scale(size)
     matches = {}
     for a in range(V):
         for b in range(a + 1, V):
             m = match_features(feats[a], feats[b])
-            rel = cam_from_world[b] @ T[perm[a]]                       # cam_b from cam_a
-            tx = np.array([[0, -rel[2, 3], rel[1, 3]], [rel[2, 3], 0, -rel[0, 3]],
-                           [-rel[1, 3], rel[0, 3], 0]])
-            F = Kinv.T @ tx @ rel[:3, :3] @ Kinv
-            keep = _sampson(feats[a].uv[m[:, 0]], feats[b].uv[m[:, 1]], F) <= max_error
+            F = fundamental_matrix(cam_from_world[b] @ T[perm[a]], K)     # cam_b from cam_a
+            keep = sampson_distances(feats[a].uv[m[:, 0]], feats[b].uv[m[:, 1]], F) <= max_error
             matches[a, b] = m[keep]
     tracks = build_tracks(feats, matches)
     X, ok = triangulate(R, t, focal, K[:2, 2], tracks.uv, tracks.observed,

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .bundle import bundle_adjust, reprojection_errors
-from .locate import PNP_ERROR, PNP_MIN_INLIERS, pose_from_points
+from .locate import PNP_ERROR, PNP_MIN_INLIERS, pose_distinct_first, pose_from_points
 from .tracks import Tracks
 from .triangulation import camera_centres, max_ray_angles, triangulate
 from .two_view import MAX_ERROR, MIN_INLIERS, TwoViewGeometry, relative_pose
@@ -185,12 +185,17 @@ def _start(pair, geometries, features, tracks: Tracks, focal, centre, image_size
     return rec
 
 
-def _register(rec: Reconstruction, tracks: Tracks, v: int, image_size, opts) -> bool:
-    """Pose view v by PnP on its keypoints that see valid points; on success its observations
-    that disagree with the pose are rejected."""
+def _register(rec: Reconstruction, tracks: Tracks, v: int, image_size, opts, distinct) -> bool:
+    """Pose view v by PnP on its keypoints that see valid points (those of ``distinct[v]``
+    first, when given); on success its observations that disagree with the pose are rejected."""
     sees = rec.point_ok & tracks.observed[:, v]
-    pose = pose_from_points(rec.points[sees], tracks.uv[sees, v], rec.focal, image_size,
-                            max_error=opts.pnp_error, min_inliers=opts.pnp_min_inliers)
+    if distinct is None:
+        pose = pose_from_points(rec.points[sees], tracks.uv[sees, v], rec.focal, image_size,
+                                max_error=opts.pnp_error, min_inliers=opts.pnp_min_inliers)
+    else:
+        pose = pose_distinct_first(rec.points[sees], tracks.uv[sees, v],
+                                   distinct[v][tracks.keypoint[sees, v]], rec.focal, image_size,
+                                   max_error=opts.pnp_error, min_inliers=opts.pnp_min_inliers)
     if pose is None:
         return False
     R, t, inliers = pose
@@ -200,7 +205,8 @@ def _register(rec: Reconstruction, tracks: Tracks, v: int, image_size, opts) -> 
     return True
 
 
-def _grow(rec: Reconstruction, tracks: Tracks, centre, image_size, opts: MapperOptions):
+def _grow(rec: Reconstruction, tracks: Tracks, centre, image_size, opts: MapperOptions,
+          distinct=None):
     """Register views into ``rec`` while one sees enough of its points, then finish it."""
     V = len(rec.registered)
     failed_at = np.full(V, -1)        # points a view saw when its registration last failed
@@ -210,7 +216,7 @@ def _grow(rec: Reconstruction, tracks: Tracks, centre, image_size, opts: MapperO
         v = int(np.argmax(seen))
         if seen[v] < opts.pnp_min_inliers:
             break
-        if not _register(rec, tracks, v, image_size, opts):
+        if not _register(rec, tracks, v, image_size, opts, distinct):
             failed_at[v] = seen[v]
             continue
         _triangulate_missing(rec, tracks, centre, opts)
@@ -238,7 +244,8 @@ def _score(rec: Reconstruction, tracks: Tracks, centre, opts: MapperOptions) -> 
 def incremental_mapping(features, tracks: Tracks,
                         geometries: dict[tuple[int, int], TwoViewGeometry],
                         focals: tuple[float, ...], image_size: tuple[int, int],
-                        opts: MapperOptions = MapperOptions()) -> Reconstruction | None:
+                        opts: MapperOptions = MapperOptions(),
+                        distinct: list[np.ndarray] | None = None) -> Reconstruction | None:
     """One reconstruction of the views of ``tracks`` (keypoints ``features``, pair geometries
     ``geometries``), or None when no pair can start one.
 
@@ -248,7 +255,9 @@ def incremental_mapping(features, tracks: Tracks,
     registers the most views and, among those, has the lowest ``_score``: a wrong focal can
     lead the bundle adjustment into a consistent but wrong reconstruction that explains fewer
     of the observations (docs/CAMERAS.md, "Focal"). Views it cannot register stay
-    ``registered`` False."""
+    ``registered`` False. ``distinct``: per view, bool [N_v] over its keypoints, those without
+    a near twin in their photo (``features.twin_distance``); given, each view is registered on
+    the points its distinct keypoints see first (``locate.pose_distinct_first``)."""
     H, W = image_size
     centre = np.array([W / 2.0, H / 2.0])
     starts = _init_pairs(geometries, opts) or _init_pairs(
@@ -268,7 +277,7 @@ def incremental_mapping(features, tracks: Tracks,
             rec = _start(pair, geometries, features, tracks, focal, centre, image_size, opts)
             if rec is None:
                 continue
-            rec = _grow(rec, tracks, centre, image_size, opts)
+            rec = _grow(rec, tracks, centre, image_size, opts, distinct)
             key = (int(rec.registered.sum()), -_score(rec, tracks, centre, opts))
             if best_key is None or key > best_key:
                 best, best_key = rec, key

@@ -13,11 +13,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import InputError
-from .features import canonical_order, enlarge, enlargement, extract_features, match_features
+from .features import (DISTINCT_DISTANCE, canonical_order, enlarge, enlargement, extract_features,
+                       match_features, twin_distance)
 from .locate import PointMap, locate_photos, pose_from_points
 from .mapper import MapperOptions, Reconstruction, incremental_mapping
 from .tracks import Tracks, build_tracks
-from .two_view import MAX_ERROR, estimate_two_view, intrinsics, pixel_scale
+from .two_view import (MAX_ERROR, estimate_two_view, fundamental_matrix, intrinsics, pixel_scale,
+                       sampson_distances)
 
 __all__ = ["CameraSolve", "solve_cameras", "check_photos", "STATUSES", "DEPTH_TARGET",
            "FOCAL_PRIORS", "LOCATE_MIN_INLIERS"]
@@ -120,6 +122,26 @@ def _median_depth(rec: Reconstruction, tracks: Tracks) -> float:
     return float(np.median(z)) if len(z) else float("nan")
 
 
+def _distinct_support(rec: Reconstruction, features, matches, distinct, max_error: float) -> int:
+    """How many distinct matches (``matches[a, b][distinct[a, b]]``) of the pairs of registered
+    views the reconstruction's epipolar geometry explains within ``max_error`` pixels: what
+    tells a reconstruction on the right matches from one on a repeated texture's shifted ones,
+    which explains more matches overall and fewer distinct ones."""
+    n = 0
+    K = intrinsics(rec.focal, features[0].image_size)
+    for (a, b), m in matches.items():
+        if not (rec.registered[a] and rec.registered[b]) or not distinct[a, b].any():
+            continue
+        cam_a, cam_b = np.eye(4), np.eye(4)
+        cam_a[:3, :3], cam_a[:3, 3] = rec.R[a], rec.t[a]
+        cam_b[:3, :3], cam_b[:3, 3] = rec.R[b], rec.t[b]
+        md = m[distinct[a, b]]
+        F = fundamental_matrix(cam_b @ np.linalg.inv(cam_a), K)
+        n += int((sampson_distances(features[a].uv[md[:, 0]], features[b].uv[md[:, 1]], F)
+                  < max_error).sum())
+    return n
+
+
 def solve_cameras(photos, depth_range: tuple[float, float], *, focal: float | None = None,
                   options: MapperOptions | None = None) -> CameraSolve:
     """The cameras of ``photos`` (V uint8 photos of one size, RGB [H, W, 3] or grey [H, W]).
@@ -131,10 +153,13 @@ def solve_cameras(photos, depth_range: tuple[float, float], *, focal: float | No
     options:     the mapper's thresholds (pixels at ``two_view.REFERENCE_SIZE``) (default ``MapperOptions()``)
 
     Photos under ``features.MIN_SIZE`` pixels are solved enlarged (``features.enlargement``);
-    the cameras are reported for the photos as given. Steps: SIFT features of each photo and their matches across every pair (``features``); per
-    pair F, H and the relative pose (``two_view``); tracks (``tracks``); the incremental mapper
-    with bundle adjustment (``mapper``, ``triangulation``, ``bundle``); views it could not
-    register posed against its points (``locate``). Deterministic and order-free.
+    the cameras are reported for the photos as given. Steps: SIFT features of each photo and
+    their matches across every pair (``features``); per pair F, H and the relative pose
+    (``two_view``); tracks (``tracks``); the incremental mapper with bundle adjustment
+    (``mapper``, ``triangulation``, ``bundle``), run twice, on every match and trusting the
+    distinct keypoints first, keeping the reconstruction that registers more views and explains
+    more distinct matches (``_distinct_support``); views it could not register posed against its
+    points (``locate``). Deterministic and order-free.
     """
     photos = check_photos(photos)
     near, far = (float(x) for x in np.asarray(depth_range, np.float64).reshape(-1)[:2]) \
@@ -159,18 +184,35 @@ def solve_cameras(photos, depth_range: tuple[float, float], *, focal: float | No
 
     perm = canonical_order(photos)
     features = [extract_features(enlarge(photos[v], k)) for v in perm]
-    geometries, inliers = {}, {}
-    for a in range(V):
-        for b in range(a + 1, V):
-            m = match_features(features[a], features[b])
-            g = estimate_two_view(features[a].uv, features[b].uv, m, f0, (H, W),
-                                  MAX_ERROR * px)
+    matches = {(a, b): match_features(features[a], features[b])
+               for a in range(V) for b in range(a + 1, V)}
+    # Two reconstructions: one on every match, one whose pairs and registrations trust the
+    # distinct keypoints first (no near twin in their photo); the one that registers more views
+    # and, among those, explains more distinct matches is kept (docs/CAMERAS.md, "Repeated
+    # patterns").
+    keypoint_distinct = [twin_distance(f) > DISTINCT_DISTANCE for f in features]
+    distinct = {(a, b): keypoint_distinct[a][m[:, 0]] & keypoint_distinct[b][m[:, 1]]
+                for (a, b), m in matches.items()}
+    best, best_key = None, None
+    for trust_distinct in (False, True) if DISTINCT_DISTANCE > 0 else (False,):
+        geometries, inliers = {}, {}
+        for (a, b), m in matches.items():
+            g = estimate_two_view(features[a].uv, features[b].uv, m, f0, (H, W), MAX_ERROR * px,
+                                  distinct[a, b] if trust_distinct else None)
             geometries[a, b] = g
             if g.config != "degenerate":
                 inliers[a, b] = g.inliers
-    tracks = build_tracks(features, inliers)
-    rec = incremental_mapping(features, tracks, geometries, focals, (H, W), opts) \
-        if V > 1 else None
+        candidate_tracks = build_tracks(features, inliers)
+        candidate = incremental_mapping(features, candidate_tracks, geometries, focals, (H, W),
+                                        opts, keypoint_distinct if trust_distinct else None) \
+            if V > 1 else None
+        if candidate is None:
+            continue
+        key = (int(candidate.registered.sum()),
+               _distinct_support(candidate, features, matches, distinct, MAX_ERROR * px))
+        if best_key is None or key > best_key:
+            best, best_key = (candidate, candidate_tracks), key
+    rec, tracks = best if best is not None else (None, None)
 
     status = np.array(["unposed"] * V, dtype=object)
     if rec is None:

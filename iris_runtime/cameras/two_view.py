@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 
 __all__ = ["TwoViewGeometry", "estimate_two_view", "relative_pose", "intrinsics",
-           "triangulation_angles",
+           "triangulation_angles", "fundamental_matrix", "sampson_distances",
            "pixel_scale", "CONFIGS", "MIN_INLIERS", "MIN_E_F_INLIER_RATIO", "MAX_H_INLIER_RATIO", "ESTIMATOR",
            "CONFIDENCE", "REFERENCE_SIZE", "MAX_ERROR"]
 
@@ -127,8 +127,27 @@ def relative_pose(p: np.ndarray, q: np.ndarray, focal: float, image_size: tuple[
     return T, float(np.degrees(np.median(ang[front]))) if front.any() else 0.0
 
 
+def fundamental_matrix(cam2_from_cam1: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """``F [3, 3]`` of two cameras with intrinsics ``K`` related by ``cam2_from_cam1 [4, 4]``:
+    x2^T F x1 = 0 for pixels x1, x2 of one point."""
+    R, t = cam2_from_cam1[:3, :3], cam2_from_cam1[:3, 3]
+    tx = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
+    Kinv = np.linalg.inv(K)
+    return Kinv.T @ tx @ R @ Kinv
+
+
+def sampson_distances(p: np.ndarray, q: np.ndarray, F: np.ndarray) -> np.ndarray:
+    """Sampson distances (pixels) [N] of matched pixels ``p -> q [N, 2]`` to ``F``."""
+    ph, qh = np.c_[p, np.ones(len(p))], np.c_[q, np.ones(len(q))]
+    Fp, Ftq = ph @ F.T, qh @ F
+    num = np.sum(qh * Fp, axis=1) ** 2
+    den = Fp[:, 0] ** 2 + Fp[:, 1] ** 2 + Ftq[:, 0] ** 2 + Ftq[:, 1] ** 2
+    return np.sqrt(num / np.maximum(den, 1e-300))
+
+
 def estimate_two_view(uv1: np.ndarray, uv2: np.ndarray, matches: np.ndarray, focal: float,
-                      image_size: tuple[int, int], max_error: float) -> TwoViewGeometry:
+                      image_size: tuple[int, int], max_error: float,
+                      distinct: np.ndarray | None = None) -> TwoViewGeometry:
     """The two-view geometry of keypoints ``uv1 [N1, 2]``, ``uv2 [N2, 2]`` matched by ``matches
     int64 [M, 2]``, in photos of ``image_size`` (H, W) taken at about ``focal`` pixels.
     ``max_error``: the estimators' inlier threshold in pixels. Deterministic: every estimator
@@ -136,7 +155,47 @@ def estimate_two_view(uv1: np.ndarray, uv2: np.ndarray, matches: np.ndarray, foc
 
     The essential matrix at ``focal`` (5 points, few degrees of freedom) keeps the fewest wrong
     matches; when it explains fewer than ``MIN_E_F_INLIER_RATIO`` of what F explains (the focal
-    guess is off, or F fits a chance set), the pair keeps F's inliers as "uncalibrated"."""
+    guess is off, or F fits a chance set), the pair keeps F's inliers as "uncalibrated".
+
+    ``distinct`` bool [M] (optional): the matches whose keypoints have no near twin in their own
+    photos (``features.twin_distance``). On a repeated texture, matches one period off agree
+    with one another and can outnumber the right ones (docs/CAMERAS.md, "Repeated patterns");
+    given ``distinct``, the pose comes from those matches alone (their essential matrix, also
+    where F would call them "uncalibrated") when at least ``MIN_INLIERS`` of them agree on
+    one, and the pair keeps every match that pose explains."""
+    if distinct is not None and distinct.sum() >= MIN_INLIERS:
+        g = _from_distinct(uv1, uv2, matches, distinct, focal, image_size, max_error)
+        if g is not None:
+            return g
+    return _estimate(uv1, uv2, matches, focal, image_size, max_error)
+
+
+def _from_distinct(uv1, uv2, matches, distinct, focal, image_size, max_error
+                   ) -> TwoViewGeometry | None:
+    """``estimate_two_view`` of the distinct matches, widened to every match its pose explains;
+    None when they agree on no general pose."""
+    md = matches[distinct]
+    g = _estimate(uv1, uv2, md, focal, image_size, max_error)
+    if g.config == "uncalibrated":
+        T, angle = relative_pose(uv1[md[:, 0]], uv2[md[:, 1]], focal, image_size, max_error)
+        if T is None:
+            return None
+        g = TwoViewGeometry("general", g.inliers, g.num_h_inliers, T, angle)
+    if g.config != "general" or len(g.inliers) < MIN_INLIERS:
+        return None
+    p, q = uv1[matches[:, 0]], uv2[matches[:, 1]]
+    F = fundamental_matrix(g.cam2_from_cam1, intrinsics(focal, image_size))
+    keep = sampson_distances(p, q, F) < max_error
+    _, h_mask = _robust(lambda *a: cv2.findHomography(*a), p[keep], q[keep], ESTIMATOR,
+                        max_error, None, 2000, CONFIDENCE)
+    n_h = 0 if h_mask is None else int(h_mask.sum())
+    return TwoViewGeometry("general", matches[keep], n_h, g.cam2_from_cam1,
+                           g.triangulation_angle)
+
+
+def _estimate(uv1: np.ndarray, uv2: np.ndarray, matches: np.ndarray, focal: float,
+              image_size: tuple[int, int], max_error: float) -> TwoViewGeometry:
+    """``estimate_two_view`` without the distinct matches."""
     none = TwoViewGeometry("degenerate", np.zeros((0, 2), np.int64), 0, None, 0.0)
     if len(matches) < MIN_INLIERS:
         return none
