@@ -9,6 +9,10 @@ Datasets (photos with true cameras):
 - ``heldout``: the 16 held-out synthetic scenes (``iris_train.data.HELDOUT_SEEDS``) rendered at
   256x256, 8 views on arcs of 10-90 degrees (``validation``: the first 24 validation scenes,
   ``VALIDATION_SEEDS``, rendered alike: where a setting is chosen before held-out reports it);
+- ``capture``: the 16 capture-like held-out scenes (``CAPTURE_HELDOUT_SEEDS``: walks, orbits,
+  hand-held paths and rooms, fields of view of 25-90 degrees, principal points off centre,
+  photographic textures, camera effects), 256x256 (``capture-validation``: the first 24
+  ``CAPTURE_VALIDATION_SEEDS``);
 - ``wide``: 8 synthetic turntables (seeds ``WIDE_SEEDS``) whose 8 cameras are moved onto arcs of
   120-180 degrees around the same target (``iris_train.synthetic``'s ``look_at`` and renderer,
   the generator itself unchanged), 256x256;
@@ -73,12 +77,13 @@ class Scene:
 
 
 # -- datasets --------------------------------------------------------------------------------
-def _synthetic(name: str, seeds):
+def _synthetic(name: str, seeds, kind=None):
     from iris_train.data import SyntheticScenes
-    scenes = SyntheticScenes(seeds, size=SIZE)
+    scenes = SyntheticScenes(seeds, size=SIZE, kind=kind)
     for i, seed in enumerate(seeds):
         s = scenes[i]
-        yield Scene(f"{name} {seed} ({s.meta['kind']}, arc {s.meta['arc_deg']:.0f})",
+        arc = s.meta.get("arc_deg")
+        yield Scene(f"{name} {seed} ({s.meta['kind']}" + (f", arc {arc:.0f})" if arc else ")"),
                     list(s.images), s.world_from_cam, s.K[0, 0] / SIZE[1])
 
 
@@ -91,6 +96,19 @@ def validation_scenes():
     """The first 24 validation scenes: where solve settings are chosen (held-out reports)."""
     from iris_train.data import VALIDATION_SEEDS
     return _synthetic("validation", VALIDATION_SEEDS[:24])
+
+
+def capture_scenes():
+    """The 16 capture-like held-out scenes (walks, orbits, hand-held paths, rooms; wide fields
+    of view, photographic textures and camera effects), 256x256."""
+    from iris_train.data import CAPTURE_HELDOUT_SEEDS
+    return _synthetic("capture", CAPTURE_HELDOUT_SEEDS, kind="capture")
+
+
+def capture_validation_scenes():
+    """The first 24 capture-like validation scenes: where settings are chosen for them."""
+    from iris_train.data import CAPTURE_VALIDATION_SEEDS
+    return _synthetic("capture-validation", CAPTURE_VALIDATION_SEEDS[:24], kind="capture")
 
 
 def wide_scenes():
@@ -135,7 +153,8 @@ def castle_scenes():
 
 
 DATASETS = {"heldout": heldout_scenes, "validation": validation_scenes, "wide": wide_scenes,
-            "castle": castle_scenes}
+            "castle": castle_scenes, "capture": capture_scenes,
+            "capture-validation": capture_validation_scenes}
 
 
 # -- solvers ---------------------------------------------------------------------------------

@@ -327,6 +327,55 @@ def test_bundle_adjustment_recovers_cameras_focal_and_points_despite_outliers():
     assert fixed.focal == 1.15 * FOCAL
 
 
+def test_bundle_adjustment_ends_where_scipy_least_squares_cannot_lower_the_cost():
+    """Noisy observations (the optimum is not the truth) with outliers: from the adjusted
+    cameras, points and focal, SciPy's least_squares on the same Cauchy cost and gauge finds
+    nothing lower, so the Schur-complement steps reach a minimum of the right cost."""
+    import cv2
+    from scipy.optimize import least_squares
+    rng = np.random.default_rng(14)
+    V, P = 4, 120
+    T = _forward_cameras(rng, V, spread=0.6, max_angle=0.2)
+    cfw = np.linalg.inv(T)
+    X = _cloud(rng, P)
+    uv = np.stack([_project(Tk, X)[0] for Tk in T], 1) + rng.normal(0, 0.7, (P, V, 2))
+    uv[rng.random((P, V)) < 0.03] += 25.0
+    active = rng.random((P, V)) < 0.85
+    active[:, :2] = True
+    centre = np.array([SIZE[1] / 2, SIZE[0] / 2])
+    t0 = cfw[:, :3, 3] + np.r_[[[0, 0, 0]], 0.02 * rng.normal(size=(V - 1, 3))]
+    axis = int(np.argmax(np.abs(t0[1])))
+    res = bundle_adjust(cfw[:, :3, :3], t0, 1.05 * FOCAL, centre, X, uv, active, fixed_view=0,
+                        scale_view=1, refine_focal=True, loss_scale=2.0, max_iterations=200)
+
+    free_t = np.ones((V, 3), bool)
+    free_t[0] = False
+    free_t[1, axis] = False
+
+    def unpack(x):
+        w, x = x[:3 * (V - 1)].reshape(V - 1, 3), x[3 * (V - 1):]
+        R = np.stack([res.R[0]] + [cv2.Rodrigues(w[k])[0] @ res.R[k + 1] for k in range(V - 1)])
+        t = res.t.copy()
+        t[free_t], x = x[:free_t.sum()], x[free_t.sum():]
+        return R, t, x[0], x[1:].reshape(P, 3)
+
+    def residuals(x):
+        R, t, f, Xp = unpack(x)
+        Y = np.einsum("vij,pj->pvi", R, Xp) + t[None]
+        # One residual per observation, its pixel distance: the Cauchy loss of its square is
+        # the adjustment's, log(1 + |r|^2 / s^2) per observation.
+        return np.linalg.norm((f * Y[..., :2] / Y[..., 2:] + centre - uv)[active], axis=1)
+
+    x0 = np.r_[np.zeros(3 * (V - 1)), res.t[free_t], res.focal, res.points.ravel()]
+    ref = least_squares(residuals, x0, loss="cauchy", f_scale=2.0, method="trf", xtol=1e-12,
+                        ftol=1e-12, gtol=1e-12, max_nfev=200)
+    assert ref.cost >= res.cost * (1 - 1e-7)
+    assert res.cost == pytest.approx(ref.cost, rel=1e-7)
+    R, t, f, _ = unpack(ref.x)
+    assert f == pytest.approx(res.focal, rel=1e-5)
+    np.testing.assert_allclose(t, res.t, atol=1e-5)
+
+
 def test_pose_from_points_is_exact_and_refuses_too_few_inliers():
     rng = np.random.default_rng(6)
     T = _forward_cameras(rng, 2)

@@ -62,14 +62,15 @@ class _Problem:
         self.starts = np.flatnonzero(np.r_[True, self.p[1:] != self.p[:-1]])
         self.centre = centre
         self.s2 = float(loss_scale) ** 2
-        # Every ordered pair (a, b) of observations of one point: the blocks of the Schur
-        # complement (a point seen by views i and j couples cameras i and j).
-        counts = np.diff(np.r_[self.starts, len(self.p)])
-        first = np.repeat(self.starts, counts)                     # first observation of its point
-        rep = np.repeat(counts, counts)                            # observations of its point
-        self.pair_a = np.repeat(np.arange(len(self.p)), rep)
-        offset = np.arange(len(self.pair_a)) - np.repeat(np.cumsum(rep) - rep, rep)
-        self.pair_b = np.repeat(first, rep) + offset
+        self.in_view = (np.arange(self.V)[:, None] == self.v[None]).astype(np.float64)  # [V, n]
+
+    def per_point_dense(self, x):
+        """x [n, 7, 3] per observation -> [7V, 3P], zero where a view does not see a point:
+        the Schur complement's sum over points (a point seen by views i and j couples cameras
+        i and j) is then one matrix product."""
+        out = np.zeros((self.V, 7, self.P, 3))
+        out[self.v, :, self.p, :] = x
+        return out.reshape(7 * self.V, 3 * self.P)
 
     def camera_coords(self, R, t, X):
         """Y [n, 3]: each observed point in its observing camera."""
@@ -87,12 +88,8 @@ class _Problem:
         return float(0.5 * self.s2 * np.log1p((r * r).sum(1) / self.s2).sum())   # Cauchy
 
     def per_view(self, x):
-        """Sum of x [n, ...] per view -> [V, ...]."""
-        flat = x.reshape(len(x), -1)
-        k = flat.shape[1]
-        out = np.bincount((self.v[:, None] * k + np.arange(k)).ravel(), flat.ravel(),
-                          minlength=self.V * k)
-        return out.reshape((self.V,) + x.shape[1:])
+        """Sum of x [n, ...] per view -> [V, ...] (a product with the views' indicator)."""
+        return (self.in_view @ x.reshape(len(x), -1)).reshape((self.V,) + x.shape[1:])
 
     def per_point(self, x):
         """Sum of x [n, ...] per point -> [P, ...] (points without observations: 0)."""
@@ -165,15 +162,12 @@ def bundle_adjust(R, t, focal, centre, points, uv, active, *, fixed_view: int, s
         for v in range(V):
             U[7 * v:7 * v + 7, 7 * v:7 * v + 7] = U7[v]
         Ur, gr = M.T @ U @ M, M.T @ g7.ravel()
-        a, b = prob.pair_a, prob.pair_b
-        block = (prob.v[a] * V + prob.v[b])[:, None] * 49 + np.arange(49)   # (view a, view b)
+        W_dense = prob.per_point_dense(Wo)                                  # [7V, 3P]
         done = False
         while True:
             Vinv = np.linalg.inv(Vp + lam * Vp * np.eye(3) + 1e-9 * np.eye(3))
             WV = Wo @ Vinv[prob.p]                                          # [n, 7, 3]
-            pairs = (WV[a] @ Wo[b].transpose(0, 2, 1)).reshape(len(a), 49)
-            schur = np.bincount(block.ravel(), pairs.ravel(), minlength=V * V * 49)
-            schur = schur.reshape(V, V, 7, 7).transpose(0, 2, 1, 3).reshape(7 * V, 7 * V)
+            schur = prob.per_point_dense(WV) @ W_dense.T                    # [7V, 7V]
             S = Ur + lam * np.diag(np.diag(Ur)) - M.T @ schur @ M
             b_c = prob.per_view((WV @ gp[prob.p][:, :, None])[:, :, 0])   # [V, 7]
             rhs = gr - M.T @ b_c.ravel()
