@@ -20,7 +20,7 @@ from iris_runtime.cameras.features import (TWIN_MIN_PIXELS, Features, extract_fe
 from iris_runtime.cameras.locate import pose_distinct_first, pose_from_points
 from iris_runtime.cameras.tracks import build_tracks
 from iris_runtime.cameras.triangulation import triangulate
-from iris_runtime.cameras.two_view import estimate_two_view, intrinsics
+from iris_runtime.cameras.two_view import estimate_from_distinct, estimate_two_view, intrinsics
 from iris_runtime.errors import InputError
 
 from . import np_scenes
@@ -203,14 +203,11 @@ def test_two_view_trusts_distinct_matches_over_a_shifted_consensus():
         return np.degrees(np.arccos(min(1.0, abs(g.cam2_from_cam1[:3, 3] @ t))))
     plain = estimate_two_view(p, q, matches, FOCAL, SIZE, 1.0)
     assert t_error(plain) > 5.0 and set(plain.inliers[:, 0]) >= set(range(40, 130))
-    distinct = idx < 40
-    g = estimate_two_view(p, q, matches, FOCAL, SIZE, 1.0, distinct)
+    g = estimate_from_distinct(p, q, matches, idx < 40, FOCAL, SIZE, 1.0)
     assert g.config == "general" and t_error(g) < 0.5
     assert set(g.inliers[:, 0]) >= set(range(40))                    # the right ones, all
     assert len(g.inliers) < 60                                      # few shifted ones by chance
-    few = idx < 10                                                  # too few distinct: as before
-    np.testing.assert_array_equal(
-        estimate_two_view(p, q, matches, FOCAL, SIZE, 1.0, few).inliers, plain.inliers)
+    assert estimate_from_distinct(p, q, matches, idx < 10, FOCAL, SIZE, 1.0) is None  # too few
 
 
 def test_pose_distinct_first_trusts_distinct_points_over_a_shifted_consensus():

@@ -18,8 +18,8 @@ from .features import (DISTINCT_DISTANCE, canonical_order, enlarge, enlargement,
 from .locate import PointMap, locate_photos, pose_from_points
 from .mapper import MapperOptions, Reconstruction, incremental_mapping
 from .tracks import Tracks, build_tracks
-from .two_view import (MAX_ERROR, estimate_two_view, fundamental_matrix, intrinsics, pixel_scale,
-                       sampson_distances)
+from .two_view import (MAX_ERROR, estimate_from_distinct, estimate_two_view, fundamental_matrix,
+                       intrinsics, pixel_scale, sampson_distances)
 
 __all__ = ["CameraSolve", "solve_cameras", "check_photos", "STATUSES", "DEPTH_TARGET",
            "FOCAL_PRIORS", "LOCATE_MIN_INLIERS"]
@@ -193,15 +193,15 @@ def solve_cameras(photos, depth_range: tuple[float, float], *, focal: float | No
     keypoint_distinct = [twin_distance(f) > DISTINCT_DISTANCE for f in features]
     distinct = {(a, b): keypoint_distinct[a][m[:, 0]] & keypoint_distinct[b][m[:, 1]]
                 for (a, b), m in matches.items()}
+    plain = {(a, b): estimate_two_view(features[a].uv, features[b].uv, m, f0, (H, W),
+                                       MAX_ERROR * px) for (a, b), m in matches.items()}
     best, best_key = None, None
     for trust_distinct in (False, True) if DISTINCT_DISTANCE > 0 else (False,):
-        geometries, inliers = {}, {}
-        for (a, b), m in matches.items():
-            g = estimate_two_view(features[a].uv, features[b].uv, m, f0, (H, W), MAX_ERROR * px,
-                                  distinct[a, b] if trust_distinct else None)
-            geometries[a, b] = g
-            if g.config != "degenerate":
-                inliers[a, b] = g.inliers
+        geometries = {(a, b): estimate_from_distinct(features[a].uv, features[b].uv, m,
+                                                     distinct[a, b], f0, (H, W), MAX_ERROR * px)
+                      or plain[a, b] for (a, b), m in matches.items()} if trust_distinct \
+            else plain
+        inliers = {ab: g.inliers for ab, g in geometries.items() if g.config != "degenerate"}
         candidate_tracks = build_tracks(features, inliers)
         candidate = incremental_mapping(features, candidate_tracks, geometries, focals, (H, W),
                                         opts, keypoint_distinct if trust_distinct else None) \

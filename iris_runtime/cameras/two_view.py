@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-__all__ = ["TwoViewGeometry", "estimate_two_view", "relative_pose", "intrinsics",
+__all__ = ["TwoViewGeometry", "estimate_two_view", "estimate_from_distinct", "relative_pose", "intrinsics",
            "triangulation_angles", "fundamental_matrix", "sampson_distances",
            "pixel_scale", "CONFIGS", "MIN_INLIERS", "MIN_E_F_INLIER_RATIO", "MAX_H_INLIER_RATIO", "ESTIMATOR",
            "CONFIDENCE", "REFERENCE_SIZE", "MAX_ERROR"]
@@ -146,8 +146,7 @@ def sampson_distances(p: np.ndarray, q: np.ndarray, F: np.ndarray) -> np.ndarray
 
 
 def estimate_two_view(uv1: np.ndarray, uv2: np.ndarray, matches: np.ndarray, focal: float,
-                      image_size: tuple[int, int], max_error: float,
-                      distinct: np.ndarray | None = None) -> TwoViewGeometry:
+                      image_size: tuple[int, int], max_error: float) -> TwoViewGeometry:
     """The two-view geometry of keypoints ``uv1 [N1, 2]``, ``uv2 [N2, 2]`` matched by ``matches
     int64 [M, 2]``, in photos of ``image_size`` (H, W) taken at about ``focal`` pixels.
     ``max_error``: the estimators' inlier threshold in pixels. Deterministic: every estimator
@@ -155,47 +154,7 @@ def estimate_two_view(uv1: np.ndarray, uv2: np.ndarray, matches: np.ndarray, foc
 
     The essential matrix at ``focal`` (5 points, few degrees of freedom) keeps the fewest wrong
     matches; when it explains fewer than ``MIN_E_F_INLIER_RATIO`` of what F explains (the focal
-    guess is off, or F fits a chance set), the pair keeps F's inliers as "uncalibrated".
-
-    ``distinct`` bool [M] (optional): the matches whose keypoints have no near twin in their own
-    photos (``features.twin_distance``). On a repeated texture, matches one period off agree
-    with one another and can outnumber the right ones (docs/CAMERAS.md, "Repeated patterns");
-    given ``distinct``, the pose comes from those matches alone (their essential matrix, also
-    where F would call them "uncalibrated") when at least ``MIN_INLIERS`` of them agree on
-    one, and the pair keeps every match that pose explains."""
-    if distinct is not None and distinct.sum() >= MIN_INLIERS:
-        g = _from_distinct(uv1, uv2, matches, distinct, focal, image_size, max_error)
-        if g is not None:
-            return g
-    return _estimate(uv1, uv2, matches, focal, image_size, max_error)
-
-
-def _from_distinct(uv1, uv2, matches, distinct, focal, image_size, max_error
-                   ) -> TwoViewGeometry | None:
-    """``estimate_two_view`` of the distinct matches, widened to every match its pose explains;
-    None when they agree on no general pose."""
-    md = matches[distinct]
-    g = _estimate(uv1, uv2, md, focal, image_size, max_error)
-    if g.config == "uncalibrated":
-        T, angle = relative_pose(uv1[md[:, 0]], uv2[md[:, 1]], focal, image_size, max_error)
-        if T is None:
-            return None
-        g = TwoViewGeometry("general", g.inliers, g.num_h_inliers, T, angle)
-    if g.config != "general" or len(g.inliers) < MIN_INLIERS:
-        return None
-    p, q = uv1[matches[:, 0]], uv2[matches[:, 1]]
-    F = fundamental_matrix(g.cam2_from_cam1, intrinsics(focal, image_size))
-    keep = sampson_distances(p, q, F) < max_error
-    _, h_mask = _robust(lambda *a: cv2.findHomography(*a), p[keep], q[keep], ESTIMATOR,
-                        max_error, None, 2000, CONFIDENCE)
-    n_h = 0 if h_mask is None else int(h_mask.sum())
-    return TwoViewGeometry("general", matches[keep], n_h, g.cam2_from_cam1,
-                           g.triangulation_angle)
-
-
-def _estimate(uv1: np.ndarray, uv2: np.ndarray, matches: np.ndarray, focal: float,
-              image_size: tuple[int, int], max_error: float) -> TwoViewGeometry:
-    """``estimate_two_view`` without the distinct matches."""
+    guess is off, or F fits a chance set), the pair keeps F's inliers as "uncalibrated"."""
     none = TwoViewGeometry("degenerate", np.zeros((0, 2), np.int64), 0, None, 0.0)
     if len(matches) < MIN_INLIERS:
         return none
@@ -218,3 +177,35 @@ def _estimate(uv1: np.ndarray, uv2: np.ndarray, matches: np.ndarray, focal: floa
               else "general" if calibrated else "uncalibrated")
     T, angle = relative_pose(p[mask], q[mask], focal, image_size, max_error)
     return TwoViewGeometry(config, matches[mask], n_h, T, angle)
+
+
+def estimate_from_distinct(uv1: np.ndarray, uv2: np.ndarray, matches: np.ndarray,
+                           distinct: np.ndarray, focal: float, image_size: tuple[int, int],
+                           max_error: float) -> TwoViewGeometry | None:
+    """The pair's geometry from its distinct matches (``distinct`` bool [M]: keypoints without a
+    near twin in their own photos, ``features.twin_distance``), or None when fewer than
+    ``MIN_INLIERS`` of them agree on a general pose.
+
+    On a repeated texture, matches one period off agree with one another and can outnumber the
+    right ones (docs/CAMERAS.md, "Repeated patterns"). Here the pose comes from the distinct
+    matches alone (their essential matrix, also where F would call them "uncalibrated") and the
+    pair keeps every match, distinct or not, that the pose explains (Sampson distance)."""
+    if distinct.sum() < MIN_INLIERS:
+        return None
+    md = matches[distinct]
+    g = estimate_two_view(uv1, uv2, md, focal, image_size, max_error)
+    if g.config == "uncalibrated":
+        T, angle = relative_pose(uv1[md[:, 0]], uv2[md[:, 1]], focal, image_size, max_error)
+        if T is None:
+            return None
+        g = TwoViewGeometry("general", g.inliers, g.num_h_inliers, T, angle)
+    if g.config != "general" or len(g.inliers) < MIN_INLIERS:
+        return None
+    p, q = uv1[matches[:, 0]], uv2[matches[:, 1]]
+    F = fundamental_matrix(g.cam2_from_cam1, intrinsics(focal, image_size))
+    keep = sampson_distances(p, q, F) < max_error
+    _, h_mask = _robust(lambda *a: cv2.findHomography(*a), p[keep], q[keep], ESTIMATOR,
+                        max_error, None, 2000, CONFIDENCE)
+    n_h = 0 if h_mask is None else int(h_mask.sum())
+    return TwoViewGeometry("general", matches[keep], n_h, g.cam2_from_cam1,
+                           g.triangulation_angle)
