@@ -16,7 +16,8 @@ from ..errors import InputError
 
 __all__ = ["Features", "extract_features", "match_features", "canonical_order", "grey",
            "enlargement", "enlarge", "MAX_FEATURES", "CONTRAST_THRESHOLD", "MAX_RATIO",
-           "MAX_DISTANCE", "MIN_SIZE", "twin_distance", "DISTINCT_DISTANCE", "TWIN_MIN_PIXELS"]
+           "MAX_DISTANCE", "MIN_SIZE", "twin_distance", "distinct_keypoints",
+           "DISTINCT_DISTANCE", "TWIN_MIN_PIXELS"]
 
 #: Keypoints kept per photo (the strongest by SIFT response); matching costs grow with the square.
 MAX_FEATURES = 2048
@@ -146,6 +147,14 @@ def twin_distance(f: Features) -> np.ndarray:
     near = (x[:, None] - x[None]) ** 2 + (y[:, None] - y[None]) ** 2 < TWIN_MIN_PIXELS ** 2
     sim[near] = -1.0
     return np.sqrt(np.maximum(2.0 - 2.0 * sim.max(axis=1), 0.0))
+
+
+def distinct_keypoints(f: Features) -> np.ndarray:
+    """bool [N]: the keypoints without a twin closer than ``DISTINCT_DISTANCE`` in their own
+    photo (``twin_distance``); none when ``DISTINCT_DISTANCE`` is 0 (the distinction off)."""
+    if DISTINCT_DISTANCE <= 0:
+        return np.zeros(len(f), bool)
+    return twin_distance(f) > DISTINCT_DISTANCE
 
 
 def canonical_order(photos) -> np.ndarray:

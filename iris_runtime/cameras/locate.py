@@ -15,16 +15,16 @@ import cv2
 import numpy as np
 
 from ..errors import InputError
-from .features import (DISTINCT_DISTANCE, Features, canonical_order, enlarge, enlargement,
-                       extract_features, match_features, twin_distance)
+from .features import (Features, canonical_order, distinct_keypoints, enlarge, enlargement,
+                       extract_features, match_features)
 from .tracks import build_tracks
 from .triangulation import triangulate
 from .two_view import (CONFIDENCE, MAX_ERROR, fundamental_matrix, intrinsics, pixel_scale,
                        sampson_distances)
 
-__all__ = ["PointMap", "pose_from_points", "pose_distinct_first", "locate_photos", "point_map_from_cameras",
-           "locate_views", "PNP_ERROR", "PNP_MIN_INLIERS", "PNP_MIN_INLIER_RATIO",
-           "PNP_ITERATIONS", "MIN_TRIANGULATION_ANGLE"]
+__all__ = ["PointMap", "pose_from_points", "pose_distinct_first", "locate_photos",
+           "point_map_from_cameras", "locate_views", "PNP_ERROR", "PNP_MIN_INLIERS",
+           "PNP_MIN_INLIER_RATIO", "PNP_ITERATIONS", "MIN_TRIANGULATION_ANGLE"]
 
 #: Reprojection threshold of a registration (pixels at ``two_view.REFERENCE_SIZE``).
 PNP_ERROR = 4.0
@@ -76,60 +76,54 @@ def pose_from_points(points: np.ndarray, uv: np.ndarray, focal: float,
         return None
     if not ok or inl is None or len(inl) < min_inliers:
         return None
-    inl = inl.ravel()
-    rvec, tvec = cv2.solvePnPRefineLM(obj[inl], img[inl], K, None, rvec, tvec)
-    R, t = cv2.Rodrigues(rvec)[0], tvec.ravel()
-    Y = obj @ R.T + t
-    with np.errstate(divide="ignore", invalid="ignore"):
-        err = np.linalg.norm(focal * Y[:, :2] / Y[:, 2:] + K[:2, 2] - img, axis=1)
-    inliers = (Y[:, 2] > 0) & (err <= max_error)
+    R, t, inliers = _refine(obj, img, K, inl.ravel(), rvec, tvec, max_error)
     if inliers.sum() < max(min_inliers, min_inlier_ratio * N):
         return None
     return R, t, inliers
+
+
+def _reprojects(obj: np.ndarray, img: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarray,
+                max_error: float) -> np.ndarray:
+    """bool [N]: the points ``obj [N, 3]`` in front of camera (R, t) that reproject within
+    ``max_error`` pixels of ``img [N, 2]``."""
+    Y = obj @ R.T + t
+    with np.errstate(divide="ignore", invalid="ignore"):
+        err = np.linalg.norm(K[0, 0] * Y[:, :2] / Y[:, 2:] + K[:2, 2] - img, axis=1)
+    return (Y[:, 2] > 0) & (err <= max_error)
+
+
+def _refine(obj, img, K, inliers, rvec, tvec, max_error):
+    """``(R, t, inliers)``: the pose (``rvec, tvec``) refined by Levenberg-Marquardt on the
+    correspondences ``inliers`` (indices or mask), and the correspondences it then explains."""
+    rvec, tvec = cv2.solvePnPRefineLM(obj[inliers], img[inliers], K, None, rvec, tvec)
+    R, t = cv2.Rodrigues(rvec)[0], tvec.ravel()
+    return R, t, _reprojects(obj, img, K, R, t, max_error)
 
 
 def pose_distinct_first(points: np.ndarray, uv: np.ndarray, distinct: np.ndarray, focal: float,
                         image_size: tuple[int, int], *, max_error: float,
                         min_inliers: int = PNP_MIN_INLIERS):
     """``pose_from_points`` of the correspondences whose keypoints are distinct (``distinct``
-    bool [N]: no near twin in their photo, ``features.twin_distance``), then refined on every
-    correspondence it explains; ``pose_from_points`` of all of them when the distinct ones
+    bool [N]: no near twin in their photo, ``features.distinct_keypoints``), then refined on
+    every correspondence it explains; ``pose_from_points`` of all of them when the distinct ones
     give no pose. On a repeated texture a keypoint matched one period off points at a pose one
-    period off, and such correspondences agree with one another (docs/CAMERAS.md)."""
+    period off, and such correspondences agree with one another (docs/CAMERAS.md), so the
+    refined pose needs ``min_inliers`` of them, not a fraction: most may be shifted."""
     if distinct.sum() >= min_inliers:
         first = pose_from_points(points[distinct], uv[distinct], focal, image_size,
                                  max_error=max_error, min_inliers=min_inliers)
         if first is not None:
-            pose = _refine(first[0], first[1], points, uv, focal, image_size, max_error,
-                           min_inliers)
-            if pose is not None:
-                return pose
+            K = intrinsics(focal, image_size)
+            obj = np.ascontiguousarray(points, np.float64)
+            img = np.ascontiguousarray(uv, np.float64)
+            inliers = _reprojects(obj, img, K, first[0], first[1], max_error)
+            if inliers.sum() >= max(min_inliers, 6):
+                R, t, inliers = _refine(obj, img, K, inliers, cv2.Rodrigues(first[0])[0],
+                                        first[1].reshape(3, 1).copy(), max_error)
+                if inliers.sum() >= max(min_inliers, 6):
+                    return R, t, inliers
     return pose_from_points(points, uv, focal, image_size, max_error=max_error,
                             min_inliers=min_inliers)
-
-
-def _refine(R: np.ndarray, t: np.ndarray, points: np.ndarray, uv: np.ndarray, focal: float,
-            image_size: tuple[int, int], max_error: float, min_inliers: int):
-    """``(R, t, inliers)``: the pose refined (LM) on every correspondence ``points [N, 3] ->
-    uv [N, 2]`` it reprojects within ``max_error``; None when fewer than ``min_inliers``."""
-    K = intrinsics(focal, image_size)
-    obj, img = np.ascontiguousarray(points, np.float64), np.ascontiguousarray(uv, np.float64)
-
-    def inliers_of(R, t):
-        Y = obj @ R.T + t
-        with np.errstate(divide="ignore", invalid="ignore"):
-            err = np.linalg.norm(focal * Y[:, :2] / Y[:, 2:] + K[:2, 2] - img, axis=1)
-        return (Y[:, 2] > 0) & (err <= max_error)
-    inl = inliers_of(R, t)
-    if inl.sum() < max(min_inliers, 6):
-        return None
-    rvec, tvec = cv2.solvePnPRefineLM(obj[inl], img[inl], K, None, cv2.Rodrigues(R)[0],
-                                      t.reshape(3, 1).copy())
-    R, t = cv2.Rodrigues(rvec)[0], tvec.ravel()
-    inl = inliers_of(R, t)
-    if inl.sum() < max(min_inliers, 6):
-        return None
-    return R, t, inl
 
 
 def correspondences(point_map: PointMap, features: Features) -> tuple[np.ndarray, np.ndarray]:
@@ -172,9 +166,8 @@ def locate_photos(point_map: PointMap, focal: float, image_size: tuple[int, int]
     for q, photo in enumerate(photos):
         feats = extract_features(enlarge(np.asarray(photo), k))
         kp, pt = correspondences(point_map, feats)
-        distinct = (twin_distance(feats)[kp] > DISTINCT_DISTANCE if DISTINCT_DISTANCE > 0
-                    else np.zeros(len(kp), bool))
-        pose = pose_distinct_first(point_map.points[pt], feats.uv[kp], distinct, focal * k, size,
+        pose = pose_distinct_first(point_map.points[pt], feats.uv[kp],
+                                   distinct_keypoints(feats)[kp], focal * k, size,
                                    max_error=max_error)
         if pose is None:
             continue

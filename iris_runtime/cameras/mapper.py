@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .bundle import bundle_adjust, reprojection_errors
-from .locate import PNP_ERROR, PNP_MIN_INLIERS, pose_distinct_first, pose_from_points
+from .locate import PNP_ERROR, PNP_MIN_INLIERS, pose_distinct_first
 from .tracks import Tracks
 from .triangulation import camera_centres, max_ray_angles, triangulate
 from .two_view import MAX_ERROR, MIN_INLIERS, TwoViewGeometry, relative_pose
@@ -189,13 +189,11 @@ def _register(rec: Reconstruction, tracks: Tracks, v: int, image_size, opts, dis
     """Pose view v by PnP on its keypoints that see valid points (those of ``distinct[v]``
     first, when given); on success its observations that disagree with the pose are rejected."""
     sees = rec.point_ok & tracks.observed[:, v]
-    if distinct is None:
-        pose = pose_from_points(rec.points[sees], tracks.uv[sees, v], rec.focal, image_size,
-                                max_error=opts.pnp_error, min_inliers=opts.pnp_min_inliers)
-    else:
-        pose = pose_distinct_first(rec.points[sees], tracks.uv[sees, v],
-                                   distinct[v][tracks.keypoint[sees, v]], rec.focal, image_size,
-                                   max_error=opts.pnp_error, min_inliers=opts.pnp_min_inliers)
+    first = (np.zeros(int(sees.sum()), bool) if distinct is None       # none: plain PnP
+             else distinct[v][tracks.keypoint[sees, v]])
+    pose = pose_distinct_first(rec.points[sees], tracks.uv[sees, v], first, rec.focal,
+                               image_size, max_error=opts.pnp_error,
+                               min_inliers=opts.pnp_min_inliers)
     if pose is None:
         return False
     R, t, inliers = pose
@@ -256,8 +254,8 @@ def incremental_mapping(features, tracks: Tracks,
     lead the bundle adjustment into a consistent but wrong reconstruction that explains fewer
     of the observations (docs/CAMERAS.md, "Focal"). Views it cannot register stay
     ``registered`` False. ``distinct``: per view, bool [N_v] over its keypoints, those without
-    a near twin in their photo (``features.twin_distance``); given, each view is registered on
-    the points its distinct keypoints see first (``locate.pose_distinct_first``)."""
+    a near twin in their photo (``features.distinct_keypoints``); given, each view is
+    registered on the points its distinct keypoints see first (``locate.pose_distinct_first``)."""
     H, W = image_size
     centre = np.array([W / 2.0, H / 2.0])
     starts = _init_pairs(geometries, opts) or _init_pairs(

@@ -13,8 +13,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import InputError
-from .features import (DISTINCT_DISTANCE, canonical_order, enlarge, enlargement, extract_features,
-                       match_features, twin_distance)
+from .features import (DISTINCT_DISTANCE, canonical_order, distinct_keypoints, enlarge,
+                       enlargement, extract_features, match_features)
 from .locate import PointMap, locate_photos, pose_from_points
 from .mapper import MapperOptions, Reconstruction, incremental_mapping
 from .tracks import Tracks, build_tracks
@@ -190,7 +190,7 @@ def solve_cameras(photos, depth_range: tuple[float, float], *, focal: float | No
     # distinct keypoints first (no near twin in their photo); the one that registers more views
     # and, among those, explains more distinct matches is kept (docs/CAMERAS.md, "Repeated
     # patterns").
-    keypoint_distinct = [twin_distance(f) > DISTINCT_DISTANCE for f in features]
+    keypoint_distinct = [distinct_keypoints(f) for f in features]
     distinct = {(a, b): keypoint_distinct[a][m[:, 0]] & keypoint_distinct[b][m[:, 1]]
                 for (a, b), m in matches.items()}
     plain = {(a, b): estimate_two_view(features[a].uv, features[b].uv, m, f0, (H, W),

@@ -15,10 +15,10 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-__all__ = ["TwoViewGeometry", "estimate_two_view", "estimate_from_distinct", "relative_pose", "intrinsics",
-           "triangulation_angles", "fundamental_matrix", "sampson_distances",
-           "pixel_scale", "CONFIGS", "MIN_INLIERS", "MIN_E_F_INLIER_RATIO", "MAX_H_INLIER_RATIO", "ESTIMATOR",
-           "CONFIDENCE", "REFERENCE_SIZE", "MAX_ERROR"]
+__all__ = ["TwoViewGeometry", "estimate_two_view", "estimate_from_distinct", "relative_pose",
+           "intrinsics", "triangulation_angles", "fundamental_matrix", "sampson_distances",
+           "pixel_scale", "CONFIGS", "MIN_INLIERS", "MIN_E_F_INLIER_RATIO", "MAX_H_INLIER_RATIO",
+           "ESTIMATOR", "CONFIDENCE", "REFERENCE_SIZE", "MAX_ERROR"]
 
 #: Pair configurations: a general 3D scene with a usable translation (its essential matrix at
 #: the focal guess explains the matches), matches only F explains, a plane or a rotation, or too
