@@ -15,8 +15,9 @@ import pytest
 from iris_runtime.cameras import (DEPTH_TARGET, canonical_order, locate_photos, locate_views,
                                   solve_cameras)
 from iris_runtime.cameras.bundle import bundle_adjust, reprojection_errors
-from iris_runtime.cameras.features import (TWIN_MIN_PIXELS, Features, extract_features,
-                                           match_features, twin_distance)
+from iris_runtime.cameras.features import (LOW_TEXTURE_SIZE, MIN_KEYPOINTS, TWIN_MIN_PIXELS,
+                                           Features, extract_features, match_features,
+                                           scene_features, twin_distance)
 from iris_runtime.cameras.locate import pose_distinct_first, pose_from_points
 from iris_runtime.cameras.tracks import build_tracks
 from iris_runtime.cameras.triangulation import triangulate
@@ -481,6 +482,26 @@ def test_located_photos_match_the_full_solve(corner):
     assert _angle_deg(T2[0, :3, :3], _rebased(truth)[3, :3, :3]) < 0.5
     np.testing.assert_allclose(T2[0, :3, 3], _rebased(truth)[3, :3, 3], atol=0.05)
     assert np.isnan(T2[1]).all()
+
+
+def test_low_texture_photos_are_solved_enlarged(corner):
+    """Blurred, the corner's photos (256 wide) keep under ``MIN_KEYPOINTS`` keypoints: they are
+    solved enlarged past ``LOW_TEXTURE_SIZE`` (twice), the cameras and focal still reported for the photos
+    as given, and a photo located against the points is matched at the same enlargement."""
+    import cv2
+    photos, truth, _ = corner
+    blurred = [cv2.GaussianBlur(p, (0, 0), 2.0) for p in photos]
+    assert np.median([len(extract_features(p)) for p in blurred]) < MIN_KEYPOINTS
+    feats, k = scene_features(blurred[::-1])
+    assert k == 2 and max(SIZE) < LOW_TEXTURE_SIZE <= k * max(SIZE)
+    assert all(f.image_size == (SIZE[0] * k, SIZE[1] * k) for f in feats)
+    assert scene_features(photos)[1] == 1                        # textured: as given
+    s = solve_cameras(blurred[:5], DEPTH_RANGE)
+    assert s.status == ("solved",) * 5 and s.image_size == SIZE and s.point_map.enlargement == 2
+    assert s.focal == pytest.approx(FOCAL, rel=0.02)
+    T, ok = locate_photos(s.point_map, s.focal, s.image_size, [blurred[5]])
+    assert ok.all()
+    assert _pair_errors(np.concatenate([s.world_from_cam, T]), truth).max() < 2.0
 
 
 def test_solve_cameras_refuses_bad_input():

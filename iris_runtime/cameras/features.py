@@ -15,8 +15,9 @@ import numpy as np
 from ..errors import InputError
 
 __all__ = ["Features", "extract_features", "match_features", "canonical_order", "grey",
-           "enlargement", "enlarge", "MAX_FEATURES", "CONTRAST_THRESHOLD", "MAX_RATIO",
-           "MAX_DISTANCE", "MIN_SIZE", "twin_distance", "distinct_keypoints",
+           "enlargement", "enlarge", "scene_features", "MAX_FEATURES", "CONTRAST_THRESHOLD", "MAX_RATIO",
+           "MAX_DISTANCE", "MIN_SIZE", "LOW_TEXTURE_SIZE", "MIN_KEYPOINTS", "twin_distance",
+           "distinct_keypoints",
            "DISTINCT_DISTANCE", "TWIN_MIN_PIXELS"]
 
 #: Keypoints kept per photo (the strongest by SIFT response); matching costs grow with the square.
@@ -30,6 +31,13 @@ MAX_DISTANCE = 0.7
 #: Photos shorter than this on their longer side are enlarged by a whole factor (cubic) before
 #: the solve: SIFT finds few keypoints in small photos (docs/CAMERAS.md, "Small photos").
 MIN_SIZE = 256
+#: Photos whose median keypoint count is below ``MIN_KEYPOINTS`` and whose longer side is under
+#: ``LOW_TEXTURE_SIZE`` are solved enlarged by the whole factor that brings them to it (256 ->
+#: 512): enlarged twice, a low-texture photo gives about twice the keypoints, enough matches to
+#: bridge wide gaps (docs/CAMERAS.md, "Low-texture photos"; 600 chosen on the validation scenes).
+#: Larger photos are left as they are: 320x240 photos doubled take twice as long to solve.
+LOW_TEXTURE_SIZE = 320
+MIN_KEYPOINTS = 600
 #: RootSIFT descriptors are stored as uint8 round(512 x), the scale COLMAP uses (entries <= 0.5).
 _DESCRIPTOR_SCALE = 512.0
 
@@ -66,6 +74,21 @@ def enlargement(image_size: tuple[int, int]) -> int:
     (pixel edges at whole numbers, centres at +0.5), so cameras solved on the enlarged photos
     hold for the photos with the focal divided by k."""
     return max(1, -(-MIN_SIZE // max(image_size)))
+
+
+def scene_features(photos) -> tuple[list[Features], int]:
+    """SIFT features of the photos of one scene (uint8, one size) and the whole factor ``k`` of
+    the enlarged photos they were found in (``Features.uv`` in their pixels): ``enlargement``,
+    raised to reach ``LOW_TEXTURE_SIZE`` when the photos' median keypoint count is below
+    ``MIN_KEYPOINTS``: the smallest whole k with k x longer side >= it. The factor depends on the set of photos, not on their order."""
+    size = np.asarray(photos[0]).shape[:2]
+    k = enlargement(size)
+    feats = [extract_features(enlarge(np.asarray(p), k)) for p in photos]
+    k_low = max(k, -(-LOW_TEXTURE_SIZE // max(size)))
+    if k_low > k and np.median([len(f) for f in feats]) < MIN_KEYPOINTS:
+        k = k_low
+        feats = [extract_features(enlarge(np.asarray(p), k)) for p in photos]
+    return feats, k
 
 
 def enlarge(photo: np.ndarray, k: int) -> np.ndarray:

@@ -15,8 +15,8 @@ import cv2
 import numpy as np
 
 from ..errors import InputError
-from .features import (Features, canonical_order, distinct_keypoints, enlarge, enlargement,
-                       extract_features, match_features)
+from .features import (Features, canonical_order, distinct_keypoints, enlarge,
+                       extract_features, match_features, scene_features)
 from .tracks import build_tracks
 from .triangulation import triangulate
 from .two_view import (CONFIDENCE, MAX_ERROR, fundamental_matrix, intrinsics, pixel_scale,
@@ -43,16 +43,18 @@ class PointMap:
     """The solved scene's 3D points and the keypoints that see them, what a new photo is matched
     against: ``points`` float64 [P, 3] (the world frame and unit of the cameras), and per
     observation ``view`` int64 [N], ``point`` int64 [N] (row of ``points``) and ``descriptors``
-    uint8 [N, 128] (RootSIFT x 512, ``features.Features``)."""
+    uint8 [N, 128] (RootSIFT x 512, ``features.Features``), found in the photos enlarged
+    ``enlargement`` times (``features.scene_features``): new photos are matched at that size."""
     points: np.ndarray
     view: np.ndarray
     point: np.ndarray
     descriptors: np.ndarray
+    enlargement: int = 1
 
     def transformed(self, world_from_old: np.ndarray, scale: float = 1.0) -> "PointMap":
         """The same map with points x -> world_from_old (scale x) (a rigid map and a scale)."""
         X = scale * self.points @ world_from_old[:3, :3].T + world_from_old[:3, 3]
-        return PointMap(X, self.view, self.point, self.descriptors)
+        return PointMap(X, self.view, self.point, self.descriptors, self.enlargement)
 
 
 def pose_from_points(points: np.ndarray, uv: np.ndarray, focal: float,
@@ -158,7 +160,7 @@ def locate_photos(point_map: PointMap, focal: float, image_size: tuple[int, int]
     ``located bool [Q])``. Each photo is posed on its own (``pose_distinct_first``: its distinct
     keypoints' correspondences first), so the order of the photos does not matter."""
     Q = len(photos)
-    k = enlargement(image_size)                   # as the solve saw photos of this size
+    k = point_map.enlargement                     # as the solve saw the scene's photos
     size = (image_size[0] * k, image_size[1] * k)
     max_error = PNP_ERROR * pixel_scale(size)
     out = np.full((Q, 4, 4), np.nan)
@@ -184,16 +186,15 @@ def point_map_from_cameras(photos, world_from_cam: np.ndarray, focal: float) -> 
     kept where the known epipolar geometry explains them, tracked across views and
     triangulated. The photos are matched in ``canonical_order``, so their order does not
     matter."""
-    k = enlargement(np.asarray(photos[0]).shape[:2])        # as the solve sees such photos
-    photos = [enlarge(np.asarray(p), k) for p in photos]
-    focal = focal * k
+    photos = [np.asarray(p) for p in photos]
     V = len(photos)
-    size = photos[0].shape[:2]
     T = np.asarray(world_from_cam, dtype=np.float64)
     if T.shape != (V, 4, 4) or not np.isfinite(T).all():
         raise InputError(f"world_from_cam: expected finite [{V}, 4, 4], got {T.shape}")
     perm = canonical_order(photos)
-    feats = [extract_features(photos[k]) for k in perm]
+    feats, k = scene_features([photos[v] for v in perm])      # as the solve sees such photos
+    focal = focal * k
+    size = feats[0].image_size
     cam_from_world = np.linalg.inv(T[perm])
     R, t = cam_from_world[:, :3, :3], cam_from_world[:, :3, 3]
     K = intrinsics(focal, size)
@@ -214,7 +215,7 @@ def point_map_from_cameras(photos, world_from_cam: np.ndarray, focal: float) -> 
     desc = (np.stack([feats[v].descriptors[tracks.keypoint[rows[i], v]]
                       for i, v in zip(t_idx, v_idx)]) if len(t_idx)
             else np.zeros((0, 128), np.uint8))
-    return PointMap(X[rows], perm[v_idx], t_idx.astype(np.int64), desc)
+    return PointMap(X[rows], perm[v_idx], t_idx.astype(np.int64), desc, k)
 
 
 def locate_views(reference_photos, reference_world_from_cam, focal: float, query_photos

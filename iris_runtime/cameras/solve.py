@@ -13,8 +13,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import InputError
-from .features import (DISTINCT_DISTANCE, canonical_order, distinct_keypoints, enlarge,
-                       enlargement, extract_features, match_features)
+from .features import (DISTINCT_DISTANCE, canonical_order, distinct_keypoints, match_features,
+                       scene_features)
 from .locate import PointMap, locate_photos, pose_from_points
 from .mapper import MapperOptions, Reconstruction, incremental_mapping
 from .tracks import Tracks, build_tracks
@@ -102,9 +102,9 @@ def check_photos(photos, name: str = "photos") -> list[np.ndarray]:
     return items
 
 
-def _point_map(rec: Reconstruction, tracks: Tracks, features, perm) -> PointMap:
+def _point_map(rec: Reconstruction, tracks: Tracks, features, perm, k: int) -> PointMap:
     """The reconstruction's valid points and their active observations (views in the caller's
-    numbering)."""
+    numbering), their descriptors found in the photos enlarged ``k`` times."""
     active = rec.active(tracks)
     rows = np.flatnonzero(rec.point_ok)
     new_index = -np.ones(len(tracks), np.int64)
@@ -112,7 +112,7 @@ def _point_map(rec: Reconstruction, tracks: Tracks, features, perm) -> PointMap:
     t_idx, v_idx = np.nonzero(active)
     desc = np.stack([features[v].descriptors[tracks.keypoint[t, v]]
                      for t, v in zip(t_idx, v_idx)]) if len(t_idx) else np.zeros((0, 128), np.uint8)
-    return PointMap(rec.points[rows], perm[v_idx], new_index[t_idx], desc)
+    return PointMap(rec.points[rows], perm[v_idx], new_index[t_idx], desc, k)
 
 
 def _median_depth(rec: Reconstruction, tracks: Tracks) -> float:
@@ -152,8 +152,9 @@ def solve_cameras(photos, depth_range: tuple[float, float], *, focal: float | No
                  the longer side); the bundle adjustment refines it either way
     options:     the mapper's thresholds (pixels at ``two_view.REFERENCE_SIZE``) (default ``MapperOptions()``)
 
-    Photos under ``features.MIN_SIZE`` pixels are solved enlarged (``features.enlargement``);
-    the cameras are reported for the photos as given. Steps: SIFT features of each photo and
+    Photos under ``features.MIN_SIZE`` pixels, and low-texture photos under
+    ``features.LOW_TEXTURE_SIZE``, are solved enlarged (``features.scene_features``); the cameras
+    are reported for the photos as given. Steps: SIFT features of each photo and
     their matches across every pair (``features``); per pair F, H and the relative pose
     (``two_view``); tracks (``tracks``); the incremental mapper with bundle adjustment
     (``mapper``, ``triangulation``, ``bundle``), run twice, on every match and trusting the
@@ -167,23 +168,22 @@ def solve_cameras(photos, depth_range: tuple[float, float], *, focal: float | No
     if not (np.isfinite(near) and np.isfinite(far) and 0 <= near < far):
         raise InputError(f"depth_range: expected (near, far) with 0 <= near < far, got "
                          f"{depth_range!r}")
+    if focal is not None and not (np.isfinite(focal) and focal > 0):
+        raise InputError(f"focal: expected a positive number of pixels, got {focal!r}")
     V = len(photos)
     size = photos[0].shape[:2]
-    k = enlargement(size)                         # small photos: solved enlarged k times
+    perm = canonical_order(photos)
+    features, k = scene_features([photos[v] for v in perm])   # in the photos enlarged k times
     H, W = size[0] * k, size[1] * k
     px = pixel_scale((H, W))
     opts = options or MapperOptions()
     opts = MapperOptions(**{**opts.__dict__, "two_view_error": opts.two_view_error * px,
                             "pnp_error": opts.pnp_error * px,
                             "max_error": opts.max_error * px, "loss_scale": opts.loss_scale * px})
-    if focal is not None and not (np.isfinite(focal) and focal > 0):
-        raise InputError(f"focal: expected a positive number of pixels, got {focal!r}")
     focals = ((k * float(focal),) if focal is not None
               else tuple(prior * max(H, W) for prior in FOCAL_PRIORS))
     f0 = focals[0]
 
-    perm = canonical_order(photos)
-    features = [extract_features(enlarge(photos[v], k)) for v in perm]
     matches = {(a, b): match_features(features[a], features[b])
                for a in range(V) for b in range(a + 1, V)}
     # Two reconstructions: one on every match, one whose pairs and registrations trust the
@@ -217,7 +217,7 @@ def solve_cameras(photos, depth_range: tuple[float, float], *, focal: float | No
     status = np.array(["unposed"] * V, dtype=object)
     if rec is None:
         empty = PointMap(np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros(0, np.int64),
-                         np.zeros((0, 128), np.uint8))
+                         np.zeros((0, 128), np.uint8), k)
         return CameraSolve(np.full((V, 4, 4), np.nan), f0 / k, size, tuple(status), -1, 1.0, empty)
     status[perm[rec.registered]] = "solved"
     cam_from_world = np.full((V, 4, 4), np.nan)          # canonical numbering
@@ -245,7 +245,7 @@ def solve_cameras(photos, depth_range: tuple[float, float], *, focal: float | No
     world_from_cam[:, :3, 3] *= scale
     world_from_cam[root] = np.eye(4)
     world_from_cam[status == "unposed"] = np.nan
-    point_map = _point_map(rec, tracks, features, perm)
+    point_map = _point_map(rec, tracks, features, perm, k)
     point_map = point_map.transformed(root_from_old).transformed(np.eye(4), scale)
     return CameraSolve(world_from_cam, rec.focal / k, size, tuple(status.tolist()), root, scale,
                        point_map)
