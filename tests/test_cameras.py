@@ -439,6 +439,17 @@ def test_solve_cameras_on_a_plane_seen_from_a_short_baseline():
     assert s.focal == pytest.approx(200.0, rel=0.05)
 
 
+def test_more_starting_pairs_keep_the_best_reconstruction(corner):
+    """``MapperOptions(min_trials=2)`` grows a second start even when the first registers every
+    view and keeps the one that explains the observations best: on the corner, as good."""
+    from iris_runtime.cameras import MapperOptions
+    photos, truth, _ = corner
+    s = solve_cameras(list(photos), DEPTH_RANGE, options=MapperOptions(min_trials=2))
+    assert s.status == ("solved",) * 6
+    assert _pair_errors(s.world_from_cam, truth).max() < 2.0
+    assert s.focal == pytest.approx(FOCAL, rel=0.02)
+
+
 def test_solve_cameras_is_deterministic_and_order_free(corner):
     photos, truth, s = corner
     order = [3, 0, 5, 1, 4, 2]
@@ -486,8 +497,9 @@ def test_located_photos_match_the_full_solve(corner):
 
 def test_low_texture_photos_are_solved_enlarged(corner):
     """Blurred, the corner's photos (256 wide) keep under ``MIN_KEYPOINTS`` keypoints: they are
-    solved enlarged past ``LOW_TEXTURE_SIZE`` (twice), the cameras and focal still reported for the photos
-    as given, and a photo located against the points is matched at the same enlargement."""
+    solved enlarged past ``LOW_TEXTURE_SIZE`` (twice), the cameras and focal still reported for
+    the photos as given, and a photo located against the points is matched at the same
+    enlargement."""
     import cv2
     photos, truth, _ = corner
     blurred = [cv2.GaussianBlur(p, (0, 0), 2.0) for p in photos]

@@ -15,7 +15,8 @@ import numpy as np
 from ..errors import InputError
 
 __all__ = ["Features", "extract_features", "match_features", "canonical_order", "grey",
-           "enlargement", "enlarge", "scene_features", "MAX_FEATURES", "CONTRAST_THRESHOLD", "MAX_RATIO",
+           "enlargement", "enlarge", "scene_features", "MAX_FEATURES", "CONTRAST_THRESHOLD",
+           "MAX_RATIO",
            "MAX_DISTANCE", "MIN_SIZE", "LOW_TEXTURE_SIZE", "MIN_KEYPOINTS", "twin_distance",
            "distinct_keypoints",
            "DISTINCT_DISTANCE", "TWIN_MIN_PIXELS"]
@@ -80,7 +81,8 @@ def scene_features(photos) -> tuple[list[Features], int]:
     """SIFT features of the photos of one scene (uint8, one size) and the whole factor ``k`` of
     the enlarged photos they were found in (``Features.uv`` in their pixels): ``enlargement``,
     raised to reach ``LOW_TEXTURE_SIZE`` when the photos' median keypoint count is below
-    ``MIN_KEYPOINTS``: the smallest whole k with k x longer side >= it. The factor depends on the set of photos, not on their order."""
+    ``MIN_KEYPOINTS``: the smallest whole k with k x longer side >= it. The factor depends on
+    the set of photos, not on their order."""
     size = np.asarray(photos[0]).shape[:2]
     k = enlargement(size)
     feats = [extract_features(enlarge(np.asarray(p), k)) for p in photos]

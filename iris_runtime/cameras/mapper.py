@@ -34,6 +34,9 @@ class MapperOptions:
                         triangulation angle may start, as COLMAP starts from a homography
     planar_point_angle: ... and points then need only this angle (``min_angle`` otherwise)
     init_trials:        starting pairs tried when one does not register every view
+    min_trials:         starting pairs tried even when the first registers every view (the
+                        reconstruction kept is then the one that explains the observations
+                        best): 2 is more accurate and slower (docs/CAMERAS.md "Starting pairs")
     init_angle:         triangulation angle (median, degrees) at which a starting pair counts in
                         full; narrower pairs are scored down in proportion
     two_view_error:     inlier threshold of the starting pair's essential matrix
@@ -51,6 +54,7 @@ class MapperOptions:
     planar_min_angle: float = 0.5
     planar_point_angle: float = 0.25
     init_trials: int = 4
+    min_trials: int = 1
     init_angle: float = 16.0
     two_view_error: float = MAX_ERROR
     pnp_error: float = PNP_ERROR
@@ -248,8 +252,9 @@ def incremental_mapping(features, tracks: Tracks,
     ``geometries``), or None when no pair can start one.
 
     Each starting focal of ``focals`` (pixels) is tried, and for each up to ``init_trials``
-    starting pairs, best first, until one registers every view that could be (pairs with fewer than
-    ``init_min_inliers`` inliers start only when no pair has as many). The reconstruction kept
+    starting pairs, best first (at least ``min_trials``), until one registers every view that
+    could be (pairs with fewer than ``init_min_inliers`` inliers start only when no pair has as
+    many). The reconstruction kept
     registers the most views and, among those, has the lowest ``_score``: a wrong focal can
     lead the bundle adjustment into a consistent but wrong reconstruction that explains fewer
     of the observations (docs/CAMERAS.md, "Focal"). Views it cannot register stay
@@ -271,7 +276,7 @@ def incremental_mapping(features, tracks: Tracks,
     possible = tracks.observed.sum(0) >= opts.pnp_min_inliers
     best, best_key = None, None
     for focal in focals:
-        for pair in starts[:opts.init_trials]:
+        for trial, pair in enumerate(starts[:opts.init_trials]):
             rec = _start(pair, geometries, features, tracks, focal, centre, image_size, opts)
             if rec is None:
                 continue
@@ -279,6 +284,6 @@ def incremental_mapping(features, tracks: Tracks,
             key = (int(rec.registered.sum()), -_score(rec, tracks, centre, opts))
             if best_key is None or key > best_key:
                 best, best_key = rec, key
-            if rec.registered[possible].all():
+            if rec.registered[possible].all() and trial + 1 >= opts.min_trials:
                 break
     return best
