@@ -8,7 +8,8 @@ Datasets (photos with true cameras):
 
 - ``heldout``: the 16 held-out synthetic scenes (``iris_train.data.HELDOUT_SEEDS``) rendered at
   256x256, 8 views on arcs of 10-90 degrees (``validation``: the first 24 validation scenes,
-  ``VALIDATION_SEEDS``, rendered alike: where a setting is chosen before held-out reports it);
+  ``VALIDATION_SEEDS``, rendered alike: where a setting is chosen before held-out reports it;
+  ``validation-more``: the next 24, where a choice is checked);
 - ``capture``: the 16 capture-like held-out scenes (``CAPTURE_HELDOUT_SEEDS``: walks, orbits,
   hand-held paths and rooms, fields of view of 25-90 degrees, principal points off centre,
   photographic textures, camera effects), 256x256 (``capture-validation``: the first 24
@@ -98,6 +99,12 @@ def validation_scenes():
     return _synthetic("validation", VALIDATION_SEEDS[:24])
 
 
+def validation_more_scenes():
+    """Validation scenes 24-47: a second sample where a choice is checked before held-out."""
+    from iris_train.data import VALIDATION_SEEDS
+    return _synthetic("validation", VALIDATION_SEEDS[24:48])
+
+
 def capture_scenes():
     """The 16 capture-like held-out scenes (walks, orbits, hand-held paths, rooms; wide fields
     of view, photographic textures and camera effects), 256x256."""
@@ -152,7 +159,8 @@ def castle_scenes():
             yield Scene(f"castle {name} {W}x{H}", photos, T, CASTLE_FOCAL)
 
 
-DATASETS = {"heldout": heldout_scenes, "validation": validation_scenes, "wide": wide_scenes,
+DATASETS = {"heldout": heldout_scenes, "validation": validation_scenes,
+            "validation-more": validation_more_scenes, "wide": wide_scenes,
             "castle": castle_scenes, "capture": capture_scenes,
             "capture-validation": capture_validation_scenes}
 

@@ -1,9 +1,13 @@
-"""What solving the cameras costs at encode time: ``IrisRuntime.encode`` of 8 photos of 320x240 on
-one thread, with the encoder's cameras and with the camera solve (``cameras="epipolar"``), and the
-solve's own steps. Medians of ``--runs`` wall times after one warm-up, one process.
+"""What solving the cameras costs at encode time: ``IrisRuntime.encode`` of 8 photos of 320x240
+(and of the quickstart's 64x64 sample) on one thread, with the encoder's cameras and with the
+camera solve (``cameras="epipolar"``), and the solve's own steps. Medians of ``--runs`` wall times after one warm-up, one process.
 
     python benchmarks/encode_cost.py MODEL_DIR                  # an iris-export output
     python benchmarks/encode_cost.py MODEL_DIR --runs 7 --json benchmarks/results/encode_cost.json
+    python benchmarks/encode_cost.py MODEL_DIR --set min_trials=2      # a solve setting changed
+
+``--set`` takes ``scripts/camera_study.py``'s settings (a constant of a module of
+``iris_runtime.cameras``, or a field of ``MapperOptions``).
 
 Photos: ViSP ``Castle-simu`` frames 1, 6, ..., 36 at 320x240 (``benchmarks/camera_solve.py``,
 Debian ``visp-images-data``) and the held-out synthetic scene 1000003 rendered at 320x240 (needs
@@ -26,9 +30,13 @@ sys.path.insert(0, str(REPO))
 
 
 def photo_sets() -> dict:
-    """{name: 8 uint8 RGB photos of 240x320}."""
+    """{name: 8 uint8 RGB photos}: of 240x320, and the quickstart's 64x64 sample."""
     import numpy as np
+    from PIL import Image
     out = {}
+    sample = sorted((REPO / "samples" / "heldout-1000003").glob("frame_*.png"))
+    if sample:
+        out["sample 1000003 64x64"] = [np.asarray(Image.open(f).convert("RGB")) for f in sample]
     from benchmarks.camera_solve import CASTLE, CASTLE_SUBSETS, castle_scenes
     if CASTLE.is_dir():
         for scene in castle_scenes():
@@ -42,13 +50,20 @@ def photo_sets() -> dict:
     return out
 
 
-def measure(model_dir: str, runs: int) -> dict:
+def measure(model_dir: str, runs: int, settings: list[str] = ()) -> dict:
     import cv2
 
+    import iris_runtime.cameras.replace as replace
     from iris_runtime import IrisRuntime
+    from scripts.camera_study import apply
     cv2.setNumThreads(1)
+    if settings:
+        options, solve = apply(list(settings)), replace.solve_cameras
+        replace.solve_cameras = lambda photos, depth_range, **kw: solve(
+            photos, depth_range, options=options, **kw)        # what encode's solve calls
     rt = IrisRuntime(model_dir, threads=1)
-    out = {"threads": 1, "runs": runs, "load_before": list(os.getloadavg()), "sets": {}}
+    out = {"threads": 1, "runs": runs, "settings": list(settings),
+           "load_before": list(os.getloadavg()), "sets": {}}
     for name, photos in photo_sets().items():
         res = {}
         for cameras in ("model", "epipolar"):
@@ -78,8 +93,10 @@ def main(argv=None) -> int:
     ap.add_argument("model_dir")
     ap.add_argument("--runs", type=int, default=5)
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
+                    help="a solve setting changed, as scripts/camera_study.py --set")
     args = ap.parse_args(argv)
-    res = measure(args.model_dir, args.runs)
+    res = measure(args.model_dir, args.runs, args.set)
     print(f"load average before / after: {res['load_before']} / {res['load_after']}")
     if args.json is not None:
         from iris_runtime.fileio import atomic_write_bytes

@@ -15,11 +15,9 @@ import numpy as np
 from ..errors import InputError
 
 __all__ = ["Features", "extract_features", "match_features", "canonical_order", "grey",
-           "enlargement", "enlarge", "scene_features", "MAX_FEATURES", "CONTRAST_THRESHOLD",
-           "MAX_RATIO",
-           "MAX_DISTANCE", "MIN_SIZE", "LOW_TEXTURE_SIZE", "MIN_KEYPOINTS", "twin_distance",
-           "distinct_keypoints",
-           "DISTINCT_DISTANCE", "TWIN_MIN_PIXELS"]
+           "enlargement", "enlarge", "scene_features", "twin_distance", "distinct_keypoints",
+           "MAX_FEATURES", "CONTRAST_THRESHOLD", "MAX_RATIO", "MAX_DISTANCE", "MIN_SIZE",
+           "LOW_TEXTURE_SIZE", "MIN_KEYPOINTS", "DISTINCT_DISTANCE", "TWIN_MIN_PIXELS"]
 
 #: Keypoints kept per photo (the strongest by SIFT response); matching costs grow with the square.
 MAX_FEATURES = 2048
@@ -36,7 +34,8 @@ MIN_SIZE = 256
 #: ``LOW_TEXTURE_SIZE`` are solved enlarged by the whole factor that brings them to it (256 ->
 #: 512): enlarged twice, a low-texture photo gives about twice the keypoints, enough matches to
 #: bridge wide gaps (docs/CAMERAS.md, "Low-texture photos"; 600 chosen on the validation scenes).
-#: Larger photos are left as they are: 320x240 photos doubled take twice as long to solve.
+#: Larger photos are left as they are: 320x240 photos doubled take two to three times as long
+#: to solve (``benchmarks/encode_cost.py --set features.LOW_TEXTURE_SIZE=640``).
 LOW_TEXTURE_SIZE = 320
 MIN_KEYPOINTS = 600
 #: RootSIFT descriptors are stored as uint8 round(512 x), the scale COLMAP uses (entries <= 0.5).
