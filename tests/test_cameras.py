@@ -14,7 +14,7 @@ import pytest
 
 from iris_runtime.cameras import (DEPTH_TARGET, canonical_order, locate_photos, locate_views,
                                   solve_cameras)
-from iris_runtime.cameras.bundle import bundle_adjust, reprojection_errors
+from iris_runtime.cameras.bundle import _inverse_factor, bundle_adjust, reprojection_errors
 from iris_runtime.cameras.features import (LOW_TEXTURE_SIZE, MIN_KEYPOINTS, TWIN_MIN_PIXELS,
                                            Features, extract_features, match_features,
                                            scene_features, twin_distance)
@@ -323,6 +323,28 @@ def test_bundle_adjustment_recovers_cameras_focal_and_points_despite_outliers():
     fixed = bundle_adjust(R0, t0, 1.15 * FOCAL, centre, X0, uv_obs, active, fixed_view=0,
                           scale_view=1, refine_focal=False, max_iterations=5)
     assert fixed.focal == 1.15 * FOCAL
+
+
+def test_point_block_inverse_matches_lapack_on_stiff_blocks():
+    """The adjustment's closed-form inverse of the 3x3 point blocks (Q^T Q, Q the inverse of
+    the Cholesky factor) against np.linalg.inv, on blocks like a far point's (depth barely
+    observed: condition numbers up to 1e10) and on round ones: relative error within what the
+    condition number allows (a few eps x cond, LAPACK's own bound)."""
+    rng = np.random.default_rng(3)
+    axes = np.linalg.qr(rng.normal(size=(64, 3, 3)))[0]
+    scales = 10.0 ** rng.uniform(-4, 6, size=(64, 3))
+    scales[:8] = [[1e6, 1e6, 1e-4]] * 8                       # the stiff ones: cond 1e10
+    A = np.einsum("pij,pj,pkj->pik", axes, scales, axes)
+    A = 0.5 * (A + A.transpose(0, 2, 1))
+    Q = _inverse_factor(A)
+    ours, ref = Q.transpose(0, 2, 1) @ Q, np.linalg.inv(A)
+    assert (np.triu(Q, 1) == 0).all()
+    cond = np.linalg.cond(A)
+    err = np.abs(ours - ref).max(axis=(1, 2)) / np.abs(ref).max(axis=(1, 2))
+    assert np.isfinite(ours).all()
+    assert (err <= 4 * np.finfo(float).eps * cond).all()
+    identity = np.einsum("pij,pjk->pik", A.astype(np.longdouble), ours.astype(np.longdouble))
+    assert np.abs(identity - np.eye(3)).max() < 1e-5
 
 
 def test_bundle_adjustment_ends_where_scipy_least_squares_cannot_lower_the_cost():

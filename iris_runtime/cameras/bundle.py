@@ -63,13 +63,16 @@ class _Problem:
         self.centre = centre
         self.s2 = float(loss_scale) ** 2
         self.in_view = (np.arange(self.V)[:, None] == self.v[None]).astype(np.float64)  # [V, n]
+        # Where each observation's [7, 3] block goes in a [V, 7, P, 3] array (per_point_dense).
+        self.dense_index = (((self.v[:, None, None] * 7 + np.arange(7)[None, :, None]) * self.P
+                             + self.p[:, None, None]) * 3 + np.arange(3)[None, None, :]).ravel()
 
     def per_point_dense(self, x):
         """x [n, 7, 3] per observation -> [7V, 3P], zero where a view does not see a point:
         the Schur complement's sum over points (a point seen by views i and j couples cameras
         i and j) is then one matrix product."""
-        out = np.zeros((self.V, 7, self.P, 3))
-        out[self.v, :, self.p, :] = x
+        out = np.zeros(self.V * 7 * self.P * 3)
+        out[self.dense_index] = x.ravel()
         return out.reshape(7 * self.V, 3 * self.P)
 
     def camera_coords(self, R, t, X):
@@ -116,6 +119,28 @@ def _jacobians(Y, a, R_v, f):
     return Jc, JY @ R_v
 
 
+def _inverse_factor(A):
+    """``Q [P, 3, 3]`` lower triangular with ``A^-1 = Q^T Q`` for symmetric positive definite
+    3x3 matrices ``A [P, 3, 3]``: the inverse of their Cholesky factor (A = L L^T, Q = L^-1),
+    written out. One vectorised pass where ``np.linalg.inv`` calls LAPACK once per matrix
+    (several times slower here); Cholesky is backward stable, so a far point's block, whose
+    depth is barely observed, is inverted as accurately as LAPACK does it (cofactors are not:
+    they lose the square of the condition)."""
+    a, b, c = A[:, 0, 0], A[:, 0, 1], A[:, 0, 2]
+    d, e, g = A[:, 1, 1], A[:, 1, 2], A[:, 2, 2]
+    l00 = np.sqrt(a)
+    l10, l20 = b / l00, c / l00
+    l11 = np.sqrt(d - l10 * l10)
+    l21 = (e - l20 * l10) / l11
+    l22 = np.sqrt(g - l20 * l20 - l21 * l21)
+    Q = np.zeros_like(A)
+    Q[:, 0, 0], Q[:, 1, 1], Q[:, 2, 2] = 1.0 / l00, 1.0 / l11, 1.0 / l22
+    Q[:, 1, 0] = -l10 * Q[:, 0, 0] * Q[:, 1, 1]
+    Q[:, 2, 1] = -l21 * Q[:, 1, 1] * Q[:, 2, 2]
+    Q[:, 2, 0] = -(l20 * Q[:, 0, 0] + l21 * Q[:, 1, 0]) * Q[:, 2, 2]
+    return Q
+
+
 def bundle_adjust(R, t, focal, centre, points, uv, active, *, fixed_view: int, scale_view: int,
                   refine_focal: bool = True, loss_scale: float = 1.0,
                   max_iterations: int = 50) -> BundleResult:
@@ -130,21 +155,30 @@ def bundle_adjust(R, t, focal, centre, points, uv, active, *, fixed_view: int, s
     V, P = R.shape[0], X.shape[0]
     if len(prob.p) == 0:
         return BundleResult(R, t, f, X, 0.0, 0)
-    # Parameter index of each of the 7 per-view entries (rotation, translation, focal); -1: fixed.
+    # The free entries of each view's 7 (rotation, translation, focal): the pose of every
+    # observed view but the fixed one, less the scale view's largest translation coordinate.
+    free = np.zeros((V, 7), bool)
+    free[np.unique(prob.v), :6] = True
+    free[fixed_view] = False
+    free[scale_view, 3 + int(np.argmax(np.abs(t[scale_view])))] = False
+    # Parameter index of each entry (-1: fixed); the focal, when refined, is one shared last.
     index = -np.ones((V, 7), np.int64)
-    n = 0
-    for v in np.unique(prob.v):
-        if v != fixed_view:
-            index[v, :6] = np.arange(n, n + 6)
-            if v == scale_view:
-                index[v, 3 + int(np.argmax(np.abs(t[v])))] = -1
-            n += 6
+    index[free] = np.arange(free.sum())
+    n_free = int(free.sum())
     if refine_focal:
-        index[:, 6] = n
-        n += 1
+        index[:, 6] = n_free
+        n_free += 1
     flat = index.ravel()
-    M = np.zeros((7 * V, max(n, 1)))
+    M = np.zeros((7 * V, n_free))
     M[np.flatnonzero(flat >= 0), flat[flat >= 0]] = 1.0
+    # M^T D of a [7V, k] matrix D without the product: the free pose entries' rows (in
+    # parameter order), then the focal's (the sum of every view's).
+    rows = np.flatnonzero(free.ravel())
+
+    def reduce(D):
+        return np.concatenate([D[rows], D[6::7].sum(0, keepdims=True)]) if refine_focal \
+            else D[rows]
+
     cost = prob.cost(R, t, f, X)
     lam, it = 1e-3, 0
     for it in range(1, max_iterations + 1):
@@ -162,23 +196,23 @@ def bundle_adjust(R, t, focal, centre, points, uv, active, *, fixed_view: int, s
         for v in range(V):
             U[7 * v:7 * v + 7, 7 * v:7 * v + 7] = U7[v]
         Ur, gr = M.T @ U @ M, M.T @ g7.ravel()
-        W_dense = prob.per_point_dense(Wo)                                  # [7V, 3P]
+        W = reduce(prob.per_point_dense(Wo))                                # [n_free, 3P]
         done = False
         while True:
-            Vinv = np.linalg.inv(Vp + lam * Vp * np.eye(3) + 1e-9 * np.eye(3))
-            WV = Wo @ Vinv[prob.p]                                          # [n, 7, 3]
-            schur = prob.per_point_dense(WV) @ W_dense.T                    # [7V, 7V]
-            S = Ur + lam * np.diag(np.diag(Ur)) - M.T @ schur @ M
-            b_c = prob.per_view((WV @ gp[prob.p][:, :, None])[:, :, 0])   # [V, 7]
-            rhs = gr - M.T @ b_c.ravel()
+            # Schur complement W V^-1 W^T = G G^T with G = W Q^T (V^-1 = Q^T Q per point):
+            # one symmetric product (numpy computes a @ a.T as such), half a general one.
+            Q = _inverse_factor(Vp + lam * Vp * np.eye(3) + 1e-9 * np.eye(3))
+            G = reduce(prob.per_point_dense(Wo @ Q[prob.p].transpose(0, 2, 1)))
+            S = Ur + lam * np.diag(np.diag(Ur)) - G @ G.T
+            Vinv = Q.transpose(0, 2, 1) @ Q                                 # [P, 3, 3]
+            rhs = gr - W @ (Vinv @ gp[:, :, None]).ravel()
             try:
-                dc = -np.linalg.solve(S + 1e-12 * np.eye(len(S)), rhs) if n else np.zeros(1)
+                dc = -np.linalg.solve(S + 1e-12 * np.eye(n_free), rhs)
             except np.linalg.LinAlgError:
                 dc = np.full(len(S), np.nan)
             if np.all(np.isfinite(dc)):
-                d7 = (M @ dc).reshape(V, 7) if n else np.zeros((V, 7))
-                WTd = (Wo.transpose(0, 2, 1) @ d7[prob.v][:, :, None])[:, :, 0]   # [n, 3]
-                dp = -(Vinv @ (gp + prob.per_point(WTd))[:, :, None])[:, :, 0]
+                d7, WTd = (M @ dc).reshape(V, 7), (W.T @ dc).reshape(P, 3)
+                dp = -(Vinv @ (gp + WTd)[:, :, None])[:, :, 0]
                 R2 = np.stack([cv2.Rodrigues(d7[v, :3])[0] @ R[v] for v in range(V)])
                 t2, f2, X2 = t + d7[:, 3:6], f + d7[0, 6], X + dp
                 new = prob.cost(R2, t2, f2, X2)
