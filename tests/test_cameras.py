@@ -461,15 +461,25 @@ def test_solve_cameras_on_a_plane_seen_from_a_short_baseline():
     assert s.focal == pytest.approx(200.0, rel=0.05)
 
 
-def test_more_starting_pairs_keep_the_best_reconstruction(corner):
-    """``MapperOptions(min_trials=2)`` grows a second start even when the first registers every
-    view and keeps the one that explains the observations best: on the corner, as good."""
+def test_starting_pairs_tried(corner, monkeypatch):
+    """By default (``min_trials`` 2) a second start is grown at each starting focal even when
+    the first registers every view, and the better reconstruction kept; ``min_trials=1`` stops
+    at the first complete one. Both are as good on the corner."""
+    import iris_runtime.cameras.mapper as mapper
     from iris_runtime.cameras import MapperOptions
     photos, truth, _ = corner
-    s = solve_cameras(list(photos), DEPTH_RANGE, options=MapperOptions(min_trials=2))
-    assert s.status == ("solved",) * 6
-    assert _pair_errors(s.world_from_cam, truth).max() < 2.0
-    assert s.focal == pytest.approx(FOCAL, rel=0.02)
+    grown = []
+    grow = mapper._grow
+    monkeypatch.setattr(mapper, "_grow", lambda rec, *a, **k: grown.append(rec.first)
+                        or grow(rec, *a, **k))
+    for options, starts in ((None, 2), (MapperOptions(min_trials=1), 1)):
+        grown.clear()
+        s = solve_cameras(list(photos), DEPTH_RANGE, options=options)
+        assert s.status == ("solved",) * 6
+        assert _pair_errors(s.world_from_cam, truth).max() < 2.0
+        assert s.focal == pytest.approx(FOCAL, rel=0.02)
+        # two reconstructions (every match; distinct keypoints first) x two starting focals
+        assert len(grown) == 2 * 2 * starts
 
 
 def test_solve_cameras_is_deterministic_and_order_free(corner):
