@@ -1,6 +1,7 @@
 """What solving the cameras costs at encode time: ``IrisRuntime.encode`` of 8 photos of 320x240
 (and of the quickstart's 64x64 sample) on one thread, with the encoder's cameras and with the
-camera solve (``cameras="epipolar"``), and the solve's own steps. Medians of ``--runs`` wall times after one warm-up, one process.
+camera solve (``cameras="epipolar"``), and the solve's own steps. Medians of ``--runs`` wall
+times after one warm-up, one process.
 
     python benchmarks/encode_cost.py MODEL_DIR                  # an iris-export output
     python benchmarks/encode_cost.py MODEL_DIR --runs 7 --json benchmarks/results/encode_cost.json

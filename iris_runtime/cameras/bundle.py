@@ -168,11 +168,8 @@ def bundle_adjust(R, t, focal, centre, points, uv, active, *, fixed_view: int, s
     if refine_focal:
         index[:, 6] = n_free
         n_free += 1
-    flat = index.ravel()
-    M = np.zeros((7 * V, n_free))
-    M[np.flatnonzero(flat >= 0), flat[flat >= 0]] = 1.0
-    # M^T D of a [7V, k] matrix D without the product: the free pose entries' rows (in
-    # parameter order), then the focal's (the sum of every view's).
+    # A [7V, k] matrix D of per-view entries -> [n_free, k] over the parameters: the free pose
+    # entries' rows (in parameter order), then the focal's (the sum of every view's).
     rows = np.flatnonzero(free.ravel())
 
     def reduce(D):
@@ -195,7 +192,7 @@ def bundle_adjust(R, t, focal, centre, points, uv, active, *, fixed_view: int, s
         U = np.zeros((7 * V, 7 * V))
         for v in range(V):
             U[7 * v:7 * v + 7, 7 * v:7 * v + 7] = U7[v]
-        Ur, gr = M.T @ U @ M, M.T @ g7.ravel()
+        Ur, gr = reduce(reduce(U).T), reduce(g7.reshape(-1, 1))[:, 0]       # U is symmetric
         W = reduce(prob.per_point_dense(Wo))                                # [n_free, 3P]
         done = False
         while True:
@@ -211,7 +208,8 @@ def bundle_adjust(R, t, focal, centre, points, uv, active, *, fixed_view: int, s
             except np.linalg.LinAlgError:
                 dc = np.full(len(S), np.nan)
             if np.all(np.isfinite(dc)):
-                d7, WTd = (M @ dc).reshape(V, 7), (W.T @ dc).reshape(P, 3)
+                d7 = np.append(dc, 0.0)[index]                      # [V, 7], 0 where fixed
+                WTd = (W.T @ dc).reshape(P, 3)
                 dp = -(Vinv @ (gp + WTd)[:, :, None])[:, :, 0]
                 R2 = np.stack([cv2.Rodrigues(d7[v, :3])[0] @ R[v] for v in range(V)])
                 t2, f2, X2 = t + d7[:, 3:6], f + d7[0, 6], X + dp

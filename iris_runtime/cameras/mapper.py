@@ -255,13 +255,13 @@ def incremental_mapping(features, tracks: Tracks,
     Each starting focal of ``focals`` (pixels) is tried, and for each up to ``init_trials``
     starting pairs, best first (at least ``min_trials``), until one registers every view that
     could be (pairs with fewer than ``init_min_inliers`` inliers start only when no pair has as
-    many). The reconstruction kept
-    registers the most views and, among those, has the lowest ``_score``: a wrong focal can
-    lead the bundle adjustment into a consistent but wrong reconstruction that explains fewer
-    of the observations (docs/CAMERAS.md, "Focal"). Views it cannot register stay
-    ``registered`` False. ``distinct``: per view, bool [N_v] over its keypoints, those without
-    a near twin in their photo (``features.distinct_keypoints``); given, each view is
-    registered on the points its distinct keypoints see first (``locate.pose_distinct_first``)."""
+    many). The reconstruction kept registers the most views and, among those, has the lowest
+    ``_score``: a wrong focal can lead the bundle adjustment into a consistent but wrong
+    reconstruction that explains fewer of the observations (docs/CAMERAS.md, "Focal"). Views it
+    cannot register stay ``registered`` False. ``distinct``: per view, bool [N_v] over its
+    keypoints, those without a near twin in their photo (``features.distinct_keypoints``);
+    given, each view is registered on the points its distinct keypoints see first
+    (``locate.pose_distinct_first``)."""
     H, W = image_size
     centre = np.array([W / 2.0, H / 2.0])
     starts = _init_pairs(geometries, opts) or _init_pairs(
