@@ -15,9 +15,10 @@ import pytest
 from iris_runtime.cameras import (DEPTH_TARGET, canonical_order, locate_photos, locate_views,
                                   solve_cameras)
 from iris_runtime.cameras.bundle import _inverse_factor, bundle_adjust, reprojection_errors
-from iris_runtime.cameras.features import (LOW_TEXTURE_SIZE, MIN_KEYPOINTS, TWIN_MIN_PIXELS,
-                                           Features, extract_features, match_features,
-                                           scene_features, twin_distance)
+from iris_runtime.cameras.features import (DISTINCT_DISTANCE, LOW_TEXTURE_SIZE, MIN_KEYPOINTS,
+                                           MIRROR, TWIN_MIN_PIXELS, Features, distinct_keypoints,
+                                           extract_features, match_features, scene_features,
+                                           twin_distance)
 from iris_runtime.cameras.locate import pose_distinct_first, pose_from_points
 from iris_runtime.cameras.tracks import build_tracks
 from iris_runtime.cameras.triangulation import triangulate
@@ -178,7 +179,37 @@ def test_twin_distance_matches_a_float64_reference():
                      for i in range(len(uv))])
     np.testing.assert_allclose(got, want, atol=1e-4)
     assert got[0] < 1e-3 and got[1] < 1e-3               # 0 and 2 are twins; so are 1 and 2 (37 px)
+    desc[3] = desc[0][MIRROR]                           # a mirrored twin of 0, 1 and 2
+    mirrored = twin_distance(Features(uv, desc, (100, 100)), mirrored=True)
+    unit = desc / np.linalg.norm(desc.astype(np.float64), axis=1, keepdims=True)
+    want = np.array([min(np.linalg.norm(unit[i] - unit[j][MIRROR]) for j in range(len(uv))
+                         if np.linalg.norm(uv[i] - uv[j]) >= TWIN_MIN_PIXELS)
+                     for i in range(len(uv))])
+    np.testing.assert_allclose(mirrored, want, atol=1e-3)   # sqrt of float32 rounding near 0
+    assert mirrored[[0, 1, 2, 3]].max() < 1e-3 and np.median(mirrored) > 0.3
     assert twin_distance(Features(uv[:1], desc[:1], (100, 100)))[0] == 2.0
+
+
+def test_mirror_permutes_sift_descriptors_of_a_mirrored_photo():
+    """SIFT's descriptor of a keypoint in a mirrored photo is the original's under ``MIRROR``;
+    a photo set beside its own mirror image has mirrored twins everywhere and plain ones
+    almost nowhere, and only the mirror-aware distinction sees it."""
+    photo = np_scenes.render(np_scenes.cameras(1, 0.0), FOCAL, SIZE)[0]
+    f, g = extract_features(photo), extract_features(np.ascontiguousarray(photo[:, ::-1]))
+    mirrored_uv = np.stack([SIZE[1] - g.uv[:, 0], g.uv[:, 1]], axis=1)
+    gap = np.linalg.norm(f.uv[:, None] - mirrored_uv[None], axis=2)
+    same = gap.min(axis=1) < 1.0                          # the same keypoint, found mirrored
+    assert same.sum() > 200
+    unit = lambda d: d / np.linalg.norm(d.astype(np.float64), axis=1, keepdims=True)  # noqa: E731
+    a, b = unit(f.descriptors[same]), unit(g.descriptors[gap.argmin(axis=1)[same]])
+    assert np.median(np.linalg.norm(a[:, MIRROR] - b, axis=1)) < 0.05
+    assert np.median(np.linalg.norm(a - b, axis=1)) > 0.4
+    assert sorted(MIRROR) == list(range(128)) and (MIRROR[MIRROR] == np.arange(128)).all()
+
+    beside = extract_features(np.ascontiguousarray(np.concatenate([photo, photo[:, ::-1]], 1)))
+    assert np.median(twin_distance(beside, mirrored=True)) < 0.05
+    assert distinct_keypoints(beside).mean() > 0.9
+    assert (twin_distance(beside, mirrored=True) > DISTINCT_DISTANCE).mean() < 0.1
 
 
 def _shifted_consensus(rng, n_right, n_shifted, shift):

@@ -17,7 +17,7 @@ from ..errors import InputError
 __all__ = ["Features", "extract_features", "match_features", "canonical_order", "grey",
            "enlargement", "enlarge", "scene_features", "twin_distance", "distinct_keypoints",
            "MAX_FEATURES", "CONTRAST_THRESHOLD", "MAX_RATIO", "MAX_DISTANCE", "MIN_SIZE",
-           "LOW_TEXTURE_SIZE", "MIN_KEYPOINTS", "DISTINCT_DISTANCE", "TWIN_MIN_PIXELS"]
+           "LOW_TEXTURE_SIZE", "MIN_KEYPOINTS", "DISTINCT_DISTANCE", "TWIN_MIN_PIXELS", "MIRROR"]
 
 #: Keypoints kept per photo (the strongest by SIFT response); matching costs grow with the square.
 MAX_FEATURES = 2048
@@ -160,13 +160,22 @@ DISTINCT_DISTANCE = 0.35
 TWIN_MIN_PIXELS = 8.0
 
 
-def twin_distance(f: Features) -> np.ndarray:
+#: SIFT's descriptor of a mirrored patch is a permutation of the original's: the 4x4 cells'
+#: rows reversed and the 8 orientation bins negated (OpenCV's layout: (row, column, bin)).
+#: A texture tiled with mirrored copies has its repeats found only through it.
+_row, _col, _bin = np.meshgrid(np.arange(4), np.arange(4), np.arange(8), indexing="ij")
+MIRROR = np.arange(128).reshape(4, 4, 8)[3 - _row, _col, -_bin % 8].ravel()
+del _row, _col, _bin
+
+
+def twin_distance(f: Features, mirrored: bool = False) -> np.ndarray:
     """float [N]: each keypoint's descriptor distance to its nearest twin in its own photo (the
-    closest other keypoint more than ``TWIN_MIN_PIXELS`` away; 2.0, the largest, when none)."""
+    closest other keypoint more than ``TWIN_MIN_PIXELS`` away; 2.0, the largest, when none).
+    mirrored: compare with the other keypoints' mirrored descriptors (``MIRROR``) instead."""
     if len(f) < 2:
         return np.full(len(f), 2.0)
     u = _unit(f.descriptors)
-    sim = u @ u.T
+    sim = u @ (u[:, MIRROR] if mirrored else u).T
     x, y = f.uv[:, 0].astype(np.float32), f.uv[:, 1].astype(np.float32)
     near = (x[:, None] - x[None]) ** 2 + (y[:, None] - y[None]) ** 2 < TWIN_MIN_PIXELS ** 2
     sim[near] = -1.0

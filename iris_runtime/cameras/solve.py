@@ -14,7 +14,7 @@ import numpy as np
 
 from ..errors import InputError
 from .features import (DISTINCT_DISTANCE, canonical_order, distinct_keypoints, match_features,
-                       scene_features)
+                       scene_features, twin_distance)
 from .locate import PointMap, locate_photos, pose_from_points
 from .mapper import MapperOptions, Reconstruction, incremental_mapping
 from .tracks import Tracks, build_tracks
@@ -123,10 +123,11 @@ def _median_depth(rec: Reconstruction, tracks: Tracks) -> float:
 
 
 def _distinct_support(rec: Reconstruction, features, matches, distinct, max_error: float) -> int:
-    """How many distinct matches (``matches[a, b][distinct[a, b]]``) of the pairs of registered
-    views the reconstruction's epipolar geometry explains within ``max_error`` pixels: what
-    tells a reconstruction on the right matches from one on a repeated texture's shifted ones,
-    which explains more matches overall and fewer distinct ones."""
+    """How many distinct matches (``matches[a, b][distinct[a, b]]``: keypoints with neither a
+    twin nor a mirrored twin) of the pairs of registered views the reconstruction's epipolar
+    geometry explains within ``max_error`` pixels: what tells a reconstruction on the right
+    matches from one on a repeated texture's shifted ones, which explains more matches overall
+    and fewer distinct ones."""
     n = 0
     K = intrinsics(rec.focal, features[0].image_size)
     for (a, b), m in matches.items():
@@ -159,7 +160,7 @@ def solve_cameras(photos, depth_range: tuple[float, float], *, focal: float | No
     (``two_view``); tracks (``tracks``); the incremental mapper with bundle adjustment
     (``mapper``, ``triangulation``, ``bundle``), run twice, on every match and trusting the
     distinct keypoints first, keeping the reconstruction that registers more views and explains
-    more distinct matches (``_distinct_support``); views it could not register posed against its
+    more distinct matches, mirrored twins excluded too (``_distinct_support``); views it could not register posed against its
     points (``locate``). Deterministic and order-free.
     """
     photos = check_photos(photos)
@@ -193,6 +194,14 @@ def solve_cameras(photos, depth_range: tuple[float, float], *, focal: float | No
     keypoint_distinct = [distinct_keypoints(f) for f in features]
     distinct = {(a, b): keypoint_distinct[a][m[:, 0]] & keypoint_distinct[b][m[:, 1]]
                 for (a, b), m in matches.items()}
+    # The choice counts only matches whose keypoints have no mirrored twin either: a wall tiled
+    # with a mirrored picture otherwise lends the wrong reconstruction distinct support. Only
+    # there: the stricter set leaves too few keypoints for the pairs and registrations
+    # (docs/CAMERAS.md, "Mirrored twins").
+    keypoint_unique = [d & (twin_distance(f, mirrored=True) > DISTINCT_DISTANCE)
+                       for d, f in zip(keypoint_distinct, features)]
+    unique = {(a, b): keypoint_unique[a][m[:, 0]] & keypoint_unique[b][m[:, 1]]
+              for (a, b), m in matches.items()}
     plain = {(a, b): estimate_two_view(features[a].uv, features[b].uv, m, f0, (H, W),
                                        MAX_ERROR * px) for (a, b), m in matches.items()}
     best, best_key = None, None
@@ -209,7 +218,7 @@ def solve_cameras(photos, depth_range: tuple[float, float], *, focal: float | No
         if candidate is None:
             continue
         key = (int(candidate.registered.sum()),
-               _distinct_support(candidate, features, matches, distinct, MAX_ERROR * px))
+               _distinct_support(candidate, features, matches, unique, MAX_ERROR * px))
         if best_key is None or key > best_key:
             best, best_key = (candidate, candidate_tracks), key
     rec, tracks = best if best is not None else (None, None)
