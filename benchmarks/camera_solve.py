@@ -10,6 +10,9 @@ Datasets (photos with true cameras):
   256x256, 8 views on arcs of 10-90 degrees (``validation``: the first 24 validation scenes,
   ``VALIDATION_SEEDS``, rendered alike: where a setting is chosen before held-out reports it;
   ``validation-more``: the next 24, where a choice is checked);
+- ``heldout-64``, ``validation-64``: the same scenes at the model's 64x64 (the 256x256 renders
+  brought down as ``iris_train.data.SyntheticScenes`` gives a 64x64 model its photos): the
+  photos ``IrisRuntime.encode`` gets from a caller who has only the model's resolution;
 - ``capture``: the 16 capture-like held-out scenes (``CAPTURE_HELDOUT_SEEDS``: walks, orbits,
   hand-held paths and rooms, fields of view of 25-90 degrees, principal points off centre,
   photographic textures, camera effects), 256x256 (``capture-validation``: the first 24
@@ -63,6 +66,7 @@ CASTLE_FOCAL = 700.0 / 640.0                       # fx / W
 WIDE_SEEDS = tuple(range(3_000_000, 3_000_008))
 WIDE_ARCS = tuple(120.0 + 60.0 * k / 7 for k in range(8))
 SIZE = (256, 256)
+MODEL_SIZE = (64, 64)
 DEPTH_RANGE = (0.1, 1.0)
 EVAL_FRAMES = 8
 REFERENCES, TARGETS = (0, 2, 3, 5, 7), (1, 4, 6)
@@ -78,14 +82,15 @@ class Scene:
 
 
 # -- datasets --------------------------------------------------------------------------------
-def _synthetic(name: str, seeds, kind=None):
+def _synthetic(name: str, seeds, kind=None, size=SIZE):
+    """The scenes rendered at ``SIZE``, brought down to ``size`` as the model's photos are."""
     from iris_train.data import SyntheticScenes
-    scenes = SyntheticScenes(seeds, size=SIZE, kind=kind)
+    scenes = SyntheticScenes(seeds, size=size, kind=kind, render_size=SIZE)
     for i, seed in enumerate(seeds):
         s = scenes[i]
         arc = s.meta.get("arc_deg")
         yield Scene(f"{name} {seed} ({s.meta['kind']}" + (f", arc {arc:.0f})" if arc else ")"),
-                    list(s.images), s.world_from_cam, s.K[0, 0] / SIZE[1])
+                    list(s.images), s.world_from_cam, s.K[0, 0] / size[1])
 
 
 def heldout_scenes():
@@ -97,6 +102,17 @@ def validation_scenes():
     """The first 24 validation scenes: where solve settings are chosen (held-out reports)."""
     from iris_train.data import VALIDATION_SEEDS
     return _synthetic("validation", VALIDATION_SEEDS[:24])
+
+
+def heldout_64_scenes():
+    """The held-out scenes at the model's 64x64 (what the quickstart's sample is)."""
+    from iris_train.data import HELDOUT_SEEDS
+    return _synthetic("heldout-64", HELDOUT_SEEDS, size=MODEL_SIZE)
+
+
+def validation_64_scenes():
+    from iris_train.data import VALIDATION_SEEDS
+    return _synthetic("validation-64", VALIDATION_SEEDS[:24], size=MODEL_SIZE)
 
 
 def validation_more_scenes():
@@ -160,6 +176,7 @@ def castle_scenes():
 
 
 DATASETS = {"heldout": heldout_scenes, "validation": validation_scenes,
+            "heldout-64": heldout_64_scenes, "validation-64": validation_64_scenes,
             "validation-more": validation_more_scenes, "wide": wide_scenes,
             "castle": castle_scenes, "capture": capture_scenes,
             "capture-validation": capture_validation_scenes}

@@ -579,6 +579,25 @@ def test_low_texture_photos_are_solved_enlarged(corner):
     assert _pair_errors(np.concatenate([s.world_from_cam, T]), truth).max() < 2.0
 
 
+def test_small_photos_are_enlarged_to_the_low_texture_size_in_one_pass(corner, monkeypatch):
+    """Photos under ``MIN_SIZE`` go straight to ``LOW_TEXTURE_SIZE`` (64 -> 320: k 5, not 4
+    and then 5): one SIFT pass per photo."""
+    import cv2
+
+    import iris_runtime.cameras.features as F
+    photos, _, _ = corner
+    small = [cv2.resize(p, (64, 48), interpolation=cv2.INTER_AREA) for p in photos[:3]]
+    calls = []
+
+    def counted(photo, **kw):
+        calls.append(photo.shape)
+        return extract_features(photo, **kw)
+    monkeypatch.setattr(F, "extract_features", counted)
+    feats, k = F.scene_features(small)
+    assert k == 5 and 4 * 64 < LOW_TEXTURE_SIZE <= k * 64
+    assert calls == [(240, 320, 3)] * 3 and all(f.image_size == (240, 320) for f in feats)
+
+
 def test_solve_cameras_refuses_bad_input():
     good = [np.zeros((32, 32, 3), np.uint8)] * 2
     for bad, match in (([], "photos"), ([np.zeros((32, 32, 3), np.float32)], r"photos\[0\]"),

@@ -28,7 +28,8 @@ MAX_RATIO = 0.8
 #: Largest accepted descriptor distance between unit RootSIFT vectors (COLMAP's default).
 MAX_DISTANCE = 0.7
 #: Photos shorter than this on their longer side are enlarged by a whole factor (cubic) before
-#: the solve: SIFT finds few keypoints in small photos (docs/CAMERAS.md, "Small photos").
+#: the solve, at once to ``LOW_TEXTURE_SIZE``: SIFT finds few keypoints in small photos
+#: (docs/CAMERAS.md, "Small photos").
 MIN_SIZE = 256
 #: Photos whose median keypoint count is below ``MIN_KEYPOINTS`` and whose longer side is under
 #: ``LOW_TEXTURE_SIZE`` are solved enlarged by the whole factor that brings them to it (256 ->
@@ -80,12 +81,16 @@ def scene_features(photos) -> tuple[list[Features], int]:
     """SIFT features of the photos of one scene (uint8, one size) and the whole factor ``k`` of
     the enlarged photos they were found in (``Features.uv`` in their pixels): ``enlargement``,
     raised to reach ``LOW_TEXTURE_SIZE`` when the photos' median keypoint count is below
-    ``MIN_KEYPOINTS``: the smallest whole k with k x longer side >= it. The factor depends on
-    the set of photos, not on their order."""
+    ``MIN_KEYPOINTS``: the smallest whole k with k x longer side >= it. Photos enlarged anyway
+    (under ``MIN_SIZE``) are enlarged that far at once: nearly all of them are low-texture at
+    ``MIN_SIZE``, and one SIFT pass is spared (docs/CAMERAS.md, "Small photos"). The factor
+    depends on the set of photos, not on their order."""
     size = np.asarray(photos[0]).shape[:2]
     k = enlargement(size)
-    feats = [extract_features(enlarge(np.asarray(p), k)) for p in photos]
     k_low = max(k, -(-LOW_TEXTURE_SIZE // max(size)))
+    if k > 1:
+        k = k_low
+    feats = [extract_features(enlarge(np.asarray(p), k)) for p in photos]
     if k_low > k and np.median([len(f) for f in feats]) < MIN_KEYPOINTS:
         k = k_low
         feats = [extract_features(enlarge(np.asarray(p), k)) for p in photos]
