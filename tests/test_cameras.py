@@ -558,6 +558,29 @@ def test_located_photos_match_the_full_solve(corner):
     assert np.isnan(T2[1]).all()
 
 
+def test_small_photos_are_located_as_they_were_solved(corner, monkeypatch):
+    """Photos under ``MIN_SIZE`` (128x96) are solved enlarged, and a photo located against
+    their points is matched at the same enlargement and contrast threshold."""
+    import cv2
+
+    import iris_runtime.cameras.locate as L
+    from iris_runtime.cameras.features import SMALL_CONTRAST_THRESHOLD
+    photos, truth, _ = corner
+    small = [cv2.resize(p, (128, 96), interpolation=cv2.INTER_AREA) for p in photos]
+    part = solve_cameras([small[k] for k in (0, 1, 2, 4, 5)], DEPTH_RANGE)
+    assert part.status == ("solved",) * 5 and part.point_map.enlargement == 3
+    seen = []
+
+    def spy(photo, **kw):
+        seen.append((photo.shape, kw.get("contrast_threshold")))
+        return extract_features(photo, **kw)
+    monkeypatch.setattr(L, "extract_features", spy)
+    T, ok = locate_photos(part.point_map, part.focal, part.image_size, [small[3]])
+    assert ok.all() and seen == [((288, 384, 3), SMALL_CONTRAST_THRESHOLD)]
+    full = np.concatenate([part.world_from_cam[:3], T, part.world_from_cam[3:]])
+    assert _pair_errors(full, truth).max() < 1.5
+
+
 def test_low_texture_photos_are_solved_enlarged(corner):
     """Blurred, the corner's photos (256 wide) keep under ``MIN_KEYPOINTS`` keypoints: they are
     solved enlarged past ``LOW_TEXTURE_SIZE`` (twice), the cameras and focal still reported for
@@ -581,7 +604,7 @@ def test_low_texture_photos_are_solved_enlarged(corner):
 
 def test_small_photos_are_enlarged_to_the_low_texture_size_in_one_pass(corner, monkeypatch):
     """Photos under ``MIN_SIZE`` go straight to ``LOW_TEXTURE_SIZE`` (64 -> 320: k 5, not 4
-    and then 5): one SIFT pass per photo."""
+    and then 5): one SIFT pass per photo, at ``SMALL_CONTRAST_THRESHOLD``."""
     import cv2
 
     import iris_runtime.cameras.features as F
@@ -596,6 +619,14 @@ def test_small_photos_are_enlarged_to_the_low_texture_size_in_one_pass(corner, m
     feats, k = F.scene_features(small)
     assert k == 5 and 4 * 64 < LOW_TEXTURE_SIZE <= k * 64
     assert calls == [(240, 320, 3)] * 3 and all(f.image_size == (240, 320) for f in feats)
+    # ... found at the lower contrast threshold of small photos, which keeps more of them.
+    assert F.contrast_threshold((48, 64)) == F.SMALL_CONTRAST_THRESHOLD < F.CONTRAST_THRESHOLD
+    assert F.contrast_threshold(SIZE) == F.CONTRAST_THRESHOLD
+    at_default = extract_features(F.enlarge(small[0], 5))
+    np.testing.assert_array_equal(
+        feats[0].uv, extract_features(F.enlarge(small[0], 5),
+                                      contrast_threshold=F.SMALL_CONTRAST_THRESHOLD).uv)
+    assert len(feats[0]) > len(at_default)
 
 
 def test_solve_cameras_refuses_bad_input():

@@ -16,13 +16,18 @@ from ..errors import InputError
 
 __all__ = ["Features", "extract_features", "match_features", "canonical_order", "grey",
            "enlargement", "enlarge", "scene_features", "twin_distance", "distinct_keypoints",
-           "MAX_FEATURES", "CONTRAST_THRESHOLD", "MAX_RATIO", "MAX_DISTANCE", "MIN_SIZE",
-           "LOW_TEXTURE_SIZE", "MIN_KEYPOINTS", "DISTINCT_DISTANCE", "TWIN_MIN_PIXELS", "MIRROR"]
+           "contrast_threshold", "MAX_FEATURES", "CONTRAST_THRESHOLD", "SMALL_CONTRAST_THRESHOLD",
+           "MAX_RATIO", "MAX_DISTANCE", "MIN_SIZE", "LOW_TEXTURE_SIZE", "MIN_KEYPOINTS",
+           "DISTINCT_DISTANCE", "TWIN_MIN_PIXELS", "MIRROR"]
 
 #: Keypoints kept per photo (the strongest by SIFT response); matching costs grow with the square.
 MAX_FEATURES = 2048
 #: OpenCV's SIFT contrast threshold: half its default, so low-texture photos keep enough keypoints.
 CONTRAST_THRESHOLD = 0.02
+#: ... and for photos under ``MIN_SIZE``, enlarged before the solve: the cubic enlargement smooths
+#: every edge, and at 0.02 a 64x64 photo keeps too few keypoints for the wide pairs
+#: (docs/CAMERAS.md, "Small photos"; 0.0075 chosen on the validation scenes at 64x64).
+SMALL_CONTRAST_THRESHOLD = 0.0075
 #: Lowe's ratio test: best / second-best descriptor distance below this (COLMAP's default).
 MAX_RATIO = 0.8
 #: Largest accepted descriptor distance between unit RootSIFT vectors (COLMAP's default).
@@ -77,23 +82,33 @@ def enlargement(image_size: tuple[int, int]) -> int:
     return max(1, -(-MIN_SIZE // max(image_size)))
 
 
+def contrast_threshold(image_size: tuple[int, int]) -> float:
+    """The SIFT contrast threshold for photos of ``image_size`` (H, W) as given: lower for photos
+    under ``MIN_SIZE``, which are found enlarged."""
+    return SMALL_CONTRAST_THRESHOLD if max(image_size) < MIN_SIZE else CONTRAST_THRESHOLD
+
+
 def scene_features(photos) -> tuple[list[Features], int]:
     """SIFT features of the photos of one scene (uint8, one size) and the whole factor ``k`` of
     the enlarged photos they were found in (``Features.uv`` in their pixels): ``enlargement``,
     raised to reach ``LOW_TEXTURE_SIZE`` when the photos' median keypoint count is below
     ``MIN_KEYPOINTS``: the smallest whole k with k x longer side >= it. Photos enlarged anyway
     (under ``MIN_SIZE``) are enlarged that far at once: nearly all of them are low-texture at
-    ``MIN_SIZE``, and one SIFT pass is spared (docs/CAMERAS.md, "Small photos"). The factor
-    depends on the set of photos, not on their order."""
+    ``MIN_SIZE``, and one SIFT pass is spared (docs/CAMERAS.md, "Small photos"); their keypoints
+    are found at ``contrast_threshold``. The factor depends on the set of photos, not on their
+    order."""
     size = np.asarray(photos[0]).shape[:2]
     k = enlargement(size)
     k_low = max(k, -(-LOW_TEXTURE_SIZE // max(size)))
     if k > 1:
         k = k_low
-    feats = [extract_features(enlarge(np.asarray(p), k)) for p in photos]
+    threshold = contrast_threshold(size)
+    feats = [extract_features(enlarge(np.asarray(p), k), contrast_threshold=threshold)
+             for p in photos]
     if k_low > k and np.median([len(f) for f in feats]) < MIN_KEYPOINTS:
         k = k_low
-        feats = [extract_features(enlarge(np.asarray(p), k)) for p in photos]
+        feats = [extract_features(enlarge(np.asarray(p), k), contrast_threshold=threshold)
+                 for p in photos]
     return feats, k
 
 
@@ -105,9 +120,10 @@ def enlarge(photo: np.ndarray, k: int) -> np.ndarray:
                       interpolation=cv2.INTER_CUBIC)
 
 
-def extract_features(photo: np.ndarray, max_features: int | None = None) -> Features:
+def extract_features(photo: np.ndarray, max_features: int | None = None,
+                     contrast_threshold: float | None = None) -> Features:
     """SIFT keypoints of a uint8 photo ([H, W, 3] RGB or [H, W] grey), at most ``max_features``
-    (default ``MAX_FEATURES``).
+    (default ``MAX_FEATURES``), found at ``contrast_threshold`` (default ``CONTRAST_THRESHOLD``).
 
     The keypoints are sorted by a key of their own values (response, position, scale, angle),
     not by the order OpenCV's threads found them in, so the same photo gives the same features.
@@ -116,7 +132,8 @@ def extract_features(photo: np.ndarray, max_features: int | None = None) -> Feat
     n = max_features or MAX_FEATURES
     # OpenCV keeps every keypoint whose response reaches the n-th largest (a set, not an order)
     # before computing descriptors; the order is then fixed below.
-    sift = cv2.SIFT_create(nfeatures=n, contrastThreshold=CONTRAST_THRESHOLD)
+    threshold = CONTRAST_THRESHOLD if contrast_threshold is None else contrast_threshold
+    sift = cv2.SIFT_create(nfeatures=n, contrastThreshold=threshold)
     keypoints, desc = sift.detectAndCompute(image, None)
     H, W = image.shape
     if desc is None or len(keypoints) == 0:

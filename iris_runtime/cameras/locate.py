@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 
 from ..errors import InputError
-from .features import (Features, canonical_order, distinct_keypoints, enlarge,
+from .features import (Features, canonical_order, contrast_threshold, distinct_keypoints, enlarge,
                        extract_features, match_features, scene_features)
 from .tracks import build_tracks
 from .triangulation import triangulate
@@ -166,7 +166,8 @@ def locate_photos(point_map: PointMap, focal: float, image_size: tuple[int, int]
     out = np.full((Q, 4, 4), np.nan)
     ok = np.zeros(Q, bool)
     for q, photo in enumerate(photos):
-        feats = extract_features(enlarge(np.asarray(photo), k))
+        feats = extract_features(enlarge(np.asarray(photo), k),
+                                 contrast_threshold=contrast_threshold(image_size))
         kp, pt = correspondences(point_map, feats)
         pose = pose_distinct_first(point_map.points[pt], feats.uv[kp],
                                    distinct_keypoints(feats)[kp], focal * k, size,
