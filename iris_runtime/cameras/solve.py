@@ -149,9 +149,10 @@ def solve_cameras(photos, depth_range: tuple[float, float], *, focal: float | No
 
     depth_range: the renderer's (near, far): the cameras' unit puts the scene's median point
                  depth ``DEPTH_TARGET`` of the way into it
-    focal:       a known focal in pixels of the photos to start from (default: each of ``FOCAL_PRIORS`` x
-                 the longer side); the bundle adjustment refines it either way
-    options:     the mapper's thresholds (pixels at ``two_view.REFERENCE_SIZE``) (default ``MapperOptions()``)
+    focal:       a known focal in pixels of the photos to start from (default: each of
+                 ``FOCAL_PRIORS`` x the longer side); the bundle adjustment refines it either way
+    options:     the mapper's thresholds (pixels at ``two_view.REFERENCE_SIZE``) (default
+                 ``MapperOptions()``)
 
     Photos under ``features.MIN_SIZE`` pixels, and low-texture photos under
     ``features.LOW_TEXTURE_SIZE``, are solved enlarged (``features.scene_features``); the cameras
@@ -160,8 +161,8 @@ def solve_cameras(photos, depth_range: tuple[float, float], *, focal: float | No
     (``two_view``); tracks (``tracks``); the incremental mapper with bundle adjustment
     (``mapper``, ``triangulation``, ``bundle``), run twice, on every match and trusting the
     distinct keypoints first, keeping the reconstruction that registers more views and explains
-    more distinct matches, mirrored twins excluded too (``_distinct_support``); views it could not register posed against its
-    points (``locate``). Deterministic and order-free.
+    more distinct matches, mirrored twins excluded too (``_distinct_support``); views it could
+    not register posed against its points (``locate``). Deterministic and order-free.
     """
     photos = check_photos(photos)
     near, far = (float(x) for x in np.asarray(depth_range, np.float64).reshape(-1)[:2]) \
