@@ -15,6 +15,11 @@ and the focal carried to the training size. Two products, both cached beside the
 - ``PseudoPoses`` (``load_or_estimate``): the same cameras as relative poses of every pair
   (unit translation, "trusted" where both views are posed), for the teacher losses.
 
+Solving takes CPU-hours for thousands of scenes, so the solved cameras are kept twice: one small
+file per scene beside the scene cache (local), and, packed by ``--pack``, one file per
+``STORE_BLOCK`` consecutive seeds under ``data/teacher/`` in the repository, where they survive
+the machine (the photos are a function of the seed and are rendered again where needed).
+
 Nothing here reads a camera label; ``python -m iris_train.pseudo_poses --heldout --score``
 compares the teacher with the true poses of the held-out scenes.
 """
@@ -39,6 +44,10 @@ TEACHER_VERSION = 13
 SOLVE_VERSION = 11
 #: The teacher's depth range when none is given (the models' [near, far]).
 DEFAULT_DEPTH_RANGE = (0.1, 1.0)
+#: The packed store of solved cameras (``pack``): kept in the repository, one file per block of
+#: consecutive seeds, in a folder naming what the cameras depend on (``store_folder``).
+STORE_DIR = Path(__file__).resolve().parents[1] / "data" / "teacher"
+STORE_BLOCK = 500
 
 
 @dataclass(frozen=True)
@@ -178,18 +187,116 @@ def load_or_estimate(scenes, index: int) -> PseudoPoses:
     return pp
 
 
-def load_or_solve(scenes, index: int, depth_range: tuple[float, float]) -> SolvedCameras:
-    """``SolvedCameras`` of ``scenes[index]`` (a ``SyntheticScenes``), from the cache or solved."""
+def _solved_key(depth_range, size) -> dict:
+    return {"version": SOLVE_VERSION, "depth_range": np.asarray(depth_range, np.float64),
+            "train_size": np.asarray(size)}
+
+
+def load_or_solve(scenes, index: int, depth_range: tuple[float, float],
+                  store_dir: Path | None = STORE_DIR) -> SolvedCameras:
+    """``SolvedCameras`` of ``scenes[index]`` (a ``SyntheticScenes``): from the packed store
+    under ``store_dir`` (None: not looked at), else from the scene's own cache file, else
+    solved (and written to the scene's cache file)."""
     size = _train_size(scenes, index)
-    path = solved_cache_path(scenes.cache_dir, scenes.seeds[index], scenes.n_views, size)
-    key = {"version": SOLVE_VERSION, "depth_range": np.asarray(depth_range, np.float64),
-           "train_size": np.asarray(size)}
+    seed = int(scenes.seeds[index])
+    folder = store_folder(scenes, size, store_dir) if store_dir is not None else None
+    if folder is not None:
+        block = _read_block(folder / _block_name(seed), depth_range, size)
+        if block is not None and seed in block:
+            return block[seed]
+    path = solved_cache_path(scenes.cache_dir, seed, scenes.n_views, size)
+    key = _solved_key(depth_range, size)
     z = _read_cache(path, **key)
     if z is not None:
         return SolvedCameras(z["world_from_cam"], float(z["focal"]), z["solved"])
     sc = solve_scene(_photos(scenes, index), depth_range, size)
     _write_cache(path, **key, world_from_cam=sc.world_from_cam, focal=sc.focal, solved=sc.solved)
     return sc
+
+
+# -- the packed store: the solved cameras of many scenes, kept in the repository ---------------
+def store_folder(scenes, train_size: tuple[int, int], store_dir: Path = STORE_DIR) -> Path | None:
+    """The store's folder for the scenes of ``scenes`` (a ``SyntheticScenes``) trained at
+    ``train_size``: named by their kind and its version, the render size the solve ran on, the
+    training size, the views per scene and ``SOLVE_VERSION``; None for datasets the store does
+    not keep (mixes of kinds, datasets that are not synthetic scenes)."""
+    render = getattr(scenes, "render_size", None)
+    kind_of = getattr(scenes, "kind_of", None)
+    kind = getattr(scenes, "kind", None)
+    if render is None or kind_of is None or isinstance(kind, dict):
+        return None
+    from .data import kind_version
+    name = "classic-1" if kind is None else f"{kind}-{kind_version(kind)}"
+    return Path(store_dir) / (f"{name}_{render[0]}x{render[1]}_to_{train_size[0]}x{train_size[1]}"
+                              f"_v{scenes.n_views}_solve{SOLVE_VERSION}")
+
+
+def _block_name(seed: int, block: int | None = None) -> str:
+    block = STORE_BLOCK if block is None else block
+    first = seed - seed % block
+    return f"seeds_{first:07d}-{first + block - 1:07d}.npz"
+
+
+_BLOCKS: dict = {}
+
+
+def _read_block(path: Path, depth_range, size) -> dict[int, SolvedCameras] | None:
+    """{seed: SolvedCameras} of one store file (read once per process and file version); None
+    when the file is missing or its key (solve version, depth range, training size) differs."""
+    try:
+        stamp = path.stat().st_mtime_ns
+    except OSError:
+        return None
+    tag = (str(path), stamp, tuple(map(float, depth_range)), tuple(size))
+    if tag not in _BLOCKS:
+        z = _read_cache(path, **_solved_key(depth_range, size))
+        _BLOCKS[tag] = None if z is None else {
+            int(s): SolvedCameras(z["world_from_cam"][k], float(z["focal"][k]), z["solved"][k])
+            for k, s in enumerate(z["seeds"])}
+    return _BLOCKS[tag]
+
+
+def pack(scenes, depth_range: tuple[float, float], store_dir: Path = STORE_DIR,
+         block: int | None = None) -> list[Path]:
+    """Gather the solved cameras of ``scenes`` (a ``SyntheticScenes`` over consecutive seeds)
+    into the store: one file per whole block of ``block`` seeds (first seed a multiple of it)
+    whose every scene has a current cache file or is in the store already. Files are written
+    atomically and never partial; returns the paths written."""
+    block = STORE_BLOCK if block is None else block
+    size = tuple(int(x) for x in scenes.size)
+    folder = store_folder(scenes, size, store_dir)
+    if folder is None:
+        raise ValueError("pack: the store keeps single-kind synthetic scenes only")
+    index_of = {int(s): i for i, s in enumerate(scenes.seeds)}
+    key = _solved_key(depth_range, size)
+    written = []
+    for first in sorted({s - s % block for s in index_of}):
+        seeds = range(first, first + block)
+        if not all(s in index_of for s in seeds):
+            continue
+        path = folder / _block_name(first, block)
+        have = _read_block(path, depth_range, size) or {}
+        if len(have) == block:
+            continue
+        found = []
+        for s in seeds:
+            z = have.get(s)
+            if z is None:
+                c = _read_cache(solved_cache_path(scenes.cache_dir, s, scenes.n_views, size), **key)
+                z = None if c is None else SolvedCameras(c["world_from_cam"], float(c["focal"]),
+                                                         c["solved"])
+            if z is None:
+                break
+            found.append(z)
+        if len(found) < block:
+            continue
+        folder.mkdir(parents=True, exist_ok=True)
+        _write_cache(path, **key, seeds=np.asarray(seeds, np.int64),
+                     world_from_cam=np.stack([z.world_from_cam for z in found]),
+                     focal=np.asarray([z.focal for z in found]),
+                     solved=np.stack([z.solved for z in found]))
+        written.append(path)
+    return written
 
 
 def _work(args) -> int:
@@ -245,6 +352,13 @@ def pair_errors(pp: PseudoPoses, world_from_cam: np.ndarray) -> np.ndarray:
     return np.array(out)
 
 
+def _report_pack(paths: list[Path]) -> None:
+    for path in paths:
+        print(f"packed {path}")
+    if not paths:
+        print("packed nothing: no whole block of seeds newly solved")
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m iris_train.pseudo_poses",
                                      description=__doc__.split("\n\n")[0])
@@ -260,6 +374,9 @@ def main(argv=None) -> int:
     parser.add_argument("--solve", action="store_true",
                         help="with --train: cache the solved scene cameras (what iris-train "
                              "--render-cameras epipolar renders with) instead of the pair teacher")
+    parser.add_argument("--pack", action="store_true",
+                        help="with --solve: gather the solved cameras of every whole block of "
+                             f"{STORE_BLOCK} seeds into data/teacher/ (kept in the repository)")
     parser.add_argument("--score", action="store_true",
                         help="compare with the true poses (held-out scenes): RPA of the teacher "
                              "over all pairs (pairs with an unposed view count as failures)")
@@ -269,14 +386,23 @@ def main(argv=None) -> int:
     cfg = preset("tiny")
     size = (cfg.image_height, cfg.image_width)
     depth_range = (cfg.near, cfg.far) if args.solve else None
+    if args.pack and not args.solve:
+        parser.error("--pack: needs --solve (the store keeps solved cameras)")
     if args.train:
         side = args.classic_render_size
+        render_size = (side, side) if side else None
         pregenerate(range(args.train), args.workers, depth_range, size=size,
-                    render_size=(side, side) if side else None)
+                    render_size=render_size)
+        if args.pack:
+            _report_pack(pack(SyntheticScenes(range(args.train), size=size,
+                                              render_size=render_size), depth_range))
     if args.capture:
         from .train import CAPTURE_RENDER_SIZE
         pregenerate(range(args.capture), args.workers, depth_range, kind="capture", size=size,
                     render_size=CAPTURE_RENDER_SIZE)
+        if args.pack:
+            _report_pack(pack(SyntheticScenes(range(args.capture), size=size, kind="capture",
+                                              render_size=CAPTURE_RENDER_SIZE), depth_range))
     if args.heldout:
         pregenerate(HELDOUT_SEEDS, args.workers, size=size)
         if args.score:

@@ -383,3 +383,51 @@ def test_teacher_solves_on_the_largest_photos_and_caches_per_training_size(corne
     scenes.size = (96, 128)
     with pytest.raises(pytest.fail.Exception, match="solved again"):
         PP.load_or_solve(scenes, 0, DEPTH_RANGE)
+
+
+@pytest.mark.torch
+def test_teacher_store_packs_whole_blocks_and_serves_them_without_solving(corner, tmp_path,
+                                                                          monkeypatch):
+    """``pseudo_poses.pack`` gathers the per-scene solved cameras of whole blocks of seeds into
+    one store file that ``load_or_solve`` reads back bit for bit with the per-scene files gone;
+    a store of another solve version is not used."""
+    pytest.importorskip("torch")
+    from iris_train import pseudo_poses as PP
+    photos, _ = corner
+
+    class Scenes:
+        """Three single-kind synthetic-like scenes (seeds 4, 5, 6) kept at the photos' size."""
+        seeds, n_views, size, render_size, kind = [4, 5, 6], 6, SIZE, SIZE, None
+        cache_dir = tmp_path / "cache"
+
+        def kind_of(self, seed):
+            return None
+
+        def cached(self, seed):
+            return type("S", (), {"images": photos[::-1] if seed == 5 else photos})()
+
+    scenes, store = Scenes(), tmp_path / "store"
+    scenes.cache_dir.mkdir()
+    solved = {s: PP.load_or_solve(scenes, i, DEPTH_RANGE, store_dir=store)
+              for i, s in enumerate(scenes.seeds)}
+    assert not np.allclose(solved[4].world_from_cam, solved[5].world_from_cam)
+    written = PP.pack(scenes, DEPTH_RANGE, store, block=2)
+    # Blocks are [4, 5] and [6, 7]: only the first is whole.
+    assert [p.name for p in written] == ["seeds_0000004-0000005.npz"]
+    assert PP.pack(scenes, DEPTH_RANGE, store, block=2) == []            # already packed
+    for f in scenes.cache_dir.glob("solved_*"):
+        f.unlink()
+    monkeypatch.setattr(PP, "STORE_BLOCK", 2)
+    monkeypatch.setattr(PP, "solve_cameras", lambda *a, **k: pytest.fail("solved again"))
+    for i, s in enumerate(scenes.seeds[:2]):
+        got = PP.load_or_solve(scenes, i, DEPTH_RANGE, store_dir=store)
+        np.testing.assert_array_equal(got.world_from_cam, solved[s].world_from_cam)
+        np.testing.assert_array_equal(got.solved, solved[s].solved)
+        assert got.focal == solved[s].focal
+    with pytest.raises(pytest.fail.Exception, match="solved again"):
+        PP.load_or_solve(scenes, 2, DEPTH_RANGE, store_dir=store)        # not in a whole block
+    with pytest.raises(pytest.fail.Exception, match="solved again"):     # another depth range
+        PP.load_or_solve(scenes, 0, (0.2, 2.0), store_dir=store)
+    monkeypatch.setattr(PP, "SOLVE_VERSION", PP.SOLVE_VERSION + 1)       # another solve
+    with pytest.raises(pytest.fail.Exception, match="solved again"):
+        PP.load_or_solve(scenes, 0, DEPTH_RANGE, store_dir=store)
