@@ -377,6 +377,8 @@ def main(argv=None) -> int:
     parser.add_argument("--pack", action="store_true",
                         help="with --solve: gather the solved cameras of every whole block of "
                              f"{STORE_BLOCK} seeds into data/teacher/ (kept in the repository)")
+    parser.add_argument("--pack-only", action="store_true",
+                        help="with --pack: solve nothing, pack the blocks the local caches hold")
     parser.add_argument("--score", action="store_true",
                         help="compare with the true poses (held-out scenes): RPA of the teacher "
                              "over all pairs (pairs with an unposed view count as failures)")
@@ -388,18 +390,22 @@ def main(argv=None) -> int:
     depth_range = (cfg.near, cfg.far) if args.solve else None
     if args.pack and not args.solve:
         parser.error("--pack: needs --solve (the store keeps solved cameras)")
+    if args.pack_only and not args.pack:
+        parser.error("--pack-only: needs --pack")
     if args.train:
         side = args.classic_render_size
         render_size = (side, side) if side else None
-        pregenerate(range(args.train), args.workers, depth_range, size=size,
-                    render_size=render_size)
+        if not args.pack_only:
+            pregenerate(range(args.train), args.workers, depth_range, size=size,
+                        render_size=render_size)
         if args.pack:
             _report_pack(pack(SyntheticScenes(range(args.train), size=size,
                                               render_size=render_size), depth_range))
     if args.capture:
         from .train import CAPTURE_RENDER_SIZE
-        pregenerate(range(args.capture), args.workers, depth_range, kind="capture", size=size,
-                    render_size=CAPTURE_RENDER_SIZE)
+        if not args.pack_only:
+            pregenerate(range(args.capture), args.workers, depth_range, kind="capture",
+                        size=size, render_size=CAPTURE_RENDER_SIZE)
         if args.pack:
             _report_pack(pack(SyntheticScenes(range(args.capture), size=size, kind="capture",
                                               render_size=CAPTURE_RENDER_SIZE), depth_range))

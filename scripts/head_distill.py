@@ -96,22 +96,100 @@ def augment(images: torch.Tensor, world_from_cam: torch.Tensor, focal: torch.Ten
     return images, world_from_cam, focal / zoom
 
 
-def draw(sets, batch: int, rng: np.random.Generator, max_roll_deg: float = 0.0):
-    """``images [B, V, 3, 64, 64]``, solved ``world_from_cam [B, V, 4, 4]``, ``focal [B, 2]``
-    (``augment``-ed when ``max_roll_deg`` > 0)."""
+def rotation_matrices(w: torch.Tensor) -> torch.Tensor:
+    """Rodrigues: axis-angle vectors ``w [V, 3]`` (radians) -> rotations ``[V, 3, 3]``."""
+    theta = w.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    k = w / theta
+    Kx = torch.zeros(w.shape[0], 3, 3)
+    Kx[:, 0, 1], Kx[:, 0, 2], Kx[:, 1, 2] = -k[:, 2], k[:, 1], -k[:, 0]
+    Kx = Kx - Kx.transpose(1, 2)
+    s, c = torch.sin(theta)[..., None], torch.cos(theta)[..., None]
+    return torch.eye(3) + s * Kx + (1 - c) * Kx @ Kx
+
+
+def _source_coords(Qt: torch.Tensor, focal: torch.Tensor, zoom: float, u: torch.Tensor):
+    """Where the rotated cameras' normalised image points ``u [N, 2]`` (``[-1, 1]``, the
+    ``grid_sample`` convention) were in the original photos: rays ``(u / (2 f zoom), 1)`` turned
+    by ``Qt [V, 3, 3]`` (cam_from_cam') and projected -> ``[V, N, 2]`` (NaN behind)."""
+    d = torch.cat([u / (2 * focal * zoom), torch.ones(len(u), 1)], dim=1)     # [N, 3]
+    src = d[None] @ Qt.transpose(1, 2)                                          # [V, N, 3]
+    z = src[..., 2:]
+    return torch.where(z > 1e-6, 2 * focal * src[..., :2] / z.clamp_min(1e-6), torch.nan)
+
+
+def augment_rotation(photos: np.ndarray, world_from_cam: torch.Tensor, focal: torch.Tensor,
+                     size: tuple[int, int], rng: np.random.Generator, max_deg: float):
+    """One scene's ``photos`` uint8 ``[V, h, w, 3]`` (the render the teacher solved, a whole
+    multiple of ``size``), cameras ``[V, 4, 4]`` (view 0 = I) and ``focal [2]`` (fx/W, fy/H) as
+    the photos the same cameras would take turned about their centres: each view by its own
+    rotation (random axis, angle uniform in [0, ``max_deg``]), the image warped by the rotation's
+    homography, and all views zoomed by the least common factor that keeps every warped view
+    inside its photo (a border would tell the rotation by itself). Mirrored left-right with
+    probability 1/2 (the world too: ``T -> S T S``). Exact for a pinhole with the principal
+    point at the centre; warped at the render's size, then area-averaged to ``size`` and
+    quantised as the training photos are. -> images ``[V, 3, H, W]``, cameras re-based on view
+    0, focal (times the zoom), zoom.
+
+    Unlike the scene's own views, a pure rotation moves no camera centre, so the head sees image
+    motion with the rotation changed and the translation direction not: the two are pulled apart
+    (docs/TRAINING.md), and no rotation can be memorised per scene."""
+    import torch.nn.functional as F
+    V, h, w = photos.shape[:3]
+    x = torch.as_tensor(photos).permute(0, 3, 1, 2).float() / 255.0
+    if rng.random() < 0.5:
+        S = torch.diag(torch.tensor([-1.0, 1.0, 1.0, 1.0]))
+        x, world_from_cam = x.flip(-1), S @ world_from_cam @ S
+    axis = torch.as_tensor(rng.normal(size=(V, 3)), dtype=torch.float32)
+    angle = torch.as_tensor(rng.uniform(0, np.radians(max_deg), (V, 1)), dtype=torch.float32)
+    Q = rotation_matrices(axis / axis.norm(dim=1, keepdim=True) * angle)      # cam'_from_cam
+    Qt = Q.transpose(1, 2)
+    corners = torch.tensor([[-1.0, -1.0], [1.0, -1.0], [-1.0, 1.0], [1.0, 1.0]])
+    zoom = 1.0
+    while zoom < 3.0:
+        c = _source_coords(Qt, focal, zoom, corners)
+        if torch.isfinite(c).all() and c.abs().max() <= 1.0:
+            break
+        zoom *= 1.02
+    ys = (torch.arange(h) + 0.5) * (2.0 / h) - 1.0
+    xs = (torch.arange(w) + 0.5) * (2.0 / w) - 1.0
+    u = torch.stack([xs.repeat(h), ys.repeat_interleave(w)], dim=-1)           # [hw, 2]
+    grid = _source_coords(Qt, focal, zoom, u).nan_to_num(2.0).reshape(V, h, w, 2)
+    x = F.grid_sample(x, grid, mode="bilinear", padding_mode="border", align_corners=False)
+    x = F.avg_pool2d(x, h // size[0])
+    x = torch.round(x * 255.0) / 255.0
+    rot = torch.eye(4).repeat(V, 1, 1)
+    rot[:, :3, :3] = Qt                                                         # cam_from_cam'
+    world_from_cam = world_from_cam @ rot
+    world_from_cam = torch.linalg.inv(world_from_cam[0]) @ world_from_cam
+    return x, world_from_cam, focal * zoom, zoom
+
+
+def draw(sets, batch: int, rng: np.random.Generator, max_roll_deg: float = 0.0,
+         max_rotation_deg: float = 0.0, rotation_fraction: float = 1.0):
+    """``images [B, V, 3, 64, 64]``, solved ``world_from_cam [B, V, 4, 4]``, ``focal [B, 2]``,
+    ``zoomed [B]`` bool (``augment``-ed when ``max_roll_deg`` > 0; with ``max_rotation_deg`` > 0,
+    each scene ``augment_rotation``-ed with probability ``rotation_fraction``: the focal of a
+    zoomed scene is not the scene's any more)."""
     from iris_train.train import _draw_solved
     n_views = int(rng.integers(4, 9))
-    images, cams, focals = [], [], []
+    images, cams, focals, zoomed = [], [], [], []
     for _ in range(batch):
         scenes, solutions = sets[int(rng.integers(len(sets)))]
         index, order, (T, f) = _draw_solved(scenes, solutions, rng, n_views)
-        x = torch.as_tensor(scenes[index].images[order]).permute(0, 3, 1, 2).float() / 255.0
+        zoom = 1.0
+        if max_rotation_deg > 0 and rng.random() < rotation_fraction:
+            photos = scenes.cached(int(scenes.seeds[index])).images[order]
+            x, T, f, zoom = augment_rotation(photos, T, f, scenes.size, rng, max_rotation_deg)
+        else:
+            x = torch.as_tensor(scenes[index].images[order]).permute(0, 3, 1, 2).float() / 255.0
         if max_roll_deg > 0:
             x, T, f = augment(x, T, f, rng, max_roll_deg)
+            zoom = 2.0
         images.append(x)
         cams.append(T)
         focals.append(f)
-    return torch.stack(images), torch.stack(cams), torch.stack(focals)
+        zoomed.append(zoom > 1.0)
+    return torch.stack(images), torch.stack(cams), torch.stack(focals), torch.tensor(zoomed)
 
 
 def build(args):
@@ -142,6 +220,12 @@ def main(argv=None) -> int:
     ap.add_argument("--eval-every", type=int, default=200)
     ap.add_argument("--augment-roll", type=float, default=0.0,
                     help="augment: mirror and roll each view by up to this many degrees (0: off)")
+    ap.add_argument("--augment-rotation", type=float, default=0.0,
+                    help="augment: turn each view about its centre by up to this many degrees "
+                         "(homography of the render, zoomed to stay inside; 0: off)")
+    ap.add_argument("--rotation-fraction", type=float, default=1.0,
+                    help="with --augment-rotation: the fraction of scenes turned (the others "
+                         "train the focal)")
     ap.add_argument("--heldout-scenes", type=int, default=16, help="held-out scenes scored")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--seed", type=int, default=0)
@@ -185,11 +269,14 @@ def main(argv=None) -> int:
     model.train()
     evaluate()
     while step < args.steps and time.time() - t0 < 60 * args.max_minutes:
-        images, cams, focal = draw(sets, args.batch, rng, args.augment_roll)
+        images, cams, focal, zoomed = draw(sets, args.batch, rng, args.augment_roll,
+                                           args.augment_rotation, args.rotation_fraction)
         _, world_from_cam, pred_focal = model.encode_batch(images)
         terms: dict = {}
         for b in range(images.shape[0]):
             for k, v in solve_losses(world_from_cam[b], pred_focal[b], cams[b], focal[b]).items():
+                if k == "solve_focal" and zoomed[b] and args.augment_rotation > 0:
+                    continue       # the zoom moves the focal off the scenes' own distribution
                 terms.setdefault(k, []).append(v)
         means = {k: torch.stack(v).mean() for k, v in terms.items()}
         loss = sum(WEIGHTS[k] * v for k, v in means.items())

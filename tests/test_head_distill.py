@@ -22,16 +22,19 @@ def _script():
 
 
 @pytest.mark.skipif(not SHIPPED.exists(), reason="needs the shipped checkpoint")
-def test_head_distill_trains_the_encoder_and_head_only(tmp_path, monkeypatch):
+@pytest.mark.parametrize("augment", [[], ["--augment-rotation", "8"]])
+def test_head_distill_trains_the_encoder_and_head_only(tmp_path, monkeypatch, augment):
     from iris_train import load_model
     monkeypatch.setenv("IRIS_CACHE_DIR", str(tmp_path / "cache"))
     out = tmp_path / "run"
     assert _script().main(["--out", str(out), "--classic", "2", "--steps", "2", "--batch", "1",
                            "--eval-every", "1", "--heldout-scenes", "1",
-                           "--camera-head", "correlation"]) == 0
+                           "--camera-head", "correlation", *augment]) == 0
     log = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
     assert [e["step"] for e in log] == [0, 1, 2]
-    assert set(log[-1]["train"]) == {"solve_rot", "solve_trans", "solve_focal"}
+    # Every scene turned is zoomed: its focal is not the scene's and does not train.
+    assert set(log[-1]["train"]) == ({"solve_rot", "solve_trans"} if augment
+                                     else {"solve_rot", "solve_trans", "solve_focal"})
     assert 0.0 <= log[-1]["heldout"]["rpa@15"] <= 1.0
     trained, shipped = load_model(out / "last.pt"), load_model(SHIPPED)
     assert trained.cfg.camera_head == "correlation"
@@ -102,3 +105,36 @@ def test_augment_moves_the_images_as_the_cameras_say(seed):
     assert torch.allclose(ratio, aug_focal[0] / 1.0 * torch.ones(4), atol=0.02), ratio
     # and the augmentation did something: rolled or mirrored views differ from the originals
     assert not torch.allclose(_centroids(aug_images), _centroids(images), atol=0.5)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_augment_rotation_moves_the_images_as_the_cameras_say(seed):
+    """``augment_rotation`` turns each camera about its centre: a point's blobs in the warped and
+    area-averaged views, triangulated with the augmented cameras and focal, reproject onto
+    themselves to a quarter of a pixel at 64x64 (a transposed rotation is pixels off); the
+    cameras' centres keep their distances (a pure rotation moves no centre); every view turned."""
+    from iris_runtime.orbit import look_at
+    rng = np.random.default_rng(seed)
+    eyes = [np.array([0.6 * np.sin(a), -0.6 * np.cos(a), 0.15]) for a in rng.uniform(-0.4, 0.4, 4)]
+    T = np.stack([look_at(e, np.zeros(3), np.array([0.0, 0.0, -1.0])) for e in eyes])
+    T = torch.as_tensor(np.linalg.inv(T[0]) @ T, dtype=torch.float32)
+    X = torch.as_tensor(np.array([0.03, 0.02, 0.6]) + rng.normal(0, 0.02, 3), dtype=torch.float32)
+    blobs, _ = _blob_images(X, T, 1.0, size=256)
+    photos = (blobs.permute(0, 2, 3, 1) * 255).round().to(torch.uint8).numpy()
+    images, aug_T, aug_focal, zoom = _script().augment_rotation(
+        photos, T, torch.full((2,), 1.0), (64, 64), rng, 10.0)
+    assert images.shape == (4, 3, 64, 64) and zoom > 1.0
+    assert torch.allclose(aug_T[0], torch.eye(4), atol=1e-5)
+    assert torch.allclose(torch.linalg.det(aug_T[:, :3, :3]), torch.ones(4), atol=1e-5)
+    assert torch.allclose(aug_focal, torch.full((2,), zoom))
+    uv = _centroids(images).double().numpy()
+    Tn, f_px = aug_T.double().numpy(), float(aug_focal[0]) * 64
+    Xn = _triangulate(uv, Tn, f_px, 64)
+    cam = np.linalg.inv(Tn) @ np.append(Xn, 1.0)
+    reprojected = f_px * cam[:, :2] / cam[:, 2:3] + 32
+    assert np.abs(reprojected - uv).max() < 0.25, (reprojected, uv)
+    centres, aug_centres = T[:, :3, 3], aug_T[:, :3, 3]
+    assert torch.allclose(torch.cdist(centres, centres), torch.cdist(aug_centres, aug_centres),
+                          atol=1e-5)
+    turned = torch.linalg.inv(T) @ aug_T            # relative to the original, per view
+    assert not torch.allclose(turned[1:, :3, :3], turned[:1, :3, :3].expand(3, 3, 3), atol=1e-3)
