@@ -50,6 +50,9 @@ class ModelConfig:
     # the correlation volume of view i's fine (2x the token grid) feature map with view 0's
     # (docs/TRAINING.md, "Correlation camera head"); needs patch_size a multiple of 8.
     camera_head: str = "tokens"
+    # The correlation head's grid in multiples of the token grid, 2 or 4 (64x64 photos, 8x8
+    # tokens: 16x16 or 32x32 positions correlated; the volume grows with its fourth power).
+    correlation_scale: int = 2
     # Ray sampling (DESIGN.md: camera depths in [0.1, 1.0], 64 samples).
     near: float = 0.1
     far: float = 1.0
@@ -68,6 +71,8 @@ class ModelConfig:
         if self.camera_head not in CAMERA_HEADS:
             raise InputError(f"camera_head: expected one of {list(CAMERA_HEADS)}, got "
                              f"{self.camera_head!r}")
+        if self.correlation_scale not in (2, 4):
+            raise InputError(f"correlation_scale: expected 2 or 4, got {self.correlation_scale!r}")
         if self.camera_head == "correlation" and self.patch_size % 8:
             raise InputError(f"camera_head 'correlation' needs patch_size a multiple of 8 (its "
                              f"stem has stride 4 and correlates at twice the token grid), got "
@@ -80,9 +85,10 @@ class ModelConfig:
 
     @property
     def correlation_grid(self) -> tuple[int, int]:
-        """(h, w) of the correlation camera head's fine feature maps: twice the token grid."""
+        """(h, w) of the correlation camera head's fine feature maps: ``correlation_scale``
+        times the token grid."""
         h, w = self.feature_grid
-        return 2 * h, 2 * w
+        return self.correlation_scale * h, self.correlation_scale * w
 
     @property
     def field_channels(self) -> int:

@@ -14,8 +14,9 @@ The stages, for images ``[B, V, 3, H, W]`` (tiny preset: 64x64, 8x8 tokens):
 
 1. **Stem** (``CorrelationStem``): per view, three 3x3 convs (stride 2, 2, 1; GroupNorm + ReLU
    between) -> descriptors ``[B, V, C, 2h, 2w]`` (C = ``CORRELATION_CHANNELS`` = 64; 16x16 for
-   the tiny preset: twice the token grid, ``ModelConfig.correlation_grid``; patches larger than
-   8 average-pool the stride-4 map down to it). The stem sees one image and nothing else: a
+   the tiny preset: twice the token grid, ``ModelConfig.correlation_grid``; with
+   ``correlation_scale`` 4 the second conv keeps its input's size, 4x the token grid; patches
+   larger than 8 average-pool the map down to the grid). The stem sees one image only: a
    siamese descriptor, as in the paper. The encoder's 8x8 features are deliberately *not*
    concatenated: they carry the encoder's fixed sin-cos positional encoding, so their correlation
    favours "same position matches same position", i.e. the identity pose, which is exactly where
@@ -75,14 +76,16 @@ def _conv_block(c_in: int, c_out: int, kernel: int, stride: int) -> list[nn.Modu
 
 
 class CorrelationStem(nn.Sequential):
-    """Per-view descriptors at twice the token grid: ``images [N, 3, H, W]`` in [0, 1] ->
-    ``[N, C, 2h, 2w]`` (``ModelConfig.correlation_grid``), not normalised."""
+    """Per-view descriptors on the correlation grid: ``images [N, 3, H, W]`` in [0, 1] ->
+    ``[N, C, *ModelConfig.correlation_grid]``, not normalised."""
 
     def __init__(self, cfg: ModelConfig, channels: int = CORRELATION_CHANNELS):
-        layers = [*_conv_block(3, channels // 2, 3, 2), *_conv_block(channels // 2, channels, 3, 2),
+        second = 2 if cfg.correlation_scale == 2 else 1
+        layers = [*_conv_block(3, channels // 2, 3, 2),
+                  *_conv_block(channels // 2, channels, 3, second),
                   nn.Conv2d(channels, channels, 3, padding=1)]
-        # Stride 4 so far; a patch of 8 has twice the token grid already, a patch of 16 (the
-        # paper and 128 presets) averages 2x2 cells down to it.
+        # Stride 4 (2 at correlation_scale 4) so far: a patch of 8 has the correlation grid
+        # already, a patch of 16 (the paper and 128 presets) averages 2x2 cells down to it.
         pool = cfg.patch_size // 8
         if pool > 1:
             layers.append(nn.AvgPool2d(pool))

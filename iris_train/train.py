@@ -440,34 +440,40 @@ def load_init_weights(model: IrisModel, payload: dict, what: str = "init") -> li
     """Load checkpoint ``payload`` (``read_checkpoint``) into ``model`` for a fine-tune; return
     the state-dict keys left at their fresh initialisation (sorted; empty unless the head changes).
 
-    The checkpoint's model config must be ``model.cfg`` up to ``camera_head``. Same head: every
-    weight loads (strict). Another head (a "tokens" checkpoint into a "correlation" model, the
-    case this is for): every weight the two models share by name loads, the new head's own
-    parameters (keys under ``camera_head.`` the checkpoint lacks) stay fresh and the old head's
-    (keys under ``camera_head.`` the model lacks) are dropped. Any other missing or unexpected key,
-    or a shared key of another shape, is a ``ValueError`` naming them (``what``: its prefix)."""
+    The checkpoint's model config must be ``model.cfg`` up to the camera head's settings
+    (``camera_head``, ``correlation_scale``). Same head: every weight loads (strict). Another
+    head (a "tokens" checkpoint into a "correlation" model, the case this is for): every weight
+    the two models share by name and shape loads, the new head's own parameters (keys under
+    ``camera_head.`` the checkpoint lacks, or holds in another shape when the correlation grid
+    differs) stay fresh and the old head's (keys under ``camera_head.`` the model lacks) are
+    dropped. Any other missing or unexpected key, or key of another shape, is a ``ValueError``
+    naming them (``what``: its prefix)."""
     try:
         source = ModelConfig.from_dict(payload["config"])
     except (TypeError, ValueError) as exc:
         raise ValueError(f"{what}: unreadable model config ({exc})") from None
-    if dataclasses.replace(source, camera_head=model.cfg.camera_head) != model.cfg:
+    head = {"camera_head": model.cfg.camera_head, "correlation_scale": model.cfg.correlation_scale}
+    if dataclasses.replace(source, **head) != model.cfg:
         raise ValueError(f"{what} holds another model config than this run's "
-                         f"(only camera_head may differ)")
+                         f"(only the camera head's settings may differ)")
     state = payload["model"]
-    if source.camera_head == model.cfg.camera_head:
+    if dataclasses.replace(source, **head) == source:
         model.load_state_dict(state)
         return []
     own = model.state_dict()
     missing, unexpected = set(own) - set(state), set(state) - set(own)
-    outside = sorted(k for k in missing | unexpected if not k.startswith(CAMERA_HEAD_PREFIX))
-    reshaped = sorted(k for k in set(own) & set(state) if own[k].shape != state[k].shape)
-    if outside or reshaped:
+    reshaped = {k for k in set(own) & set(state) if own[k].shape != state[k].shape}
+    # Only another correlation grid reshapes head weights (the correlation net's first layer).
+    regrid = source.correlation_scale != model.cfg.correlation_scale
+    outside = sorted(k for k in missing | unexpected | reshaped
+                     if not k.startswith(CAMERA_HEAD_PREFIX) or (k in reshaped and not regrid))
+    if outside:
         raise ValueError(f"{what}: the checkpoint does not match the model outside the new "
-                         f"camera head: missing or unexpected {outside[:5]}, other shapes "
-                         f"{reshaped[:5]}")
-    result = model.load_state_dict({k: v for k, v in state.items() if k in own}, strict=False)
-    assert not result.unexpected_keys and set(result.missing_keys) == missing
-    return sorted(missing)
+                         f"camera head: missing, unexpected or of other shapes {outside[:5]}")
+    result = model.load_state_dict({k: v for k, v in state.items()
+                                    if k in own and k not in reshaped}, strict=False)
+    assert not result.unexpected_keys and set(result.missing_keys) == missing | reshaped
+    return sorted(missing | reshaped)
 
 
 def _setup_distributed() -> tuple[int, int]:

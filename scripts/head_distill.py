@@ -36,8 +36,22 @@ sys.path.insert(0, str(REPO / "scripts"))
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
+import torch.nn.functional as F  # noqa: E402
 
-WEIGHTS = {"solve_rot": 10.0, "solve_trans": 10.0, "solve_focal": 1.0}
+WEIGHTS = {"solve_rot": 10.0, "solve_trans": 10.0, "solve_focal": 1.0, "solve_dir": 0.0}
+
+
+def direction_loss(world_from_cam: torch.Tensor, solved: torch.Tensor) -> torch.Tensor:
+    """``1 - cos`` of the angle between the predicted and the solved baseline ``c_i - c_j`` of
+    every pair of views i < j (``world_from_cam``, ``solved`` ``[V, 4, 4]`` in one frame), the
+    scale-free quantity RPA's translation error measures; the centre term alone weighs a
+    direction error by the baseline's length, so short baselines, most of a scene's pairs,
+    barely count in it."""
+    V = world_from_cam.shape[0]
+    i, j = torch.triu_indices(V, V, 1)
+    c, c_s = world_from_cam[:, :3, 3], solved[:, :3, 3]
+    cos = F.cosine_similarity(c[i] - c[j], c_s[i] - c_s[j], dim=-1, eps=1e-8)
+    return (1 - cos).mean()
 
 
 def training_sets(classic: int, capture: int):
@@ -199,8 +213,9 @@ def build(args):
     from iris_train.config import ModelConfig
     from iris_train.train import load_init_weights
     payload = read_checkpoint(args.init)
-    cfg = dataclasses.replace(ModelConfig.from_dict(payload["config"]),
-                              camera_head=args.camera_head)
+    cfg = ModelConfig.from_dict(payload["config"])
+    cfg = dataclasses.replace(cfg, camera_head=args.camera_head,
+                              correlation_scale=args.correlation_scale or cfg.correlation_scale)
     model = build_model(cfg)
     fresh = load_init_weights(model, payload)
     return model, fresh
@@ -211,6 +226,8 @@ def main(argv=None) -> int:
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--init", type=Path, default=REPO / "models" / "iris-tiny-rgb.pt")
     ap.add_argument("--camera-head", default="correlation", choices=("tokens", "correlation"))
+    ap.add_argument("--correlation-scale", type=int, default=0, choices=(0, 2, 4),
+                    help="the correlation grid in token grids (0: the --init checkpoint's)")
     ap.add_argument("--classic", type=int, default=400)
     ap.add_argument("--capture", type=int, default=0)
     ap.add_argument("--batch", type=int, default=8)
@@ -226,6 +243,8 @@ def main(argv=None) -> int:
     ap.add_argument("--rotation-fraction", type=float, default=1.0,
                     help="with --augment-rotation: the fraction of scenes turned (the others "
                          "train the focal)")
+    ap.add_argument("--direction-weight", type=float, default=0.0,
+                    help="weight of the baseline-direction term (direction_loss; 0: off)")
     ap.add_argument("--heldout-scenes", type=int, default=16, help="held-out scenes scored")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--seed", type=int, default=0)
@@ -278,8 +297,11 @@ def main(argv=None) -> int:
                 if k == "solve_focal" and zoomed[b] and args.augment_rotation > 0:
                     continue       # the zoom moves the focal off the scenes' own distribution
                 terms.setdefault(k, []).append(v)
+            if args.direction_weight > 0:
+                terms.setdefault("solve_dir", []).append(direction_loss(world_from_cam[b], cams[b]))
         means = {k: torch.stack(v).mean() for k, v in terms.items()}
-        loss = sum(WEIGHTS[k] * v for k, v in means.items())
+        weights = WEIGHTS | {"solve_dir": args.direction_weight}
+        loss = sum(weights[k] * v for k, v in means.items())
         opt.zero_grad()
         loss.backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)

@@ -109,6 +109,12 @@ def test_camera_head_config_field():
     with pytest.raises(InputError, match="patch_size"):
         ModelConfig(image_height=60, image_width=60, patch_size=4, camera_head="correlation")
     assert CFG.correlation_grid == (16, 16)
+    assert dataclasses.replace(CFG, correlation_scale=4).correlation_grid == (32, 32)
+    del old["correlation_scale"]                       # a checkpoint written before that field
+    assert ModelConfig.from_dict(old).correlation_scale == 2
+    for bad in (1, 3, 8, "4", None):
+        with pytest.raises(InputError, match="correlation_scale"):
+            ModelConfig(camera_head="correlation", correlation_scale=bad)
     assert isinstance(build_model(SMALL_CFG).camera_head, CameraHead)
     assert isinstance(build_model(dataclasses.replace(SMALL_CFG, camera_head="correlation")).camera_head,
                       CorrelationCameraHead)
@@ -324,6 +330,28 @@ def test_load_init_weights_keeps_only_the_new_head_fresh():
     other = build_model(SMALL_CFG)
     assert load_init_weights(other, _payload(tokens_model)) == []
     assert all(torch.equal(a, b) for a, b in zip(other.state_dict().values(), old.values()))
+
+
+def test_finer_correlation_grid_shapes_and_init_from_the_coarser_head(images):
+    """correlation_scale 4 correlates a grid twice as fine (32x32 at 64x64: the stem keeps the
+    second conv's size) and still starts every camera near the identity; from a scale-2
+    correlation checkpoint, only the head weights of another shape stay fresh."""
+    fine_cfg = dataclasses.replace(CFG, correlation_scale=4)
+    torch.manual_seed(0)
+    fine = build_model(fine_cfg).eval()
+    with torch.no_grad():
+        d = fine.camera_head.stem(images)
+        _, poses, focal = fine.encode_batch(images[None])
+    assert d.shape == (6, 64, 32, 32)
+    assert poses.shape == (1, 6, 4, 4) and torch.isfinite(poses).all() and focal.shape == (1, 2)
+    assert rotation_angles_deg(poses[0, 1:]).max() < 5.0
+    torch.manual_seed(1)
+    coarse = build_model(CFG)
+    before = {k: v.clone() for k, v in fine.state_dict().items()}
+    fresh = load_init_weights(fine, _payload(coarse, drop_head_field=False))
+    assert fresh == ["camera_head.correlation_net.0.weight"]    # 1024 positions in, not 256
+    for k, v in fine.state_dict().items():
+        assert torch.equal(v, before[k] if k in fresh else coarse.state_dict()[k]), k
 
 
 @pytest.mark.parametrize("kind", ["missing_encoder_key", "unexpected_key", "other_shape",

@@ -138,3 +138,19 @@ def test_augment_rotation_moves_the_images_as_the_cameras_say(seed):
                           atol=1e-5)
     turned = torch.linalg.inv(T) @ aug_T            # relative to the original, per view
     assert not torch.allclose(turned[1:, :3, :3], turned[:1, :3, :3].expand(3, 3, 3), atol=1e-3)
+
+
+def test_direction_loss_is_scale_free_and_sees_a_reversed_baseline():
+    rng = np.random.default_rng(0)
+    T = torch.eye(4).repeat(5, 1, 1)
+    T[:, :3, 3] = torch.as_tensor(rng.normal(size=(5, 3)), dtype=torch.float32)
+    loss = _script().direction_loss
+    scaled = T.clone()
+    scaled[:, :3, 3] *= 7.0
+    assert float(loss(T, T)) < 1e-6 and float(loss(scaled, T)) < 1e-6
+    mirrored = T.clone()
+    mirrored[:, :3, 3] *= -1.0                       # every baseline reversed: 1 - cos = 2
+    assert float(loss(mirrored, T)) == pytest.approx(2.0, abs=1e-6)
+    moved = T.clone()
+    moved[1, :3, 3] += 0.5
+    assert 1e-3 < float(loss(moved, T)) < 2.0
