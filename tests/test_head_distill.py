@@ -154,3 +154,39 @@ def test_direction_loss_is_scale_free_and_sees_a_reversed_baseline():
     moved = T.clone()
     moved[1, :3, 3] += 0.5
     assert 1e-3 < float(loss(moved, T)) < 2.0
+
+
+def _heldout_rpa():
+    spec = importlib.util.spec_from_file_location("heldout_rpa", ROOT / "scripts" / "heldout_rpa.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_fit_scores_a_head_against_the_teacher_by_baseline():
+    """``heldout_rpa.fit``: a head that returns the teacher's cameras fits perfectly; one that
+    returns identities fails on rotation, worst where the teacher's baselines are longest."""
+    from iris_runtime.orbit import look_at
+    from iris_train.pseudo_poses import SolvedCameras
+    hr = _heldout_rpa()
+    angles = np.radians([0, 3, 8, 15, 25, 40])
+    eyes = [np.array([0.6 * np.sin(a), -0.6 * np.cos(a), 0.1]) for a in angles]
+    T = np.stack([look_at(e, np.zeros(3), np.array([0.0, 0.0, -1.0])) for e in eyes])
+    T = np.linalg.inv(T[0]) @ T
+    solved = SolvedCameras(T, 1.0, np.ones(6, bool))
+    scenes = [type("S", (), {"images": np.zeros((6, 64, 64, 3), np.uint8)})()]
+
+    class Head:
+        def __init__(self, cams):
+            self.cams = torch.as_tensor(cams, dtype=torch.float32)[None]
+
+        def encode_batch(self, x):
+            return None, self.cams, torch.ones(1, 2)
+
+    perfect = hr.fit(Head(T), scenes, lambda i: solved, [0])
+    assert perfect["rpa@5"] == 1.0 and perfect["median_rotation_error"] < 1e-2
+    identity = hr.fit(Head(np.tile(np.eye(4), (6, 1, 1))), scenes, lambda i: solved, [0])
+    quarters = identity["by_baseline"]
+    assert len(quarters) == 4 and quarters[0]["baseline"][0] < quarters[-1]["baseline"][1]
+    rot = [q["median_rotation_error"] for q in quarters]
+    assert rot == sorted(rot) and rot[-1] > 20.0 and identity["rpa@15"] < 0.5
