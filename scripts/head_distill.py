@@ -110,17 +110,6 @@ def augment(images: torch.Tensor, world_from_cam: torch.Tensor, focal: torch.Ten
     return images, world_from_cam, focal / zoom
 
 
-def rotation_matrices(w: torch.Tensor) -> torch.Tensor:
-    """Rodrigues: axis-angle vectors ``w [V, 3]`` (radians) -> rotations ``[V, 3, 3]``."""
-    theta = w.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-    k = w / theta
-    Kx = torch.zeros(w.shape[0], 3, 3)
-    Kx[:, 0, 1], Kx[:, 0, 2], Kx[:, 1, 2] = -k[:, 2], k[:, 1], -k[:, 0]
-    Kx = Kx - Kx.transpose(1, 2)
-    s, c = torch.sin(theta)[..., None], torch.cos(theta)[..., None]
-    return torch.eye(3) + s * Kx + (1 - c) * Kx @ Kx
-
-
 def _source_coords(Qt: torch.Tensor, focal: torch.Tensor, zoom: float, u: torch.Tensor):
     """Where the rotated cameras' normalised image points ``u [N, 2]`` (``[-1, 1]``, the
     ``grid_sample`` convention) were in the original photos: rays ``(u / (2 f zoom), 1)`` turned
@@ -153,9 +142,12 @@ def augment_rotation(photos: np.ndarray, world_from_cam: torch.Tensor, focal: to
     if rng.random() < 0.5:
         S = torch.diag(torch.tensor([-1.0, 1.0, 1.0, 1.0]))
         x, world_from_cam = x.flip(-1), S @ world_from_cam @ S
-    axis = torch.as_tensor(rng.normal(size=(V, 3)), dtype=torch.float32)
-    angle = torch.as_tensor(rng.uniform(0, np.radians(max_deg), (V, 1)), dtype=torch.float32)
-    Q = rotation_matrices(axis / axis.norm(dim=1, keepdim=True) * angle)      # cam'_from_cam
+    import cv2
+    axis = rng.normal(size=(V, 3))
+    turn = axis / np.linalg.norm(axis, axis=1, keepdims=True) * rng.uniform(
+        0, np.radians(max_deg), (V, 1))                                        # axis-angle
+    Q = torch.as_tensor(np.stack([cv2.Rodrigues(v)[0] for v in turn]),
+                        dtype=torch.float32)                                    # cam'_from_cam
     Qt = Q.transpose(1, 2)
     corners = torch.tensor([[-1.0, -1.0], [1.0, -1.0], [-1.0, 1.0], [1.0, 1.0]])
     zoom = 1.0
@@ -182,8 +174,8 @@ def draw(sets, batch: int, rng: np.random.Generator, max_roll_deg: float = 0.0,
          max_rotation_deg: float = 0.0, rotation_fraction: float = 1.0):
     """``images [B, V, 3, 64, 64]``, solved ``world_from_cam [B, V, 4, 4]``, ``focal [B, 2]``,
     ``zoomed [B]`` bool (``augment``-ed when ``max_roll_deg`` > 0; with ``max_rotation_deg`` > 0,
-    each scene ``augment_rotation``-ed with probability ``rotation_fraction``: the focal of a
-    zoomed scene is not the scene's any more)."""
+    each scene ``augment_rotation``-ed with probability ``rotation_fraction``; ``zoomed``: those
+    turned and zoomed, whose focal is not the scene's any more)."""
     from iris_train.train import _draw_solved
     n_views = int(rng.integers(4, 9))
     images, cams, focals, zoomed = [], [], [], []
@@ -198,7 +190,6 @@ def draw(sets, batch: int, rng: np.random.Generator, max_roll_deg: float = 0.0,
             x = torch.as_tensor(scenes[index].images[order]).permute(0, 3, 1, 2).float() / 255.0
         if max_roll_deg > 0:
             x, T, f = augment(x, T, f, rng, max_roll_deg)
-            zoom = 2.0
         images.append(x)
         cams.append(T)
         focals.append(f)
@@ -294,7 +285,7 @@ def main(argv=None) -> int:
         terms: dict = {}
         for b in range(images.shape[0]):
             for k, v in solve_losses(world_from_cam[b], pred_focal[b], cams[b], focal[b]).items():
-                if k == "solve_focal" and zoomed[b] and args.augment_rotation > 0:
+                if k == "solve_focal" and zoomed[b]:
                     continue       # the zoom moves the focal off the scenes' own distribution
                 terms.setdefault(k, []).append(v)
             if args.direction_weight > 0:

@@ -77,6 +77,15 @@ def _triangulate(uv: np.ndarray, world_from_cam: np.ndarray, focal_px: float, si
     return X[:3] / X[3]
 
 
+def _reprojected_blobs(images: torch.Tensor, world_from_cam: torch.Tensor, focal: torch.Tensor):
+    """One point's blob centroids ``uv [V, 2]`` in 64x64 ``images``, triangulated with the given
+    cameras and focal and reprojected -> (reprojected [V, 2], uv)."""
+    uv = _centroids(images).double().numpy()
+    Tn, f_px = world_from_cam.double().numpy(), float(focal[0]) * 64
+    cam = np.linalg.inv(Tn) @ np.append(_triangulate(uv, Tn, f_px, 64), 1.0)
+    return f_px * cam[:, :2] / cam[:, 2:3] + 32, uv
+
+
 @pytest.mark.parametrize("seed", range(6))
 def test_augment_moves_the_images_as_the_cameras_say(seed):
     """The augmented photos are what the augmented cameras (and focal) see: a point's blobs in
@@ -94,11 +103,7 @@ def test_augment_moves_the_images_as_the_cameras_say(seed):
     aug_images, aug_T, aug_focal = _script().augment(images, T, torch.full((2,), 1.0), rng, 15.0)
     assert torch.allclose(aug_T[0], torch.eye(4), atol=1e-5)
     assert torch.allclose(torch.linalg.det(aug_T[:, :3, :3]), torch.ones(4), atol=1e-5)
-    uv = _centroids(aug_images).double().numpy()
-    Tn, f_px = aug_T.double().numpy(), float(aug_focal[0]) * 64
-    Xn = _triangulate(uv, Tn, f_px, 64)
-    cam = np.linalg.inv(Tn) @ np.append(Xn, 1.0)
-    reprojected = f_px * cam[:, :2] / cam[:, 2:3] + 32
+    reprojected, uv = _reprojected_blobs(aug_images, aug_T, aug_focal)
     assert np.abs(reprojected - uv).max() < 0.2, (reprojected, uv)
     # mirror and roll keep a point's distance from the centre; the zoom scales it as the focal
     ratio = (_centroids(aug_images) - 32).norm(dim=1) / (_centroids(images) - 32).norm(dim=1)
@@ -127,11 +132,7 @@ def test_augment_rotation_moves_the_images_as_the_cameras_say(seed):
     assert torch.allclose(aug_T[0], torch.eye(4), atol=1e-5)
     assert torch.allclose(torch.linalg.det(aug_T[:, :3, :3]), torch.ones(4), atol=1e-5)
     assert torch.allclose(aug_focal, torch.full((2,), zoom))
-    uv = _centroids(images).double().numpy()
-    Tn, f_px = aug_T.double().numpy(), float(aug_focal[0]) * 64
-    Xn = _triangulate(uv, Tn, f_px, 64)
-    cam = np.linalg.inv(Tn) @ np.append(Xn, 1.0)
-    reprojected = f_px * cam[:, :2] / cam[:, 2:3] + 32
+    reprojected, uv = _reprojected_blobs(images, aug_T, aug_focal)
     assert np.abs(reprojected - uv).max() < 0.25, (reprojected, uv)
     centres, aug_centres = T[:, :3, 3], aug_T[:, :3, 3]
     assert torch.allclose(torch.cdist(centres, centres), torch.cdist(aug_centres, aug_centres),
