@@ -1,11 +1,16 @@
-"""What solving the cameras costs at encode time: ``IrisRuntime.encode`` of 8 photos of 320x240
-(and of the quickstart's 64x64 sample) on one thread, with the encoder's cameras and with the
-camera solve (``cameras="epipolar"``), and the solve's own steps. Medians of ``--runs`` wall
-times after one warm-up, one process.
+"""What the cameras cost at encode time: ``IrisRuntime.encode`` of 8 photos of 320x240 (and of
+the quickstart's 64x64 sample) on one thread, with the encoder's cameras, with the camera solve
+(``cameras="epipolar"``) and with the encoder's cameras refined by the photos
+(``cameras="refined"``). Medians of ``--runs`` wall times after one warm-up, one process.
 
     python benchmarks/encode_cost.py MODEL_DIR                  # an iris-export output
     python benchmarks/encode_cost.py MODEL_DIR --runs 7 --json benchmarks/results/encode_cost.json
     python benchmarks/encode_cost.py MODEL_DIR --set min_trials=2      # a solve setting changed
+    python benchmarks/encode_cost.py MODEL_DIR --heldout --cameras model,epipolar,refined --runs 3
+
+``--heldout`` adds the 16 held-out synthetic scenes at the model's 64x64 (rendered at 256x256
+and area-averaged, as the quickstart's sample is; the [train] extra) and, for every set with true
+cameras, the RPA@15 of each mode's cameras over all pairs: error against run time.
 
 ``--set`` takes ``scripts/camera_study.py``'s settings (a constant of a module of
 ``iris_runtime.cameras``, or a field of ``MapperOptions``).
@@ -30,31 +35,42 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 
-def photo_sets() -> dict:
-    """{name: 8 uint8 RGB photos}: of 240x320, and the quickstart's 64x64 sample."""
+def photo_sets(heldout: bool = False) -> dict:
+    """{name: (8 uint8 RGB photos, their true world_from_cam [8, 4, 4] or None)}: of 240x320,
+    the quickstart's 64x64 sample and, with ``heldout``, the held-out scenes at 64x64."""
     import numpy as np
     from PIL import Image
     out = {}
     sample = sorted((REPO / "samples" / "heldout-1000003").glob("frame_*.png"))
     if sample:
-        out["sample 1000003 64x64"] = [np.asarray(Image.open(f).convert("RGB")) for f in sample]
+        out["sample 1000003 64x64"] = ([np.asarray(Image.open(f).convert("RGB")) for f in sample],
+                                       None)
+    if heldout:
+        from benchmarks.camera_solve import heldout_64_scenes
+        for scene in heldout_64_scenes():
+            out[scene.name.split(" (")[0]] = (scene.photos, scene.world_from_cam)
     from benchmarks.camera_solve import CASTLE, CASTLE_SUBSETS, castle_scenes
     if CASTLE.is_dir():
         for scene in castle_scenes():
             if scene.name == "castle 1-36 320x240" and len(CASTLE_SUBSETS["1-36"]) == 8:
-                out["castle 1-36 320x240"] = scene.photos
+                out["castle 1-36 320x240"] = (scene.photos, None)    # RPA needs torch
     try:
         from iris_train.synthetic import render_scene
-        out["synthetic 1000003 320x240"] = list(np.asarray(render_scene(1_000_003, 8, (240, 320)).images))
+        s = render_scene(1_000_003, 8, (240, 320))
+        out["synthetic 1000003 320x240"] = (list(np.asarray(s.images)), s.world_from_cam)
     except ImportError:
         pass
     return out
 
 
-def measure(model_dir: str, runs: int, settings: list[str] = ()) -> dict:
+def measure(model_dir: str, runs: int, settings: list[str] = (),
+            modes: tuple[str, ...] = ("model", "epipolar", "refined"),
+            heldout: bool = False) -> dict:
     import cv2
 
     import iris_runtime.cameras.replace as replace
+    import numpy as np
+
     from iris_runtime import IrisRuntime
     from scripts.camera_study import apply
     cv2.setNumThreads(1)
@@ -65,9 +81,9 @@ def measure(model_dir: str, runs: int, settings: list[str] = ()) -> dict:
     rt = IrisRuntime(model_dir, threads=1)
     out = {"threads": 1, "runs": runs, "settings": list(settings),
            "load_before": list(os.getloadavg()), "sets": {}}
-    for name, photos in photo_sets().items():
+    for name, (photos, truth) in photo_sets(heldout).items():
         res = {}
-        for cameras in ("model", "epipolar"):
+        for cameras in modes:
             rt.encode(photos, cameras=cameras)                       # warm-up
             times, steps = [], []
             for _ in range(runs):
@@ -80,11 +96,29 @@ def measure(model_dir: str, runs: int, settings: list[str] = ()) -> dict:
                             "cameras_median_s": statistics.median(t.get("cameras", 0.0)
                                                                   for t in steps),
                             "camera_status": list(scene.camera_status or ()),
+                            "camera_source": scene.camera_source,
                             "camera_size": scene.camera_size}
+            if truth is not None:
+                from benchmarks.camera_solve import pair_errors      # iris_train: torch
+                err = pair_errors(scene.world_from_cam, truth)
+                res[cameras]["rpa@15"] = float(np.mean(err < 15))
             print(f"{name:28s} cameras={cameras:9s} {res[cameras]['median_s']:.3f} s "
-                  f"(solve {res[cameras]['cameras_median_s']:.3f} s; runs "
-                  f"{', '.join(f'{t:.2f}' for t in times)})", flush=True)
+                  f"(cameras {res[cameras]['cameras_median_s']:.3f} s; runs "
+                  f"{', '.join(f'{t:.2f}' for t in times)})"
+                  + (f" RPA@15 {res[cameras]['rpa@15']:.3f}" if truth is not None else ""),
+                  flush=True)
         out["sets"][name] = res
+    held = {k: v for k, v in out["sets"].items() if k.startswith("heldout-64")}
+    if held:
+        out["heldout_64"] = {}
+        for m in modes:
+            seconds = [v[m]["median_s"] for v in held.values()]
+            r = out["heldout_64"][m] = {
+                "median_s": statistics.median(seconds), "max_s": max(seconds),
+                "rpa@15": float(np.mean([v[m]["rpa@15"] for v in held.values()]))}
+            print(f"held-out 64x64, {len(held)} scenes, cameras={m:9s}: median "
+                  f"{r['median_s']:.3f} s, max {r['max_s']:.3f} s, RPA@15 {r['rpa@15']:.3f}",
+                  flush=True)
     out["load_after"] = list(os.getloadavg())
     return out
 
@@ -96,8 +130,13 @@ def main(argv=None) -> int:
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
                     help="a solve setting changed, as scripts/camera_study.py --set")
+    ap.add_argument("--cameras", default="model,epipolar,refined",
+                    help="comma-separated camera modes of encode (default: all three)")
+    ap.add_argument("--heldout", action="store_true",
+                    help="add the 16 held-out scenes at 64x64, with RPA@15 against true cameras")
     args = ap.parse_args(argv)
-    res = measure(args.model_dir, args.runs, args.set)
+    res = measure(args.model_dir, args.runs, args.set, tuple(args.cameras.split(",")),
+                  args.heldout)
     print(f"load average before / after: {res['load_before']} / {res['load_after']}")
     if args.json is not None:
         from iris_runtime.fileio import atomic_write_bytes

@@ -38,6 +38,11 @@ def build_parser() -> argparse.ArgumentParser:
                              "'reference' (the model's render_samples traced as is) or "
                              "'fast-contrib' (fast with com.microsoft fused ops, slower here); "
                              "see export/fast_renderer.py and docs/PERFORMANCE.md")
+    parser.add_argument("--cameras", choices=["model", "epipolar", "refined"], default=None,
+                        help="the runtime's default cameras, recorded in iris.json (default: "
+                             "the ones the renderer was trained with); 'refined' (the camera "
+                             "head's refined by the photos) over a renderer trained with "
+                             "'epipolar'")
     parser.add_argument("--force", action="store_true", help="replace an existing OUT_DIR")
     parser.add_argument("--quick", action="store_true",
                         help="smaller validation probes and timing runs (tests, smoke checks)")
@@ -58,7 +63,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         out = export_model(args.checkpoint, args.out_dir, opset=args.opset, quantize=args.quantize,
                            force=args.force, progress=not args.quiet, quick=args.quick,
-                           threads=args.threads, renderer=args.renderer)
+                           threads=args.threads, renderer=args.renderer, cameras=args.cameras)
     except ValidationError as exc:
         print(f"iris-export: validation failed: {exc}", file=sys.stderr)
         return EXIT_VALIDATION

@@ -64,10 +64,23 @@ def _publish(tmp: Path, out_dir: Path, force: bool) -> None:
         old.unlink()
 
 
+def _default_cameras(cameras: str | None, trained: str) -> str:
+    """The manifest's "cameras": ``cameras`` when given (the trained ones, or "refined" over a
+    renderer trained with "epipolar"), else ``trained``; ``ExportArgumentError`` otherwise."""
+    if cameras is None or cameras == trained:
+        return trained
+    if cameras == "refined" and trained == "epipolar":
+        return cameras
+    raise ExportArgumentError(f"cameras: this renderer was trained with {trained!r} cameras, so "
+                              f"the default can be {trained!r}"
+                              + (" or 'refined'" if trained == "epipolar" else "")
+                              + f", not {cameras!r}")
+
+
 def export_model(model_or_ckpt: IrisModel | str | os.PathLike, out_dir: str | os.PathLike, *,
                  opset: int = DEFAULT_OPSET, quantize: str | None = None, force: bool = False,
                  progress: bool = True, quick: bool = False, threads: int | None = None,
-                 renderer: str = "fast") -> Path:
+                 renderer: str = "fast", cameras: str | None = None) -> Path:
     """Export ``model_or_ckpt`` to ``out_dir/{encoder.onnx, renderer.onnx, iris.json}`` (and, for
     the "fast" renderer graphs, ``renderer_views.onnx``: the renderer on per-point pre-selected
     views, ``io_spec.RENDERER_VIEWS``, which ``top_k_by="point"`` renders with).
@@ -77,6 +90,9 @@ def export_model(model_or_ckpt: IrisModel | str | os.PathLike, out_dir: str | os
     enforced). ``force`` replaces an existing ``out_dir``. ``progress`` prints one line per stage
     to stderr. ``quick`` shrinks the validation probes (tests); ``threads`` sets the intra-op
     threads of ONNX Runtime and torch during validation (see ``export.validate.validate``).
+    ``cameras``: the manifest's "cameras", the runtime's default (None: the ones the renderer
+    was trained with, ``trained_cameras``); "refined" (the camera head's refined by the photos)
+    only for a renderer trained with "epipolar", whose unit the refinement gives.
     ``renderer``: which renderer graph to write (``export.fast_renderer.RENDERER_KINDS``):
     "fast" (the default) or "fast-contrib" (``FastRendererGraph``: same I/O and values, laid
     out for ONNX Runtime's CPU kernels) or "reference" (``RendererGraph``, the model's
@@ -109,13 +125,14 @@ def export_model(model_or_ckpt: IrisModel | str | os.PathLike, out_dir: str | os
         raise ExportArgumentError(f"model_or_ckpt: expected an IrisModel or a checkpoint path, got "
                                   f"{type(model_or_ckpt).__name__}")
     if isinstance(model_or_ckpt, IrisModel):
-        model, source, cameras = model_or_ckpt, {"checkpoint": None}, "model"
+        model, source, trained = model_or_ckpt, {"checkpoint": None}, "model"
     else:
         ckpt = Path(model_or_ckpt)
         say(f"loading checkpoint {ckpt}")
         model = _load(ckpt)
         source = {"checkpoint": ckpt.name, "sha256": sha256_file(ckpt)}
-        cameras = trained_cameras(read_checkpoint(ckpt))
+        trained = trained_cameras(read_checkpoint(ckpt))
+    cameras = _default_cameras(cameras, trained)
     was_training = model.training
     model.eval()
 

@@ -316,6 +316,8 @@ def _encode(req: _Request, args: argparse.Namespace, say, t_load: float):
         unposed = [i for i, st in enumerate(scene.camera_status or ()) if st == "unposed"]
         say(f"cameras of the inputs: {scene.camera_source}"
             + {"epipolar": f" (every view solved from the photos at {_hw_text(scene.camera_size)})",
+               "refined": f" (every view's camera refined by the photos at "
+                          f"{_hw_text(scene.camera_size)})",
                "mixed": f" (solved at {_hw_text(scene.camera_size)}; views {unposed} could not be "
                         f"posed and keep the model's camera)",
                "model": " (the solve could not pose view 0: the model's cameras)"}

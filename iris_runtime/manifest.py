@@ -85,7 +85,7 @@ class Manifest:
 #: ("epipolar", ``iris_runtime.cameras.replace_model_cameras``). The values of the manifest's
 #: optional "cameras" (``Manifest.cameras``), of ``IrisRuntime.encode(cameras=...)`` and of
 #: ``iris-train --render-cameras``.
-CAMERAS = ("model", "epipolar")
+CAMERAS = ("model", "epipolar", "refined")
 
 
 def read_graph_bytes(entry: GraphEntry) -> bytes:

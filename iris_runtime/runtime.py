@@ -311,6 +311,13 @@ class IrisRuntime:
                  (``camera_status`` "unposed", ``camera_source`` "mixed"; all of them, and
                  ``camera_source`` "model", when view 0 is not posed, since it defines the
                  frame). Cost and accuracy: docs/CAMERAS.md.
+                 "refined": as "epipolar", but the encoder's cameras and focal are the start of
+                 one bundle adjustment on the same matches (``cameras.refine_cameras``: no
+                 incremental mapper, a fraction of the solve's time) instead of being replaced;
+                 ``camera_source`` "refined". Where the photos cannot constrain the cameras
+                 (fewer than two views keep enough observations) the solve replaces them as
+                 with "epipolar". As accurate as the encoder's start is close
+                 (docs/CAMERAS.md, "Refining the model's cameras").
         """
         return self._encode(images, {}, self._check_cameras(
             self.default_cameras if cameras is None else cameras))
@@ -337,8 +344,9 @@ class IrisRuntime:
         model_K = G.intrinsics_from_focal(focal64, H, W)
         if cameras == "model":
             return Scene(maps, poses64, focal64, model_K, (H, W), model_id, batch)
-        from .cameras import replace_model_cameras
-        cams = replace_model_cameras(photos, poses64, focal64, (H, W), (self.near, self.far))
+        from .cameras import refine_model_cameras, replace_model_cameras
+        cams = (refine_model_cameras if cameras == "refined" else replace_model_cameras)(
+            photos, poses64, focal64, (H, W), (self.near, self.far))
         timings["cameras"] = timings.get("cameras", 0.0) + (time.perf_counter() - t2)
         return Scene(maps, cams.world_from_cam, cams.focal, cams.K, (H, W), model_id, batch,
                      camera_source=cams.source,

@@ -22,7 +22,7 @@ if TYPE_CHECKING:
 __all__ = ["Scene", "RenderResult", "check_pose", "CAMERA_SOURCES", "CAMERA_STATUSES"]
 
 #: Values of ``Scene.camera_source``.
-CAMERA_SOURCES = ("model", "epipolar", "mixed")
+CAMERA_SOURCES = ("model", "epipolar", "refined", "mixed")
 #: Values of ``Scene.camera_status`` (``iris_runtime.cameras.STATUSES``).
 CAMERA_STATUSES = ("solved", "located", "unposed")
 

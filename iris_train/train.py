@@ -542,8 +542,9 @@ def train(cfg: TrainConfig, out: Path, resume: bool = False, scenes=None, thread
             capture = SyntheticScenes(range(cfg.capture_scenes), size=size, kind="capture",
                                       render_size=CAPTURE_RENDER_SIZE)
             scenes = SceneSets([scenes, capture])
-    if cfg.render_cameras not in CAMERAS:
-        raise ValueError(f"render_cameras: expected one of {CAMERAS}, got {cfg.render_cameras!r}")
+    if cfg.render_cameras not in CAMERAS[:2]:        # "refined" needs a trained head first
+        raise ValueError(f"render_cameras: expected one of {CAMERAS[:2]}, got "
+                         f"{cfg.render_cameras!r}")
     teachers = solutions = None
     if cfg.render_cameras == "epipolar":
         depth_range = (mcfg.near, mcfg.far)

@@ -209,7 +209,9 @@ def build(args):
                               correlation_scale=args.correlation_scale or cfg.correlation_scale)
     model = build_model(cfg)
     fresh = load_init_weights(model, payload)
-    return model, fresh
+    # The renderer is the --init checkpoint's, untouched: its training record (the cameras it
+    # was trained with, which the export's default follows) goes with it.
+    return model, fresh, payload.get("train_config")
 
 
 def main(argv=None) -> int:
@@ -247,7 +249,7 @@ def main(argv=None) -> int:
     from iris_train.data import HELDOUT_SEEDS, SyntheticScenes
     from iris_train.model import save_checkpoint
     from iris_train.train import solve_losses
-    model, fresh = build(args)
+    model, fresh, train_config = build(args)
     sets = training_sets(args.classic, args.capture)
     heldout = SyntheticScenes(HELDOUT_SEEDS[:args.heldout_scenes])
     head = list(model.camera_head.parameters())
@@ -273,7 +275,8 @@ def main(argv=None) -> int:
               f"train {entry['train']}", flush=True)
         save_checkpoint(args.out / "last.pt", model, step=step,
                         distill=vars(args) | {"out": str(args.out), "init": str(args.init),
-                                              "fresh": fresh})
+                                              "fresh": fresh},
+                        **({"train_config": train_config} if train_config else {}))
         running.clear()
 
     model.train()

@@ -629,6 +629,174 @@ def test_small_photos_are_enlarged_to_the_low_texture_size_in_one_pass(corner, m
     assert len(feats[0]) > len(at_default)
 
 
+# ----------------------------------------------------------------------------------------------
+# refining a model's cameras
+# ----------------------------------------------------------------------------------------------
+
+def _perturbed(truth, rng, degrees=6.0, shift=0.15, unit=3.0):
+    """``truth`` re-based on view 0, in another unit, each view but 0 turned by ``degrees``
+    about a random axis and its centre moved by ``shift`` of the largest baseline: what a camera
+    head several degrees off gives."""
+    start = _rebased(truth).copy()
+    start[:, :3, 3] *= unit
+    reach = np.linalg.norm(start[:, :3, 3], axis=1).max()
+    for k in range(1, len(start)):
+        axis = rng.normal(size=3)
+        start[k, :3, :3] = _rotation_about(axis, np.radians(degrees)) @ start[k, :3, :3]
+        start[k, :3, 3] += shift * reach * rng.normal(size=3) / np.sqrt(3)
+    return start
+
+
+def _rotation_about(axis, angle):
+    import cv2
+    return cv2.Rodrigues(np.asarray(axis, np.float64) / np.linalg.norm(axis) * angle)[0]
+
+
+def test_refine_cameras_recovers_the_solve_from_a_start_degrees_off(corner):
+    """From cameras 6 degrees and 15% of the baseline off and a focal 15% off, the refinement
+    lands where the full solve does (its reference here): every pair within a degree of it and
+    within 2 of the truth, the focal within 2%, in the solve's unit (median point depth at
+    ``DEPTH_TARGET``)."""
+    from iris_runtime.cameras import refine_cameras
+    photos, truth, solved = corner
+    start = _perturbed(truth, np.random.default_rng(3))
+    assert _pair_errors(start, truth).max() > 6.0
+    s = refine_cameras(list(photos), start, 1.15 * FOCAL, DEPTH_RANGE)
+    assert s.status == ("solved",) * 6 and s.root == 0 and s.image_size == SIZE
+    np.testing.assert_array_equal(s.world_from_cam[0], np.eye(4))
+    assert _pair_errors(s.world_from_cam, solved.world_from_cam).max() < 1.0
+    assert _pair_errors(s.world_from_cam, truth).max() < 2.0
+    assert s.focal == pytest.approx(FOCAL, rel=0.02)
+    pm = s.point_map
+    z = np.einsum("nj,nj->n", pm.points[pm.point] - s.world_from_cam[pm.view, :3, 3],
+                  s.world_from_cam[pm.view, :3, 2])
+    near, far = DEPTH_RANGE
+    assert np.median(z) == pytest.approx(near + DEPTH_TARGET * (far - near), rel=1e-6)
+    # Its points locate a photo left out, as the solve's do.
+    part = refine_cameras([photos[k] for k in (0, 1, 2, 4, 5)], start[[0, 1, 2, 4, 5]],
+                          FOCAL, DEPTH_RANGE)
+    T, ok = locate_photos(part.point_map, part.focal, part.image_size, [photos[3]])
+    assert ok.all()
+    full = np.concatenate([part.world_from_cam[:3], T, part.world_from_cam[3:]])
+    assert _pair_errors(full, truth).max() < 2.0
+
+
+def test_refine_cameras_starts_from_the_pairs_where_the_model_is_far_off(corner, monkeypatch):
+    """A start 40 degrees off (a head that has not learned the scene) cannot be adjusted into
+    place; with the pairs' averaged rotations (and the start's centres, 15% of a baseline off) it
+    can, and that adjustment is kept."""
+    import iris_runtime.cameras.refine as refine
+    photos, truth, _ = corner
+    start = _perturbed(truth, np.random.default_rng(5), degrees=40.0, shift=0.15)
+    s = refine.refine_cameras(list(photos), start, FOCAL, DEPTH_RANGE)
+    assert s.status == ("solved",) * 6
+    assert _pair_errors(s.world_from_cam, truth).max() < 2.0
+    monkeypatch.setattr(refine, "STARTS", ("model",))
+    alone = refine.refine_cameras(list(photos), start, FOCAL, DEPTH_RANGE)
+    assert alone is None or _pair_errors(alone.world_from_cam, truth).max() > 10.0
+
+
+def _relative_poses(T, pairs):
+    """{(a, b): (cam_b_from_cam_a [4, 4] with a unit translation, weight 1)} of world_from_cam T."""
+    out = {}
+    for a, b in pairs:
+        rel = np.linalg.inv(T[b]) @ T[a]
+        rel[:3, 3] /= np.linalg.norm(rel[:3, 3])
+        out[a, b] = (rel, 1.0)
+    return out
+
+
+def test_rotation_and_centre_averaging_recover_the_cameras_despite_a_wrong_pair():
+    """Exact relative poses of 6 cameras on every pair, one pair's rotation turned 30 degrees:
+    the averaged rotations are the true ones to 0.5 degree (the wrong pair reweighted away; 4.9
+    degrees without the reweighting), exact without it; a view no pair links keeps its start.
+    The centres from the exact baseline directions are the true ones in the start's scale."""
+    from iris_runtime.cameras.refine import average_centres, average_rotations
+    rng = np.random.default_rng(8)
+    truth = _forward_cameras(rng, 6, spread=0.4, max_angle=0.4)
+    pairs = [(a, b) for a in range(6) for b in range(a + 1, 6)]
+    rel = _relative_poses(truth, pairs)
+    cam_from_world = np.linalg.inv(truth)
+    R_true = cam_from_world[:, :3, :3]
+    R_start = np.stack([_rotation_about(rng.normal(size=3), 0.3) @ R for R in R_true])
+    R_start[0] = R_true[0]
+    rotations = {ab: (T[:3, :3], w) for ab, (T, w) in rel.items()}       # cam_b_from_cam_a
+    exact = average_rotations(rotations, R_start)
+    assert max(_angle_deg(a, b) for a, b in zip(exact, R_true)) < 1e-4      # arccos rounding
+    bad = dict(rotations)
+    bad[1, 3] = (_rotation_about([0.0, 1.0, 0.2], np.radians(30)) @ rotations[1, 3][0], 1.0)
+    robust = average_rotations(bad, R_start)
+    assert max(_angle_deg(a, b) for a, b in zip(robust, R_true)) < 0.5
+    start_centres = 2.0 * truth[:, :3, 3] + 0.05 * rng.normal(size=(6, 3))
+    centres = average_centres(rel, R_true, start_centres)
+    np.testing.assert_allclose(centres[0], start_centres[0])
+    k = np.sum((centres - centres[0]) * (truth[:, :3, 3] - truth[0, :3, 3])) \
+        / np.sum((truth[:, :3, 3] - truth[0, :3, 3]) ** 2)
+    assert k == pytest.approx(2.0, rel=0.1)
+    np.testing.assert_allclose(centres - centres[0], k * (truth[:, :3, 3] - truth[0, :3, 3]),
+                               atol=1e-9)
+    linked = average_rotations({ab: r for ab, r in rotations.items() if 5 not in ab}, R_start)
+    np.testing.assert_array_equal(linked[5], R_start[5])
+    assert max(_angle_deg(a, b) for a, b in zip(linked[:5], R_true[:5])) < 1e-4
+
+
+def test_refine_cameras_reports_what_the_photos_cannot_constrain(corner):
+    """A photo that matches nothing is "unposed" (NaN); a start without a baseline, or photos
+    that share nothing, give None, and ``refine_model_cameras`` then falls back to the solve."""
+    import cv2
+
+    from iris_runtime.cameras import refine_cameras, refine_model_cameras
+    photos, truth, solved = corner
+    start = _perturbed(truth, np.random.default_rng(4), degrees=3.0)
+    noise = np.full(photos[0].shape, 90, np.uint8)
+    for k, (x, y) in enumerate(((40, 50), (150, 60), (90, 140), (200, 120))):
+        cv2.circle(noise, (x, y), 12 + 3 * k, (200, 200, 200), -1)
+    out = refine_cameras([*photos[:4], noise], start[:5], FOCAL, DEPTH_RANGE)
+    assert out.status == ("solved",) * 4 + ("unposed",)
+    assert np.isnan(out.world_from_cam[4]).all() and np.isfinite(out.world_from_cam[:4]).all()
+    assert _pair_errors(out.world_from_cam[:4], truth[:4]).max() < 2.0
+    collapsed = start.copy()
+    collapsed[:, :3, 3] = 0.0
+    assert refine_cameras(list(photos), collapsed, FOCAL, DEPTH_RANGE) is None
+    assert refine_cameras([noise, noise[::-1].copy()], start[:2], FOCAL, DEPTH_RANGE) is None
+    # At the model's resolution: the fallback is the solve itself, bit for bit.
+    H, W = SIZE
+    cams = refine_model_cameras(list(photos), collapsed, [FOCAL / W, FOCAL / H], SIZE,
+                                DEPTH_RANGE)
+    assert cams.source == "epipolar"
+    np.testing.assert_array_equal(cams.world_from_cam, solved.world_from_cam)
+    refined = refine_model_cameras(list(photos), start, [FOCAL / W, FOCAL / H], SIZE,
+                                   DEPTH_RANGE)
+    assert refined.source == "refined" and refined.status == ("solved",) * 6
+    assert refined.focal[0] == pytest.approx(FOCAL / W, rel=0.02)
+
+
+def test_refine_cameras_refuses_bad_input(corner):
+    from iris_runtime.cameras import refine_cameras
+    photos, truth, _ = corner
+    start = _rebased(truth)
+    sheared = start.copy()
+    sheared[1, :3, :3] *= 1.1
+    bottom = start.copy()
+    bottom[2, 3, 0] = 0.5
+    nan = start.copy()
+    nan[3, 0, 3] = np.nan
+    for bad, match in ((start[:5], r"world_from_cam.*\[6, 4, 4\]"),
+                       (start[:, :3], r"world_from_cam.*\[6, 4, 4\]"),
+                       (nan, "world_from_cam: expected finite"),
+                       (sheared, "world_from_cam: expected rigid"),
+                       (bottom, "world_from_cam: expected rigid")):
+        with pytest.raises(InputError, match=match):
+            refine_cameras(list(photos), bad, FOCAL, DEPTH_RANGE)
+    for focal in (0.0, -5.0, np.nan, np.inf, [FOCAL, FOCAL], "230"):
+        with pytest.raises(InputError, match="focal"):
+            refine_cameras(list(photos), start, focal, DEPTH_RANGE)
+    with pytest.raises(InputError, match="depth_range"):
+        refine_cameras(list(photos), start, FOCAL, (1.0, 0.1))
+    with pytest.raises(InputError, match=r"photos\[1\]"):
+        refine_cameras([photos[0], photos[1][:, :100]], start[:2], FOCAL, DEPTH_RANGE)
+
+
 def test_solve_cameras_refuses_bad_input():
     good = [np.zeros((32, 32, 3), np.uint8)] * 2
     for bad, match in (([], "photos"), ([np.zeros((32, 32, 3), np.float32)], r"photos\[0\]"),

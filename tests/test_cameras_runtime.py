@@ -164,6 +164,55 @@ def test_runtime_solves_the_cameras_on_the_photos_at_their_own_resolution(corner
     assert rt.render(epi, 2).shape == (H, W, 3)
 
 
+def test_runtime_refines_the_encoders_cameras(corner, model_dir, monkeypatch):
+    """``encode(cameras="refined")`` starts ``refine_model_cameras`` from the encoder's cameras
+    and focal (here an encoder whose head is 5 degrees off the truth, the focal 10% off, as a
+    trained head is): the cameras land within 2 degrees, the field maps stay the encoder's, the
+    head's cameras are kept beside them and ``locate`` poses a left-out photo against the
+    refinement's points."""
+    import cv2
+
+    from iris_runtime import IrisRuntime
+    from iris_runtime.cameras import refine_model_cameras
+    photos, truth = corner
+    rt = IrisRuntime(model_dir, threads=1)
+    H, W = rt.image_size
+    crop = plan_crop_resize(*SIZE, H, W)
+    K64 = crop.matrix @ np.array([[FOCAL, 0, SIZE[1] / 2], [0, FOCAL, SIZE[0] / 2], [0, 0, 1]])
+    rng = np.random.default_rng(1)
+    head = np.linalg.inv(truth[0]) @ truth
+    for k in range(1, 6):
+        axis = rng.normal(size=3)
+        head[k, :3, :3] = cv2.Rodrigues(axis / np.linalg.norm(axis) * np.radians(5.0))[0] \
+            @ head[k, :3, :3]
+    head_focal = np.array([1.1 * K64[0, 0] / W, 1.1 * K64[1, 1] / H], np.float32)
+    run = rt._run_encoder
+
+    def encoder(batch, is_ref):          # the head's cameras when encoding all six, its focal
+        maps, poses, _ = run(batch, is_ref)
+        if len(batch) == 6 and np.all(is_ref):
+            poses = head.astype(np.float32)
+        return maps, poses, head_focal
+    monkeypatch.setattr(rt, "_run_encoder", encoder)
+    images = list(photos)
+    model = rt.encode(images, cameras="model")
+    got = rt.encode(images, cameras="refined")
+    assert got.camera_source == "refined" and got.camera_status == ("solved",) * 6
+    assert got.camera_size == SIZE
+    np.testing.assert_array_equal(got.field_maps, model.field_maps)
+    np.testing.assert_array_equal(got.encoder_world_from_cam, model.world_from_cam)
+    np.testing.assert_array_equal(got.encoder_focal, model.focal)
+    want = refine_model_cameras(images, model.world_from_cam, model.focal, (H, W),
+                                (rt.near, rt.far))
+    np.testing.assert_array_equal(got.world_from_cam, want.world_from_cam)
+    rel = np.linalg.inv(truth[0]) @ truth
+    for k in range(6):
+        assert _angle_deg(got.world_from_cam[k, :3, :3], rel[k, :3, :3]) < 2.0
+    assert got.K[0, 0] == pytest.approx(K64[0, 0], rel=0.03)
+    T, status = rt.locate(got.subset([0, 1, 2, 4, 5]), photos[3], with_status=True)
+    assert status == "located" and _angle_deg(T[:3, :3], rel[3, :3, :3]) < 2.0
+
+
 def test_runtime_model_cameras_are_bitwise_unchanged(corner, model_dir):
     from iris_runtime import IrisRuntime
     photos, _ = corner

@@ -518,11 +518,25 @@ def test_tolerance_exceeded_raises_and_writes_nothing(checkpoint, tmp_path, monk
     assert not out.exists() and _siblings(out) == []
 
 
-@pytest.mark.parametrize("kwargs", [{"opset": 17}, {"opset": 1000}, {"quantize": "int4"}, {"threads": 0}])
+@pytest.mark.parametrize("kwargs", [{"opset": 17}, {"opset": 1000}, {"quantize": "int4"}, {"threads": 0},
+                                    {"cameras": "refined"}, {"cameras": "epipolar"},
+                                    {"cameras": "colmap"}])
 def test_bad_arguments_are_refused(checkpoint, tmp_path, kwargs):
-    with pytest.raises(ExportArgumentError):
+    with pytest.raises(ExportArgumentError):      # the checkpoint's renderer: "model" cameras
         export_model(checkpoint, tmp_path / "out", progress=False, **kwargs)
     assert not (tmp_path / "out").exists()
+
+
+def test_default_cameras_are_the_trained_ones_or_refined_over_solved_ones():
+    """The manifest's default cameras: the ones the renderer was trained with, or "refined" (the
+    camera head's refined by the photos, in the solve's unit) over a renderer trained on the
+    solve's cameras; nothing else."""
+    assert pipeline._default_cameras(None, "epipolar") == "epipolar"
+    assert pipeline._default_cameras("refined", "epipolar") == "refined"
+    assert pipeline._default_cameras("model", "model") == "model"
+    for cameras, trained in (("refined", "model"), ("model", "epipolar"), ("epipolar", "model")):
+        with pytest.raises(ExportArgumentError, match=f"not {cameras!r}"):
+            pipeline._default_cameras(cameras, trained)
 
 
 def test_cli_help():

@@ -12,8 +12,10 @@ each, in the order they run (COLMAP's incremental structure from motion, scaled 
 6. ``locate``: the pose of a photo from its matches to known points (PnP);
 7. ``mapper``: the incremental mapper that runs 4-6 view by view;
 8. ``solve``: the entry point (canonical order, scale, per-view status);
-9. ``replace``: a model's predicted cameras replaced by the solve, at the model's resolution
-   (what ``IrisRuntime.encode(cameras="epipolar")`` does).
+9. ``refine``: cameras a model predicted refined by the photos (matches, one bundle adjustment
+   started from them: no mapper);
+10. ``replace``: a model's predicted cameras replaced by the solve or refined, at the model's
+   resolution (what ``IrisRuntime.encode(cameras="epipolar" | "refined")`` does).
 
 Conventions (DESIGN.md): OpenCV axes, ``world_from_cam`` camera-to-world with view 0 = I, pixel
 (row i, col j) centred at (j + 0.5, i + 0.5). Measurements behind the choices: docs/CAMERAS.md.
@@ -21,9 +23,10 @@ Conventions (DESIGN.md): OpenCV axes, ``world_from_cam`` camera-to-world with vi
 from .features import canonical_order
 from .locate import PointMap, locate_photos, locate_views
 from .mapper import MapperOptions
-from .replace import ModelCameras, replace_model_cameras
+from .refine import refine_cameras
+from .replace import ModelCameras, refine_model_cameras, replace_model_cameras
 from .solve import DEPTH_TARGET, STATUSES, CameraSolve, solve_cameras
 
-__all__ = ["solve_cameras", "CameraSolve", "MapperOptions", "PointMap", "locate_photos",
-           "locate_views", "replace_model_cameras", "ModelCameras", "canonical_order",
-           "DEPTH_TARGET", "STATUSES"]
+__all__ = ["solve_cameras", "refine_cameras", "CameraSolve", "MapperOptions", "PointMap",
+           "locate_photos", "locate_views", "replace_model_cameras", "refine_model_cameras",
+           "ModelCameras", "canonical_order", "DEPTH_TARGET", "STATUSES"]

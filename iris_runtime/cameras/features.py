@@ -162,9 +162,9 @@ def match_features(a: Features, b: Features) -> np.ndarray:
     rows = np.arange(sim.shape[0])
     nearest = np.argmax(sim, axis=1)
     best = sim[rows, nearest]
-    sim_b = sim.copy()
-    sim_b[rows, nearest] = -np.inf
-    second = sim_b.max(axis=1)
+    sim[rows, nearest] = -np.inf              # in place (no copy of [Na, Nb]), restored below
+    second = sim.max(axis=1)
+    sim[rows, nearest] = best
     d_best = np.sqrt(np.maximum(2.0 - 2.0 * best, 0.0))
     d_second = np.sqrt(np.maximum(2.0 - 2.0 * second, 0.0))
     ok = (d_best < MAX_RATIO * d_second) & (d_best < MAX_DISTANCE)

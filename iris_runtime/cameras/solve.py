@@ -21,8 +21,8 @@ from .tracks import Tracks, build_tracks
 from .two_view import (MAX_ERROR, estimate_from_distinct, estimate_two_view, fundamental_matrix,
                        intrinsics, pixel_scale, sampson_distances)
 
-__all__ = ["CameraSolve", "solve_cameras", "check_photos", "STATUSES", "DEPTH_TARGET",
-           "FOCAL_PRIORS", "LOCATE_MIN_INLIERS"]
+__all__ = ["CameraSolve", "solve_cameras", "check_photos", "check_depth_range", "finish_solve",
+           "STATUSES", "DEPTH_TARGET", "FOCAL_PRIORS", "LOCATE_MIN_INLIERS"]
 
 #: Per-view outcome: registered in the joint solve, posed against its points afterwards with the
 #: points held fixed, or not posed at all.
@@ -102,6 +102,16 @@ def check_photos(photos, name: str = "photos") -> list[np.ndarray]:
     return items
 
 
+def check_depth_range(depth_range) -> tuple[float, float]:
+    """``depth_range`` as floats ``(near, far)`` with 0 <= near < far, or ``InputError``."""
+    near, far = (float(x) for x in np.asarray(depth_range, np.float64).reshape(-1)[:2]) \
+        if np.size(depth_range) == 2 else (np.nan, np.nan)
+    if not (np.isfinite(near) and np.isfinite(far) and 0 <= near < far):
+        raise InputError(f"depth_range: expected (near, far) with 0 <= near < far, got "
+                         f"{depth_range!r}")
+    return near, far
+
+
 def _point_map(rec: Reconstruction, tracks: Tracks, features, perm, k: int) -> PointMap:
     """The reconstruction's valid points and their active observations (views in the caller's
     numbering), their descriptors found in the photos enlarged ``k`` times."""
@@ -165,11 +175,7 @@ def solve_cameras(photos, depth_range: tuple[float, float], *, focal: float | No
     not register posed against its points (``locate``). Deterministic and order-free.
     """
     photos = check_photos(photos)
-    near, far = (float(x) for x in np.asarray(depth_range, np.float64).reshape(-1)[:2]) \
-        if np.size(depth_range) == 2 else (np.nan, np.nan)
-    if not (np.isfinite(near) and np.isfinite(far) and 0 <= near < far):
-        raise InputError(f"depth_range: expected (near, far) with 0 <= near < far, got "
-                         f"{depth_range!r}")
+    near, far = check_depth_range(depth_range)
     if focal is not None and not (np.isfinite(focal) and focal > 0):
         raise InputError(f"focal: expected a positive number of pixels, got {focal!r}")
     V = len(photos)
@@ -226,9 +232,7 @@ def solve_cameras(photos, depth_range: tuple[float, float], *, focal: float | No
 
     status = np.array(["unposed"] * V, dtype=object)
     if rec is None:
-        empty = PointMap(np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros(0, np.int64),
-                         np.zeros((0, 128), np.uint8), k)
-        return CameraSolve(np.full((V, 4, 4), np.nan), f0 / k, size, tuple(status), -1, 1.0, empty)
+        return _unposed(V, f0 / k, size, k)
     status[perm[rec.registered]] = "solved"
     cam_from_world = np.full((V, 4, 4), np.nan)          # canonical numbering
     for v in np.flatnonzero(rec.registered):
@@ -242,6 +246,27 @@ def solve_cameras(photos, depth_range: tuple[float, float], *, focal: float | No
             cam_from_world[v] = np.eye(4)
             cam_from_world[v, :3, :3], cam_from_world[v, :3, 3] = pose[0], pose[1]
             status[perm[v]] = "located"
+    return finish_solve(rec, tracks, features, cam_from_world, status, perm, k, size,
+                        (near, far))
+
+
+def _unposed(V: int, focal: float, size: tuple[int, int], k: int) -> CameraSolve:
+    """The solve of photos none of which could be posed."""
+    empty = PointMap(np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros(0, np.int64),
+                     np.zeros((0, 128), np.uint8), k)
+    return CameraSolve(np.full((V, 4, 4), np.nan), focal, size, ("unposed",) * V, -1, 1.0, empty)
+
+
+def finish_solve(rec: Reconstruction, tracks: Tracks, features, cam_from_world: np.ndarray,
+                 status: np.ndarray, perm: np.ndarray, k: int, size: tuple[int, int],
+                 depth_range: tuple[float, float]) -> CameraSolve:
+    """The ``CameraSolve`` of a finished reconstruction: ``cam_from_world [V, 4, 4]`` (NaN where
+    unposed) and ``status`` per view, in the numbering of ``features``, which are the caller's
+    views ``perm``, found in photos of ``size`` enlarged ``k`` times. The first posed view of the
+    caller's becomes the root (the identity), and the unit puts the median depth of the points
+    ``DEPTH_TARGET`` of the way into ``depth_range``."""
+    near, far = depth_range
+    V = len(status)
     world_from_cam = np.full((V, 4, 4), np.nan)
     posed = np.isfinite(cam_from_world).all(axis=(1, 2))
     world_from_cam[perm[posed]] = np.linalg.inv(cam_from_world[posed])

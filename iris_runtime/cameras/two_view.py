@@ -16,6 +16,7 @@ import cv2
 import numpy as np
 
 __all__ = ["TwoViewGeometry", "estimate_two_view", "estimate_from_distinct", "relative_pose",
+           "essential_pose",
            "intrinsics", "triangulation_angles", "fundamental_matrix", "sampson_distances",
            "pixel_scale", "CONFIGS", "MIN_INLIERS", "MIN_E_F_INLIER_RATIO", "MAX_H_INLIER_RATIO",
            "ESTIMATOR", "CONFIDENCE", "REFERENCE_SIZE", "MAX_ERROR"]
@@ -125,6 +126,25 @@ def relative_pose(p: np.ndarray, q: np.ndarray, focal: float, image_size: tuple[
     r2 = np.c_[q[good], np.ones(good.sum())] @ Kinv.T @ R            # in camera 1
     ang, front = triangulation_angles(r1, np.zeros(3), r2, -R.T @ T[:3, 3])
     return T, float(np.degrees(np.median(ang[front]))) if front.any() else 0.0
+
+
+def essential_pose(p: np.ndarray, q: np.ndarray, focal: float, image_size: tuple[int, int],
+                   max_error: float) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(inliers bool [N], cam2_from_cam1 [4, 4])``: the matched pixels ``p -> q [N, 2]``
+    consistent with their essential matrix at ``focal`` within ``max_error`` pixels, and its
+    pose (the decomposition in front of both cameras, unit translation), or None when fewer than
+    ``MIN_INLIERS`` are consistent."""
+    if len(p) < MIN_INLIERS:
+        return None
+    K = intrinsics(focal, image_size)
+    E, mask = _robust(lambda *a: cv2.findEssentialMat(*a), p, q, K, ESTIMATOR, CONFIDENCE,
+                      max_error)
+    if E is None or mask.sum() < MIN_INLIERS:
+        return None
+    _, R, t, _ = cv2.recoverPose(E, p, q, K, mask=mask.astype(np.uint8))
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, t.ravel() / max(np.linalg.norm(t), 1e-300)
+    return mask, T
 
 
 def fundamental_matrix(cam2_from_cam1: np.ndarray, K: np.ndarray) -> np.ndarray:

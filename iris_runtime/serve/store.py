@@ -35,7 +35,7 @@ class StoredScene:
     scene: Scene
     nbytes: int
     created: float          # time.time() when stored
-    cameras: str            # the cameras asked for at encode ("model" or "epipolar")
+    cameras: str            # the cameras asked for at encode (``manifest.CAMERAS``)
 
 
 class SceneStore:

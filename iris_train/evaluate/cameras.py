@@ -144,7 +144,8 @@ class PosedScene:
 
     encoded:          the backend's scene (references in presentation order)
     world_from_cam:   float64 [V, 4, 4]  the cameras rendered from / at (references and targets)
-    source:           "model", "epipolar", "mixed" (the Scene's ``camera_source``) or "true"
+    source:           "model", "epipolar", "refined", "mixed" (the Scene's ``camera_source``) or
+                      "true"
     references_solved: bool [V] over frames (False for targets), which reference cameras the
                       epipolar solve (or the data) gave; None with the model's cameras
     targets_located:  bool [V] over frames, which targets ``cameras.locate_views`` posed (or the
@@ -178,7 +179,8 @@ def pose_scene(backend, scene: PreparedScene, ref_order: Sequence[int],
     The model sees ``scene.images``; the camera solve sees ``scene.photos``, the frames at their
     own resolution, as ``IrisRuntime.encode(photos, cameras="epipolar")`` does with a user's.
     References: the model's cameras, the solve's (``replace_model_cameras``: a view it cannot
-    pose keeps the model's camera) or ``true_cameras`` (needs the scene's true poses and K, else
+    pose keeps the model's camera), the model's refined by the photos (``refine_model_cameras``)
+    or ``true_cameras`` (needs the scene's true poses and K, else
     ``InputError``). Targets: the model's ``locate``; ``"epipolar"``: posed against the solve's
     points with its cameras fixed (``CameraSolve.locate``, as ``IrisRuntime.locate``), or with model
     or true reference cameras against those (``locate_views`` at the model's resolution), the
@@ -202,10 +204,11 @@ def pose_scene(backend, scene: PreparedScene, ref_order: Sequence[int],
     if cameras == "true":
         encoded = backend.with_cameras(encoded, truth.world_from_cam[ref_order], truth.focal)
         source, refs_solved = "true", np.ones(len(ref_order), dtype=bool)
-    elif cameras == "epipolar":
-        from iris_runtime.cameras import replace_model_cameras
-        cams = replace_model_cameras([photos[r] for r in ref_order], backend.poses(encoded),
-                                     focal_of(encoded), backend.image_size, backend.depth_range)
+    elif cameras in ("epipolar", "refined"):
+        from iris_runtime.cameras import refine_model_cameras, replace_model_cameras
+        replace = refine_model_cameras if cameras == "refined" else replace_model_cameras
+        cams = replace([photos[r] for r in ref_order], backend.poses(encoded), focal_of(encoded),
+                       backend.image_size, backend.depth_range)
         encoded = backend.with_cameras(encoded, cams.world_from_cam, cams.focal)
         source, solve = cams.source, cams.solve
         refs_solved = np.array([st != "unposed" for st in cams.status], dtype=bool)
@@ -222,11 +225,11 @@ def pose_scene(backend, scene: PreparedScene, ref_order: Sequence[int],
         located = np.ones(len(target_order), dtype=bool)
     else:
         poses = backend.locate(encoded, images[ref_order], images[target_order])
-        if locate == "epipolar":
+        if locate in ("epipolar", "refined"):
             from iris_runtime.cameras import locate_views
             if solve is not None:                 # as IrisRuntime.locate of a solved Scene
                 epi, located = solve.locate([photos[t] for t in target_order])
-            elif cameras == "epipolar":        # view 0 unposed: the runtime keeps the model's
+            elif cameras != "model":           # view 0 unposed: the runtime keeps the model's
                 epi, located = poses, np.zeros(len(target_order), dtype=bool)
             else:
                 epi, located = locate_views(images[ref_order], pred[ref_order],
@@ -234,9 +237,9 @@ def pose_scene(backend, scene: PreparedScene, ref_order: Sequence[int],
             poses = np.where(located[:, None, None], epi, poses)
         pred[target_order] = poses
     fallbacks = 0
-    if cameras == "epipolar":
+    if cameras in ("epipolar", "refined"):
         fallbacks += int((~refs_solved).sum())
-    if locate == "epipolar":
+    if locate in ("epipolar", "refined"):
         fallbacks += int((~located).sum())
     return PosedScene(
         encoded, pred, source, _over_frames(refs_solved, ref_order, V),

@@ -90,7 +90,7 @@ def format_cameras(results: dict) -> list[str]:
         frac = c["targets_epipolar"]
         out.append(f"{order.capitalize()}: references' cameras {c['references']} (scenes by "
                    f"source: {c['sources']}), targets {c['targets']}"
-                   + ("" if frac is None or c["targets"] != "epipolar" else
+                   + ("" if frac is None or c["targets"] not in ("epipolar", "refined") else
                       f" ({100 * frac:.0f}% of targets posed by the epipolar solve)")
                    + f"; {c['fallbacks']} view(s) fell back to the camera head in "
                      f"{c['scenes_with_fallbacks']} scene(s)"

@@ -1,0 +1,242 @@
+"""Step 9 of the camera solve: cameras a model predicted, refined by the photos.
+
+The incremental mapper (``mapper``) spends most of the solve finding a start: starting pairs,
+focal priors and view-by-view registrations, tried until one reconstruction explains the photos.
+A model's camera head already gives every view a pose and the focal, so here they are the start
+of one bundle adjustment instead: SIFT matches of every pair (``features``), kept where their
+essential matrix at the model's focal explains them (``two_view.essential_inliers``, which needs
+no pose), tracks (``tracks``), points triangulated at the model's cameras, then the bundle
+adjustment (``bundle``) twice: the poses with the focal held (a pose error of several degrees
+moves the focal as much as a wrong focal does), observations reprojecting badly dropped and
+points triangulated again, then poses, points and focal together. The result is in the solve's
+terms (``solve.CameraSolve``, its unit and root), so it replaces a model's cameras as the solve
+does (``replace.refine_model_cameras``). Its accuracy rests on the model's start: a head far
+from the truth leads the adjustment into a wrong minimum (docs/CAMERAS.md, "Refining the
+model's cameras").
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import InputError
+from .bundle import bundle_adjust, reprojection_errors
+from .features import match_features, scene_features
+from .mapper import MapperOptions, Reconstruction, _score
+from .solve import (LOCATE_MIN_INLIERS, CameraSolve, check_depth_range, check_photos,
+                    finish_solve)
+from .tracks import build_tracks
+from .triangulation import triangulate
+from .two_view import MAX_ERROR, essential_pose, pixel_scale
+
+__all__ = ["refine_cameras", "average_rotations", "average_centres", "STARTS", "REFINE_ROUNDS",
+           "RETRIANGULATION_ANGLE", "REFINED_MIN_OBSERVATIONS", "AVERAGING_ROUNDS",
+           "AVERAGING_SCALE"]
+
+#: The cameras the adjustment starts from: the model's ("model"), the model's centres turned by
+#: the pairs' rotations (their essential matrices' rotations averaged, ``average_rotations``:
+#: "rotations"), and the pairs' rotations with the centres their translation directions give
+#: (``average_centres``: "pairs", which needs nothing of the model but its focal); the
+#: adjustment that registers the most views and reprojects the observations best
+#: (``mapper._score``) is kept. A head a few degrees off starts well from its own cameras; where
+#: it has not learned a scene's rotations, or its centres, the pairs' do better (docs/CAMERAS.md,
+#: "Refining the model's cameras").
+STARTS = ("model", "rotations", "pairs")
+#: Reweighting rounds of the rotation averaging, and its Cauchy scale (degrees).
+AVERAGING_ROUNDS = 4
+AVERAGING_SCALE = 5.0
+
+#: The bundle adjustment's rounds: (Levenberg-Marquardt iterations, whether the focal moves).
+REFINE_ROUNDS = ((20, False), (50, True))
+#: Points dropped after the first round are triangulated again where seen under this angle
+#: (degrees) or more.
+RETRIANGULATION_ANGLE = 0.5
+#: A view counts as refined ("solved") with this many observations left after the last round;
+#: others are reported "unposed" (the caller keeps the model's camera for them).
+REFINED_MIN_OBSERVATIONS = LOCATE_MIN_INLIERS
+#: Rigid-pose tolerance of the model's cameras: |R^T R - I| and the last row.
+_RIGID_TOLERANCE = 1e-3
+
+
+def _check_start(world_from_cam, focal, V: int) -> tuple[np.ndarray, float]:
+    poses = np.asarray(world_from_cam, dtype=np.float64)
+    if poses.shape != (V, 4, 4) or not np.isfinite(poses).all():
+        raise InputError(f"world_from_cam: expected finite float [{V}, 4, 4] (one pose per photo),"
+                         f" got shape {poses.shape}")
+    R = poses[:, :3, :3]
+    if (np.abs(R.transpose(0, 2, 1) @ R - np.eye(3)).max() > _RIGID_TOLERANCE
+            or np.abs(np.linalg.det(R) - 1).max() > _RIGID_TOLERANCE
+            or np.abs(poses[:, 3] - [0, 0, 0, 1]).max() > _RIGID_TOLERANCE):
+        raise InputError("world_from_cam: expected rigid poses (rotation and translation, last "
+                         "row 0 0 0 1)")
+    if (isinstance(focal, (bool, np.bool_)) or not isinstance(focal, (int, float, np.number))
+            or not np.isfinite(focal) or focal <= 0):
+        raise InputError(f"focal: expected a positive number of pixels, got {focal!r}")
+    return poses, float(focal)
+
+
+def average_rotations(relative: dict[tuple[int, int], tuple[np.ndarray, float]],
+                      R_start: np.ndarray) -> np.ndarray:
+    """Rotations ``R [V, 3, 3]`` (cam_from_world) that agree best with the pairs' relative
+    rotations ``relative {(a, b): (R_ab [3, 3] cam_b_from_cam_a, weight)}``: chordal L2
+    averaging (the top three eigenvectors of the block matrix of the pairs, each block projected
+    onto SO(3)), reweighted ``AVERAGING_ROUNDS`` times by the pairs' residual angles (Cauchy,
+    ``AVERAGING_SCALE`` degrees) so that a wrong pair does not drag the others. View 0 keeps
+    ``R_start[0]``; views no pair links to view 0 keep ``R_start``'s."""
+    V = len(R_start)
+    linked, grew = {0}, True
+    while grew:
+        grew = False
+        for a, b in relative:
+            if (a in linked) != (b in linked):
+                linked |= {a, b}
+                grew = True
+    views = sorted(linked)
+    pos = {v: k for k, v in enumerate(views)}
+    pairs = [(pos[a], pos[b], R_ab, w) for (a, b), (R_ab, w) in relative.items()
+             if a in pos and b in pos]
+    out = R_start.copy()
+    if len(views) < 2:
+        return out
+    weights = np.array([w for *_, w in pairs], np.float64)
+    for _ in range(AVERAGING_ROUNDS):
+        G = np.zeros((3 * len(views), 3 * len(views)))
+        for (i, j, R_ij, _), w in zip(pairs, weights):
+            G[3 * j:3 * j + 3, 3 * i:3 * i + 3] += w * R_ij
+            G[3 * i:3 * i + 3, 3 * j:3 * j + 3] += w * R_ij.T
+        X = np.linalg.eigh(G)[1][:, -3:].reshape(len(views), 3, 3)
+        Q = _nearest_rotations(X @ np.linalg.inv(X[0]))          # view k from view 0
+        residual = np.array([np.degrees(_angle(Q[j] @ Q[i].T, R_ij)) for i, j, R_ij, _ in pairs])
+        weights = np.array([w for *_, w in pairs]) / (1.0 + (residual / AVERAGING_SCALE) ** 2)
+    out[views] = Q @ R_start[0]
+    return out
+
+
+def average_centres(relative: dict[tuple[int, int], tuple[np.ndarray, float]], R: np.ndarray,
+                    start: np.ndarray) -> np.ndarray:
+    """Camera centres ``[V, 3]`` whose baselines point along the pairs' translation directions
+    (``relative {(a, b): (cam_b_from_cam_a [4, 4] (unit translation), weight)}``, rotations
+    ``R [V, 3, 3]`` cam_from_world): the least-squares null vector of d_ab x (c_a - c_b) = 0
+    with c_0 fixed at ``start [V, 3]``'s, scaled (and signed) to agree best with ``start``'s
+    centres; ``start`` itself where the directions leave more than that scale free."""
+    V = len(R)
+    rows = []
+    for (a, b), (T, w) in relative.items():
+        d = R[b].T @ T[:3, 3]                         # c_a - c_b, in the world frame
+        cross = np.array([[0.0, -d[2], d[1]], [d[2], 0.0, -d[0]], [-d[1], d[0], 0.0]])
+        A = np.zeros((3, 3 * V))
+        A[:, 3 * a:3 * a + 3], A[:, 3 * b:3 * b + 3] = cross, -cross
+        rows.append(np.sqrt(w) * A)
+    if not rows:
+        return start
+    A = np.concatenate(rows)[:, 3:]                   # c_0 is fixed
+    if A.shape[0] < A.shape[1]:
+        return start
+    _, sv, Vt = np.linalg.svd(A)
+    if sv[-2] < 1e-9 * sv[0]:
+        return start
+    c = np.concatenate([np.zeros(3), Vt[-1]]).reshape(V, 3)
+    rel = start - start[0]
+    return start[0] + c * (np.sum(c * rel) / max(np.sum(c * c), 1e-300))
+
+
+def _nearest_rotations(M: np.ndarray) -> np.ndarray:
+    U, _, Vt = np.linalg.svd(M)
+    D = np.ones(M.shape[:-1])
+    D[..., -1] = np.sign(np.linalg.det(U @ Vt))
+    return (U * D[..., None, :]) @ Vt
+
+
+def _angle(Ra: np.ndarray, Rb: np.ndarray) -> float:
+    return float(np.arccos(np.clip((np.trace(Ra.T @ Rb) - 1.0) / 2.0, -1.0, 1.0)))
+
+
+def _adjust_from(R, t, f, centre, tracks, scale_view, max_error, loss_scale):
+    """The rounds of ``REFINE_ROUNDS`` from cameras (R, t, f): ``(R, t, f, points, active)`` or
+    None when the focal left the positive numbers."""
+    observed = tracks.observed
+    X, ok = triangulate(R, t, f, centre, tracks.uv, observed, max_error=np.inf, min_angle=0.0)
+    active = observed & ok[:, None]
+    for round_, (iterations, refine_focal) in enumerate(REFINE_ROUNDS):
+        keep = active.sum(1) >= 2
+        res = bundle_adjust(R, t, f, centre, X[keep], tracks.uv[keep], active[keep],
+                            fixed_view=0, scale_view=scale_view, refine_focal=refine_focal,
+                            loss_scale=loss_scale, max_iterations=iterations)
+        if not (np.isfinite(res.focal) and res.focal > 0):
+            return None
+        R, t, f = res.R, res.t, res.focal
+        X[keep] = res.points
+        err, z = reprojection_errors(R, t, f, centre, X, tracks.uv)
+        active &= (err <= max_error) & (z > 0)
+        if round_ + 1 < len(REFINE_ROUNDS):
+            X2, ok2 = triangulate(R, t, f, centre, tracks.uv, observed, max_error=max_error,
+                                  min_angle=RETRIANGULATION_ANGLE)
+            again = ok2 & (active.sum(1) < 2)
+            X[again], active[again] = X2[again], observed[again]
+    point_ok = active.sum(1) >= 2
+    return R, t, f, X, active & point_ok[:, None]
+
+
+def refine_cameras(photos, world_from_cam, focal: float, depth_range: tuple[float, float], *,
+                   options: MapperOptions | None = None) -> CameraSolve | None:
+    """The cameras of ``photos`` (V uint8 photos of one size, RGB [H, W, 3] or grey [H, W]),
+    refined from a model's: ``world_from_cam [V, 4, 4]`` (rigid, any frame and unit) and
+    ``focal`` (pixels of the photos). Returns a ``CameraSolve`` in the renderer's
+    ``depth_range`` as ``solve_cameras`` does (views left with fewer than
+    ``REFINED_MIN_OBSERVATIONS`` observations "unposed"), or None when the photos do not
+    constrain the cameras: fewer than two views refined, a start without a baseline, or an
+    adjustment that left the focal non-positive. ``options``: ``max_error`` and ``loss_scale``
+    are used (pixels at ``two_view.REFERENCE_SIZE``)."""
+    photos = check_photos(photos)
+    near, far = check_depth_range(depth_range)
+    V = len(photos)
+    start, focal = _check_start(world_from_cam, focal, V)
+    opts = options or MapperOptions()
+    # The scale gauge: one coordinate of the view farthest from view 0 stays where it starts.
+    baseline = np.linalg.norm(start[:, :3, 3] - start[0, :3, 3], axis=1)
+    scale_view = int(np.argmax(baseline))
+    if V < 2 or not baseline[scale_view] > 1e-9 * max(1.0, np.abs(start[:, :3, 3]).max()):
+        return None
+    features, k = scene_features(photos)
+    H, W = features[0].image_size
+    px = pixel_scale((H, W))
+    f = focal * k
+    centre = np.array([W / 2.0, H / 2.0])
+
+    inliers, relative = {}, {}            # relative: {(a, b): (cam_b_from_cam_a, inliers)}
+    for a in range(V):
+        for b in range(a + 1, V):
+            m = match_features(features[a], features[b])
+            pair = essential_pose(features[a].uv[m[:, 0]], features[b].uv[m[:, 1]], f, (H, W),
+                                  MAX_ERROR * px)
+            if pair is not None:
+                inliers[a, b] = m[pair[0]]
+                relative[a, b] = (pair[1], float(pair[0].sum()))
+    tracks = build_tracks(features, inliers)
+    cam_from_world = np.linalg.inv(start)
+    R0, centres = cam_from_world[:, :3, :3], start[:, :3, 3]
+    best, best_key = None, None
+    rotations = {ab: (T[:3, :3], w) for ab, (T, w) in relative.items()}
+    for kind in STARTS:
+        R = R0 if kind == "model" else average_rotations(rotations, R0)
+        c = average_centres(relative, R, centres) if kind == "pairs" else centres
+        t = -np.einsum("vij,vj->vi", R, c)
+        out = _adjust_from(R.copy(), t, f, centre, tracks, scale_view, opts.max_error * px,
+                           opts.loss_scale * px)
+        if out is None:
+            continue
+        R, t, f_out, X, active = out
+        refined = active.sum(0) >= REFINED_MIN_OBSERVATIONS
+        rec = Reconstruction(R, t, f_out, refined, X, active.any(1), tracks.observed & ~active,
+                             (0, scale_view))
+        key = (int(refined.sum()), -_score(rec, tracks, centre, opts))
+        if best_key is None or key > best_key:
+            best, best_key = rec, key
+    if best is None or best.registered.sum() < 2:
+        return None
+    refined = best.registered
+    cams = np.full((V, 4, 4), np.nan)
+    cams[refined] = np.eye(4)
+    cams[refined, :3, :3], cams[refined, :3, 3] = best.R[refined], best.t[refined]
+    status = np.where(refined, "solved", "unposed").astype(object)
+    return finish_solve(best, tracks, features, cams, status, np.arange(V), k,
+                        photos[0].shape[:2], (near, far))
