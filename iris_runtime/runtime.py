@@ -314,7 +314,10 @@ class IrisRuntime:
                  "refined": as "epipolar", but the encoder's cameras and focal are the start of
                  one bundle adjustment on the same matches (``cameras.refine_cameras``: no
                  incremental mapper, a fraction of the solve's time) instead of being replaced;
-                 ``camera_source`` "refined". Where the photos cannot constrain the cameras
+                 ``camera_source`` "refined". The start is the encoder's prediction with the
+                 photos in ``cameras.canonical_order`` (a second encoder run where that order
+                 differs), so that, as the solve's, the cameras do not depend on the order the
+                 photos come in. Where the photos cannot constrain the cameras
                  (fewer than two views keep enough observations) the solve replaces them as
                  with "epipolar". As accurate as the encoder's start is close
                  (docs/CAMERAS.md, "Refining the model's cameras").
@@ -344,9 +347,14 @@ class IrisRuntime:
         model_K = G.intrinsics_from_focal(focal64, H, W)
         if cameras == "model":
             return Scene(maps, poses64, focal64, model_K, (H, W), model_id, batch)
-        from .cameras import refine_model_cameras, replace_model_cameras
-        cams = (refine_model_cameras if cameras == "refined" else replace_model_cameras)(
-            photos, poses64, focal64, (H, W), (self.near, self.far))
+        from .cameras import canonical_start, refine_model_cameras, replace_model_cameras
+        if cameras == "refined":
+            start, start_focal = canonical_start(
+                photos, poses64, focal64,
+                lambda perm: self._run_encoder(batch[perm], np.ones(len(perm), bool))[1:])
+            cams = refine_model_cameras(photos, start, start_focal, (H, W), (self.near, self.far))
+        else:
+            cams = replace_model_cameras(photos, poses64, focal64, (H, W), (self.near, self.far))
         timings["cameras"] = timings.get("cameras", 0.0) + (time.perf_counter() - t2)
         return Scene(maps, cams.world_from_cam, cams.focal, cams.K, (H, W), model_id, batch,
                      camera_source=cams.source,

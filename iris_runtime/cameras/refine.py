@@ -16,11 +16,13 @@ model's cameras").
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from ..errors import InputError
 from .bundle import bundle_adjust, reprojection_errors
-from .features import match_features, scene_features
+from .features import canonical_order, match_features, scene_features
 from .mapper import MapperOptions, Reconstruction, _score
 from .solve import (LOCATE_MIN_INLIERS, CameraSolve, check_depth_range, check_photos,
                     finish_solve)
@@ -47,6 +49,11 @@ AVERAGING_SCALE = 5.0
 
 #: The bundle adjustment's rounds: (Levenberg-Marquardt iterations, whether the focal moves).
 REFINE_ROUNDS = ((20, False), (50, True))
+#: Keypoints matched per photo (the strongest of the solve's ``features.MAX_FEATURES``): the
+#: matching's cost grows with their square and a start needs fewer than a mapper; 0: all.
+MAX_KEYPOINTS = 1024
+#: Rounds run from every start before the best is chosen; the others run on the chosen one.
+CHOOSE_AFTER = 1
 #: Points dropped after the first round are triangulated again where seen under this angle
 #: (degrees) or more.
 RETRIANGULATION_ANGLE = 0.5
@@ -150,30 +157,53 @@ def _angle(Ra: np.ndarray, Rb: np.ndarray) -> float:
     return float(np.arccos(np.clip((np.trace(Ra.T @ Rb) - 1.0) / 2.0, -1.0, 1.0)))
 
 
-def _adjust_from(R, t, f, centre, tracks, scale_view, max_error, loss_scale):
-    """The rounds of ``REFINE_ROUNDS`` from cameras (R, t, f): ``(R, t, f, points, active)`` or
-    None when the focal left the positive numbers."""
-    observed = tracks.observed
-    X, ok = triangulate(R, t, f, centre, tracks.uv, observed, max_error=np.inf, min_angle=0.0)
-    active = observed & ok[:, None]
-    for round_, (iterations, refine_focal) in enumerate(REFINE_ROUNDS):
-        keep = active.sum(1) >= 2
-        res = bundle_adjust(R, t, f, centre, X[keep], tracks.uv[keep], active[keep],
-                            fixed_view=0, scale_view=scale_view, refine_focal=refine_focal,
-                            loss_scale=loss_scale, max_iterations=iterations)
-        if not (np.isfinite(res.focal) and res.focal > 0):
-            return None
-        R, t, f = res.R, res.t, res.focal
-        X[keep] = res.points
-        err, z = reprojection_errors(R, t, f, centre, X, tracks.uv)
-        active &= (err <= max_error) & (z > 0)
-        if round_ + 1 < len(REFINE_ROUNDS):
-            X2, ok2 = triangulate(R, t, f, centre, tracks.uv, observed, max_error=max_error,
-                                  min_angle=RETRIANGULATION_ANGLE)
-            again = ok2 & (active.sum(1) < 2)
-            X[again], active[again] = X2[again], observed[again]
-    point_ok = active.sum(1) >= 2
-    return R, t, f, X, active & point_ok[:, None]
+@dataclass
+class _Adjustment:
+    """One start's state: cam_from_world ``R [V, 3, 3]``, ``t [V, 3]``, ``focal``, one point per
+    track ``X [T, 3]`` and the observations it keeps, ``active [T, V]``."""
+    R: np.ndarray
+    t: np.ndarray
+    focal: float
+    X: np.ndarray
+    active: np.ndarray
+
+
+def _start(R, t, f, centre, tracks) -> _Adjustment:
+    X, ok = triangulate(R, t, f, centre, tracks.uv, tracks.observed, max_error=np.inf,
+                        min_angle=0.0)
+    return _Adjustment(R, t, f, X, tracks.observed & ok[:, None])
+
+
+def _round(a: _Adjustment, iterations: int, refine_focal: bool, last: bool, centre, tracks,
+           scale_view: int, max_error: float, loss_scale: float) -> _Adjustment | None:
+    """One round of the adjustment: bundle-adjust the points seen twice, drop observations
+    beyond ``max_error`` or behind a camera, and (unless ``last``) triangulate the points left
+    with fewer than two again; None when the focal left the positive numbers."""
+    keep = a.active.sum(1) >= 2
+    res = bundle_adjust(a.R, a.t, a.focal, centre, a.X[keep], tracks.uv[keep], a.active[keep],
+                        fixed_view=0, scale_view=scale_view, refine_focal=refine_focal,
+                        loss_scale=loss_scale, max_iterations=iterations)
+    if not (np.isfinite(res.focal) and res.focal > 0):
+        return None
+    X = a.X.copy()
+    X[keep] = res.points
+    err, z = reprojection_errors(res.R, res.t, res.focal, centre, X, tracks.uv)
+    active = a.active & (err <= max_error) & (z > 0)
+    if not last:
+        X2, ok2 = triangulate(res.R, res.t, res.focal, centre, tracks.uv, tracks.observed,
+                              max_error=max_error, min_angle=RETRIANGULATION_ANGLE)
+        again = ok2 & (active.sum(1) < 2)
+        X[again], active[again] = X2[again], tracks.observed[again]
+    else:
+        active &= (active.sum(1) >= 2)[:, None]
+    return _Adjustment(res.R, res.t, res.focal, X, active)
+
+
+def _reconstruction(a: _Adjustment, tracks, scale_view: int) -> Reconstruction:
+    """The adjustment as the mapper's ``Reconstruction`` (a view counts as registered with
+    ``REFINED_MIN_OBSERVATIONS`` observations)."""
+    return Reconstruction(a.R, a.t, a.focal, a.active.sum(0) >= REFINED_MIN_OBSERVATIONS, a.X,
+                          a.active.sum(1) >= 2, tracks.observed & ~a.active, (0, scale_view))
 
 
 def refine_cameras(photos, world_from_cam, focal: float, depth_range: tuple[float, float], *,
@@ -191,12 +221,17 @@ def refine_cameras(photos, world_from_cam, focal: float, depth_range: tuple[floa
     V = len(photos)
     start, focal = _check_start(world_from_cam, focal, V)
     opts = options or MapperOptions()
+    # As the solve: the photos in canonical_order, so that their order only decides the root.
+    perm = canonical_order(photos)
+    start = start[perm]
     # The scale gauge: one coordinate of the view farthest from view 0 stays where it starts.
     baseline = np.linalg.norm(start[:, :3, 3] - start[0, :3, 3], axis=1)
     scale_view = int(np.argmax(baseline))
     if V < 2 or not baseline[scale_view] > 1e-9 * max(1.0, np.abs(start[:, :3, 3]).max()):
         return None
-    features, k = scene_features(photos)
+    features, k = scene_features([photos[v] for v in perm])
+    if MAX_KEYPOINTS:
+        features = [f.subset(np.arange(min(len(f), MAX_KEYPOINTS))) for f in features]
     H, W = features[0].image_size
     px = pixel_scale((H, W))
     f = focal * k
@@ -214,29 +249,32 @@ def refine_cameras(photos, world_from_cam, focal: float, depth_range: tuple[floa
     tracks = build_tracks(features, inliers)
     cam_from_world = np.linalg.inv(start)
     R0, centres = cam_from_world[:, :3, :3], start[:, :3, 3]
-    best, best_key = None, None
     rotations = {ab: (T[:3, :3], w) for ab, (T, w) in relative.items()}
+    args = (centre, tracks, scale_view, opts.max_error * px, opts.loss_scale * px)
+    last = len(REFINE_ROUNDS) - 1
+    best, best_key = None, None
     for kind in STARTS:
         R = R0 if kind == "model" else average_rotations(rotations, R0)
         c = average_centres(relative, R, centres) if kind == "pairs" else centres
-        t = -np.einsum("vij,vj->vi", R, c)
-        out = _adjust_from(R.copy(), t, f, centre, tracks, scale_view, opts.max_error * px,
-                           opts.loss_scale * px)
-        if out is None:
+        a = _start(R.copy(), -np.einsum("vij,vj->vi", R, c), f, centre, tracks)
+        for n, (iterations, refine_focal) in enumerate(REFINE_ROUNDS[:CHOOSE_AFTER]):
+            a = _round(a, iterations, refine_focal, n == last, *args) if a else None
+        if a is None:
             continue
-        R, t, f_out, X, active = out
-        refined = active.sum(0) >= REFINED_MIN_OBSERVATIONS
-        rec = Reconstruction(R, t, f_out, refined, X, active.any(1), tracks.observed & ~active,
-                             (0, scale_view))
-        key = (int(refined.sum()), -_score(rec, tracks, centre, opts))
+        rec = _reconstruction(a, tracks, scale_view)
+        key = (int(rec.registered.sum()), -_score(rec, tracks, centre, opts))
         if best_key is None or key > best_key:
-            best, best_key = rec, key
+            best, best_key = a, key
+    for n, (iterations, refine_focal) in enumerate(REFINE_ROUNDS[CHOOSE_AFTER:], CHOOSE_AFTER):
+        best = _round(best, iterations, refine_focal, n == last, *args) if best else None
+    best = _reconstruction(best, tracks, scale_view) if best else None
     if best is None or best.registered.sum() < 2:
         return None
-    refined = best.registered
+    refined = best.registered                                      # canonical numbering
     cams = np.full((V, 4, 4), np.nan)
     cams[refined] = np.eye(4)
     cams[refined, :3, :3], cams[refined, :3, 3] = best.R[refined], best.t[refined]
-    status = np.where(refined, "solved", "unposed").astype(object)
-    return finish_solve(best, tracks, features, cams, status, np.arange(V), k,
-                        photos[0].shape[:2], (near, far))
+    status = np.array(["unposed"] * V, dtype=object)
+    status[perm[refined]] = "solved"
+    return finish_solve(best, tracks, features, cams, status, perm, k, photos[0].shape[:2],
+                        (near, far))

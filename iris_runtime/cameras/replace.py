@@ -13,10 +13,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..images import camera_copies
+from .features import canonical_order
 from .refine import refine_cameras
 from .solve import CameraSolve, solve_cameras
 
-__all__ = ["ModelCameras", "replace_model_cameras", "refine_model_cameras"]
+__all__ = ["ModelCameras", "replace_model_cameras", "refine_model_cameras", "canonical_start"]
 
 
 @dataclass(frozen=True)
@@ -60,6 +61,25 @@ def refine_model_cameras(photos, world_from_cam, focal, image_size: tuple[int, i
         return _replaced(solve_cameras(copies, depth_range), "epipolar", model, model_focal,
                          model_K, model_from_camera, image_size)
     return _replaced(solve, "refined", model, model_focal, model_K, model_from_camera, image_size)
+
+
+def canonical_start(photos, world_from_cam, focal, encode) -> tuple[np.ndarray, np.ndarray]:
+    """The camera head's cameras of ``photos`` as it predicts them with the photos in
+    ``canonical_order``, put back in the photos' order and re-based on view 0, and its focal:
+    the start ``refine_model_cameras`` then does not depend on the order the photos came in (the
+    head's cameras do: view 0 is their frame). ``world_from_cam [V, 4, 4]``, ``focal`` [2]: the
+    head's in the given order, used as they are when that order is the canonical one;
+    ``encode(perm) -> (world_from_cam [V, 4, 4], focal [2])``: the head on the photos taken in
+    the order ``perm``."""
+    perm = canonical_order([np.asarray(p) for p in photos])
+    if np.array_equal(perm, np.arange(len(perm))):
+        return np.asarray(world_from_cam, np.float64), np.asarray(focal, np.float64)
+    poses, head_focal = encode(perm)
+    out = np.empty((len(perm), 4, 4))
+    out[perm] = np.asarray(poses, np.float64)
+    out = np.linalg.inv(out[0]) @ out
+    out[0] = np.eye(4)
+    return out, np.asarray(head_focal, np.float64)
 
 
 def _model(world_from_cam, focal, image_size):

@@ -205,10 +205,20 @@ def pose_scene(backend, scene: PreparedScene, ref_order: Sequence[int],
         encoded = backend.with_cameras(encoded, truth.world_from_cam[ref_order], truth.focal)
         source, refs_solved = "true", np.ones(len(ref_order), dtype=bool)
     elif cameras in ("epipolar", "refined"):
-        from iris_runtime.cameras import refine_model_cameras, replace_model_cameras
-        replace = refine_model_cameras if cameras == "refined" else replace_model_cameras
-        cams = replace([photos[r] for r in ref_order], backend.poses(encoded), focal_of(encoded),
-                       backend.image_size, backend.depth_range)
+        from iris_runtime.cameras import (canonical_start, refine_model_cameras,
+                                          replace_model_cameras)
+        ref_photos = [photos[r] for r in ref_order]
+        poses, focal = backend.poses(encoded), focal_of(encoded)
+        if cameras == "refined":             # as IrisRuntime.encode: the head in canonical order
+            def head(perm):
+                again = backend.encode(images[ref_order][perm])
+                return backend.poses(again), focal_of(again)
+            poses, focal = canonical_start(ref_photos, poses, focal, head)
+            cams = refine_model_cameras(ref_photos, poses, focal, backend.image_size,
+                                        backend.depth_range)
+        else:
+            cams = replace_model_cameras(ref_photos, poses, focal, backend.image_size,
+                                         backend.depth_range)
         encoded = backend.with_cameras(encoded, cams.world_from_cam, cams.focal)
         source, solve = cams.source, cams.solve
         refs_solved = np.array([st != "unposed" for st in cams.status], dtype=bool)
