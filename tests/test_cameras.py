@@ -627,6 +627,10 @@ def test_small_photos_are_enlarged_to_the_low_texture_size_in_one_pass(corner, m
         feats[0].uv, extract_features(F.enlarge(small[0], 5),
                                       contrast_threshold=F.SMALL_CONTRAST_THRESHOLD).uv)
     assert len(feats[0]) > len(at_default)
+    # The refinement's smaller enlargement: to MIN_SIZE (k 4), one pass.
+    calls.clear()
+    feats, k = F.scene_features(small, small_size=F.MIN_SIZE)
+    assert k == 4 and calls == [(192, 256, 3)] * 3 and feats[0].image_size == (192, 256)
 
 
 # ----------------------------------------------------------------------------------------------

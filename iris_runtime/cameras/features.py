@@ -88,24 +88,26 @@ def contrast_threshold(image_size: tuple[int, int]) -> float:
     return SMALL_CONTRAST_THRESHOLD if max(image_size) < MIN_SIZE else CONTRAST_THRESHOLD
 
 
-def scene_features(photos) -> tuple[list[Features], int]:
+def scene_features(photos, small_size: int = LOW_TEXTURE_SIZE) -> tuple[list[Features], int]:
     """SIFT features of the photos of one scene (uint8, one size) and the whole factor ``k`` of
     the enlarged photos they were found in (``Features.uv`` in their pixels): ``enlargement``,
     raised to reach ``LOW_TEXTURE_SIZE`` when the photos' median keypoint count is below
     ``MIN_KEYPOINTS``: the smallest whole k with k x longer side >= it. Photos enlarged anyway
     (under ``MIN_SIZE``) are enlarged that far at once: nearly all of them are low-texture at
     ``MIN_SIZE``, and one SIFT pass is spared (docs/CAMERAS.md, "Small photos"); their keypoints
-    are found at ``contrast_threshold``. The factor depends on the set of photos, not on their
-    order."""
+    are found at ``contrast_threshold``. ``small_size``: the longer side photos under ``MIN_SIZE``
+    are enlarged to at least (``MIN_SIZE``: one SIFT pass at that size, as ``refine`` does). The
+    factor depends on the set of photos, not on their order."""
     size = np.asarray(photos[0]).shape[:2]
     k = enlargement(size)
-    k_low = max(k, -(-LOW_TEXTURE_SIZE // max(size)))
-    if k > 1:
+    small = k > 1
+    k_low = max(k, -(-(small_size if small else LOW_TEXTURE_SIZE) // max(size)))
+    if small:
         k = k_low
     threshold = contrast_threshold(size)
     feats = [extract_features(enlarge(np.asarray(p), k), contrast_threshold=threshold)
              for p in photos]
-    if k_low > k and np.median([len(f) for f in feats]) < MIN_KEYPOINTS:
+    if not small and k_low > k and np.median([len(f) for f in feats]) < MIN_KEYPOINTS:
         k = k_low
         feats = [extract_features(enlarge(np.asarray(p), k), contrast_threshold=threshold)
                  for p in photos]
