@@ -21,7 +21,7 @@ from .tracks import Tracks
 from .triangulation import camera_centres, max_ray_angles, triangulate
 from .two_view import MAX_ERROR, MIN_INLIERS, TwoViewGeometry, relative_pose
 
-__all__ = ["MapperOptions", "Reconstruction", "incremental_mapping"]
+__all__ = ["MapperOptions", "Reconstruction", "incremental_mapping", "reprojection_score"]
 
 
 @dataclass(frozen=True)
@@ -231,7 +231,7 @@ def _grow(rec: Reconstruction, tracks: Tracks, centre, image_size, opts: MapperO
     return rec
 
 
-def _score(rec: Reconstruction, tracks: Tracks, centre, opts: MapperOptions) -> float:
+def reprojection_score(rec: Reconstruction, tracks: Tracks, centre, opts: MapperOptions) -> float:
     """Mean truncated squared reprojection error (pixels^2, truncated at ``max_error``) over the
     observations, in the registered views, of every track seen there twice or more; a track
     without a point counts as unexplained (the truncation value) in each of them. Lower is
@@ -256,8 +256,8 @@ def incremental_mapping(features, tracks: Tracks,
     starting pairs, best first (at least ``min_trials``), until one registers every view that
     could be (pairs with fewer than ``init_min_inliers`` inliers start only when no pair has as
     many). The reconstruction kept registers the most views and, among those, has the lowest
-    ``_score``: a wrong focal can lead the bundle adjustment into a consistent but wrong
-    reconstruction that explains fewer of the observations (docs/CAMERAS.md, "Focal"). Views it
+    ``reprojection_score``: a wrong focal can lead the bundle adjustment into a consistent but
+    wrong reconstruction that explains fewer of the observations (docs/CAMERAS.md, "Focal"). Views it
     cannot register stay ``registered`` False. ``distinct``: per view, bool [N_v] over its
     keypoints, those without a near twin in their photo (``features.distinct_keypoints``);
     given, each view is registered on the points its distinct keypoints see first
@@ -282,7 +282,7 @@ def incremental_mapping(features, tracks: Tracks,
             if rec is None:
                 continue
             rec = _grow(rec, tracks, centre, image_size, opts, distinct)
-            key = (int(rec.registered.sum()), -_score(rec, tracks, centre, opts))
+            key = (int(rec.registered.sum()), -reprojection_score(rec, tracks, centre, opts))
             if best_key is None or key > best_key:
                 best, best_key = rec, key
             if rec.registered[possible].all() and trial + 1 >= opts.min_trials:

@@ -2,17 +2,18 @@
 
 The incremental mapper (``mapper``) spends most of the solve finding a start: starting pairs,
 focal priors and view-by-view registrations, tried until one reconstruction explains the photos.
-A model's camera head already gives every view a pose and the focal, so here they are the start
-of one bundle adjustment instead: SIFT matches of every pair (``features``), kept where their
-essential matrix at the model's focal explains them (``two_view.essential_inliers``, which needs
-no pose), tracks (``tracks``), points triangulated at the model's cameras, then the bundle
-adjustment (``bundle``) twice: the poses with the focal held (a pose error of several degrees
-moves the focal as much as a wrong focal does), observations reprojecting badly dropped and
-points triangulated again, then poses, points and focal together. The result is in the solve's
-terms (``solve.CameraSolve``, its unit and root), so it replaces a model's cameras as the solve
-does (``replace.refine_model_cameras``). Its accuracy rests on the model's start: a head far
-from the truth leads the adjustment into a wrong minimum (docs/CAMERAS.md, "Refining the
-model's cameras").
+A model's camera head already gives every view a pose and the focal, so here they start a
+bundle adjustment instead: SIFT matches of every pair (``features``), kept where their
+essential matrix at the model's focal explains them (``two_view.essential_pose``, which also
+gives the pair's relative pose), tracks (``tracks``), then ``STARTS``: the model's cameras and
+two built from the pairs' relative poses (``average_rotations``, ``average_centres``). Each
+gets a first round of bundle adjustment (``bundle``) with the focal held (a pose error of
+several degrees moves the focal as much as a wrong focal does); the best gets the second, with
+the focal free. Like the solve it runs in ``canonical_order`` and its result is in the solve's
+terms (``solve.CameraSolve``: its unit, root and point map), so it replaces a model's cameras as
+the solve does (``replace.refine_model_cameras``). Its accuracy rests on its starts: where the
+head and the pairs are both far off, the adjustment ends in a wrong minimum (docs/CAMERAS.md,
+"Refining the model's cameras").
 """
 from __future__ import annotations
 
@@ -23,7 +24,7 @@ import numpy as np
 from ..errors import InputError
 from .bundle import bundle_adjust, reprojection_errors
 from .features import MIN_SIZE, canonical_order, match_features, scene_features
-from .mapper import MapperOptions, Reconstruction, _score
+from .mapper import MapperOptions, Reconstruction, reprojection_score
 from .solve import (LOCATE_MIN_INLIERS, CameraSolve, check_depth_range, check_photos,
                     finish_solve)
 from .tracks import build_tracks
@@ -39,9 +40,9 @@ __all__ = ["refine_cameras", "average_rotations", "average_centres", "STARTS", "
 #: "rotations"), and the pairs' rotations with the centres their translation directions give
 #: (``average_centres``: "pairs", which needs nothing of the model but its focal); the
 #: adjustment that registers the most views and reprojects the observations best
-#: (``mapper._score``) is kept. A head a few degrees off starts well from its own cameras; where
-#: it has not learned a scene's rotations, or its centres, the pairs' do better (docs/CAMERAS.md,
-#: "Refining the model's cameras").
+#: (``mapper.reprojection_score``) is kept. A head a few degrees off starts well from its own
+#: cameras; where it has not learned a scene's rotations, or its centres, the pairs' do better
+#: (docs/CAMERAS.md, "Refining the model's cameras").
 STARTS = ("model", "rotations", "pairs")
 #: Reweighting rounds of the rotation averaging, and its Cauchy scale (degrees).
 AVERAGING_ROUNDS = 4
@@ -265,7 +266,7 @@ def refine_cameras(photos, world_from_cam, focal: float, depth_range: tuple[floa
         if a is None:
             continue
         rec = _reconstruction(a, tracks, scale_view)
-        key = (int(rec.registered.sum()), -_score(rec, tracks, centre, opts))
+        key = (int(rec.registered.sum()), -reprojection_score(rec, tracks, centre, opts))
         if best_key is None or key > best_key:
             best, best_key = a, key
     for n, (iterations, refine_focal) in enumerate(REFINE_ROUNDS[CHOOSE_AFTER:], CHOOSE_AFTER):
