@@ -318,8 +318,8 @@ class IrisRuntime:
                  photos in ``cameras.canonical_order`` (a second encoder run where that order
                  differs), so that, as the solve's, the cameras do not depend on the order the
                  photos come in. Where the photos cannot constrain the cameras
-                 (fewer than two views keep enough observations) the solve replaces them as
-                 with "epipolar". As accurate as the encoder's start is close
+                 (fewer than two views keep enough observations) or view 0 is not refined, the
+                 solve replaces them as with "epipolar". As accurate as the encoder's start is close
                  (docs/CAMERAS.md, "Refining the model's cameras").
         """
         return self._encode(images, {}, self._check_cameras(
