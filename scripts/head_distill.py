@@ -226,6 +226,11 @@ def main(argv=None) -> int:
     ap.add_argument("--batch", type=int, default=8)
     ap.add_argument("--lr", type=float, default=3e-4, help="camera head (the encoder: x0.3)")
     ap.add_argument("--steps", type=int, default=100_000)
+    ap.add_argument("--lr-schedule", default="constant", choices=("constant", "cosine"),
+                    help="cosine: the learning rate falls to 1%% of --lr over --steps (anneals a "
+                         "continued run; keep --max-minutes long enough to reach the end)")
+    ap.add_argument("--warmup", type=int, default=0,
+                    help="steps of linear warm-up (a continued run starts with fresh Adam moments)")
     ap.add_argument("--max-minutes", type=float, default=20.0)
     ap.add_argument("--eval-every", type=int, default=200)
     ap.add_argument("--augment-roll", type=float, default=0.0,
@@ -279,6 +284,15 @@ def main(argv=None) -> int:
                         **({"train_config": train_config} if train_config else {}))
         running.clear()
 
+    base_lr = [g["lr"] for g in opt.param_groups]
+
+    def set_lr():
+        factor = min(1.0, (step + 1) / args.warmup) if args.warmup else 1.0
+        if args.lr_schedule == "cosine":
+            factor *= 0.01 + 0.99 * 0.5 * (1 + np.cos(np.pi * min(step / args.steps, 1.0)))
+        for g, lr in zip(opt.param_groups, base_lr):
+            g["lr"] = lr * factor
+
     model.train()
     evaluate()
     while step < args.steps and time.time() - t0 < 60 * args.max_minutes:
@@ -296,6 +310,7 @@ def main(argv=None) -> int:
         means = {k: torch.stack(v).mean() for k, v in terms.items()}
         weights = WEIGHTS | {"solve_dir": args.direction_weight}
         loss = sum(weights[k] * v for k, v in means.items())
+        set_lr()
         opt.zero_grad()
         loss.backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
