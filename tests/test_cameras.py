@@ -759,6 +759,63 @@ def test_rotation_and_centre_averaging_recover_the_cameras_despite_a_wrong_pair(
     assert max(_angle_deg(a, b) for a, b in zip(linked[:5], R_true[:5])) < 1e-4
 
 
+def test_explained_share_counts_the_matches_a_pair_of_cameras_explains():
+    """Exact matches of 4 cameras are all explained; one camera turned by 2 degrees leaves its
+    three pairs' matches unexplained at 1 px and the other three pairs' explained. With every
+    fourth match moved 3 px, the share is the one OpenCV's Sampson distance of the true
+    essential matrices gives."""
+    import cv2
+
+    from iris_runtime.cameras.refine import explained_share
+    rng = np.random.default_rng(11)
+    truth = _forward_cameras(rng, 4, spread=0.4, max_angle=0.2)
+    X = _cloud(rng, 300)
+    uv = [_project(T, X)[0] for T in truth]
+    cam_from_world = np.linalg.inv(truth)
+    R, t = cam_from_world[:, :3, :3], cam_from_world[:, :3, 3]
+    centre = np.array([SIZE[1] / 2, SIZE[0] / 2])
+    pairs = [(a, b) for a in range(4) for b in range(a + 1, 4)]
+    matches = {(a, b): (uv[a], uv[b]) for a, b in pairs}
+    assert explained_share(R, t, FOCAL, centre, matches, 1e-6) == 1.0
+    turned = R.copy()
+    turned[2] = _rotation_about([0.3, 1.0, 0.1], np.radians(2.0)) @ R[2]
+    untouched = {ab: m for ab, m in matches.items() if 2 not in ab}
+    assert explained_share(turned, t, FOCAL, centre, untouched, 1.0) == 1.0
+    assert explained_share(turned, t, FOCAL, centre, matches, 1.0) < 0.5 + 0.5 * 0.1
+    moved = np.arange(len(X)) % 4 == 0
+    angle = rng.uniform(0, 2 * np.pi, len(X))
+    offset = 3.0 * np.stack([np.cos(angle), np.sin(angle)], 1) * moved[:, None]
+    noisy = {ab: (ua, ub + offset) for ab, (ua, ub) in matches.items()}
+    K = intrinsics(FOCAL, SIZE)
+    within = []
+    for a, b in pairs:
+        rel = cam_from_world[b] @ truth[a]                          # cam_b_from_cam_a
+        E = np.cross(np.eye(3), rel[:3, 3] / np.linalg.norm(rel[:3, 3])) @ rel[:3, :3]
+        pa, pb = (cv2.undistortPoints(p[:, None], K, None)[:, 0] for p in noisy[a, b])
+        within += [np.sqrt(cv2.sampsonDistance(np.r_[x, 1.0][:, None], np.r_[y, 1.0][:, None], E))
+                   * FOCAL <= 1.0 for x, y in zip(pa, pb)]
+    share = explained_share(R, t, FOCAL, centre, noisy, 1.0)
+    assert share == pytest.approx(np.mean(within), abs=1e-9)
+    assert 0.75 <= share < 1.0
+
+
+def test_refine_cameras_falls_back_where_its_cameras_do_not_explain_the_matches(corner,
+                                                                               monkeypatch):
+    """The gate on ``MIN_EXPLAINED``: a refinement that explains its pairs' matches is kept; one
+    held to a share it does not reach gives None, and ``refine_model_cameras`` the solve."""
+    import iris_runtime.cameras.refine as refine
+    from iris_runtime.cameras import refine_model_cameras
+    photos, truth, solved = corner
+    start = _perturbed(truth, np.random.default_rng(4), degrees=3.0)
+    assert refine.refine_cameras(list(photos), start, FOCAL, DEPTH_RANGE) is not None
+    monkeypatch.setattr(refine, "MIN_EXPLAINED", 1.01)
+    assert refine.refine_cameras(list(photos), start, FOCAL, DEPTH_RANGE) is None
+    H, W = SIZE
+    cams = refine_model_cameras(list(photos), start, [FOCAL / W, FOCAL / H], SIZE, DEPTH_RANGE)
+    assert cams.source == "epipolar"
+    np.testing.assert_array_equal(cams.world_from_cam, solved.world_from_cam)
+
+
 def test_refine_cameras_reports_what_the_photos_cannot_constrain(corner):
     """A photo that matches nothing is "unposed" (NaN); a start without a baseline, or photos
     that share nothing, give None, and ``refine_model_cameras`` then falls back to the solve."""

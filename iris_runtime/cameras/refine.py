@@ -31,7 +31,8 @@ from .tracks import build_tracks
 from .triangulation import triangulate
 from .two_view import MAX_ERROR, essential_pose, pixel_scale
 
-__all__ = ["refine_cameras", "average_rotations", "average_centres", "STARTS", "REFINE_ROUNDS",
+__all__ = ["refine_cameras", "average_rotations", "average_centres", "explained_share", "STARTS",
+           "REFINE_ROUNDS", "MIN_EXPLAINED",
            "RETRIANGULATION_ANGLE", "REFINED_MIN_OBSERVATIONS", "AVERAGING_ROUNDS",
            "AVERAGING_SCALE"]
 
@@ -64,6 +65,10 @@ RETRIANGULATION_ANGLE = 0.5
 #: A view counts as refined ("solved") with this many observations left after the last round;
 #: others are reported "unposed" (the caller keeps the model's camera for them).
 REFINED_MIN_OBSERVATIONS = LOCATE_MIN_INLIERS
+#: The refined cameras must explain this share of the pairs' essential-matrix inliers
+#: (``explained_share``), or the refinement is taken to have ended in a wrong minimum and
+#: returns None (the caller runs the solve).
+MIN_EXPLAINED = 0.8
 #: Rigid-pose tolerance of the model's cameras: |R^T R - I| and the last row.
 _RIGID_TOLERANCE = 1e-3
 
@@ -150,6 +155,32 @@ def average_centres(relative: dict[tuple[int, int], tuple[np.ndarray, float]], R
     return start[0] + c * (np.sum(c * rel) / max(np.sum(c * c), 1e-300))
 
 
+def explained_share(R: np.ndarray, t: np.ndarray, focal: float, centre: np.ndarray,
+                    matches: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]],
+                    max_error: float) -> float:
+    """The share of the pairs' matches ``matches {(a, b): (uv_a [N, 2], uv_b [N, 2])}`` (pixels)
+    that the cameras (cam_from_world ``R [V, 3, 3]``, ``t [V, 3]``, one ``focal``, principal point
+    ``centre``) explain: Sampson distance to their own essential matrix of the pair within
+    ``max_error`` pixels. The bundle adjustment only scores the observations it keeps; a wrong
+    minimum keeps few and explains them well, and this counts the ones it dropped."""
+    C = -np.einsum("vji,vj->vi", R, t)
+    explained = total = 0
+    for (a, b), (ua, ub) in matches.items():
+        d = R[b] @ (C[a] - C[b])
+        n = np.linalg.norm(d)
+        if not n > 0:
+            continue
+        E = np.cross(np.eye(3), d / n) @ (R[b] @ R[a].T)          # [t]x R, x_b^T E x_a = 0
+        xa = np.c_[(ua - centre) / focal, np.ones(len(ua))]
+        xb = np.c_[(ub - centre) / focal, np.ones(len(ub))]
+        Ex, Etx = xa @ E.T, xb @ E
+        sampson = np.abs(np.sum(xb * Ex, 1)) / np.sqrt(np.maximum(
+            Ex[:, 0] ** 2 + Ex[:, 1] ** 2 + Etx[:, 0] ** 2 + Etx[:, 1] ** 2, 1e-300))
+        explained += int(np.sum(sampson * focal <= max_error))
+        total += len(ua)
+    return explained / total if total else 0.0
+
+
 def _nearest_rotations(M: np.ndarray) -> np.ndarray:
     U, _, Vt = np.linalg.svd(M)
     D = np.ones(M.shape[:-1])
@@ -217,8 +248,9 @@ def refine_cameras(photos, world_from_cam, focal: float, depth_range: tuple[floa
     ``focal`` (pixels of the photos). Returns a ``CameraSolve`` in the renderer's
     ``depth_range`` as ``solve_cameras`` does (views left with fewer than
     ``REFINED_MIN_OBSERVATIONS`` observations "unposed"), or None when the photos do not
-    constrain the cameras: fewer than two views refined, a start without a baseline, or an
-    adjustment that left the focal non-positive. ``options``: ``max_error`` and ``loss_scale``
+    constrain the cameras (fewer than two views refined, a start without a baseline, an
+    adjustment that left the focal non-positive) or when the refined cameras explain less than
+    ``MIN_EXPLAINED`` of the pairs' matches between refined views (a wrong minimum). ``options``: ``max_error`` and ``loss_scale``
     are used (pixels at ``two_view.REFERENCE_SIZE``)."""
     photos = check_photos(photos)
     near, far = check_depth_range(depth_range)
@@ -242,6 +274,7 @@ def refine_cameras(photos, world_from_cam, focal: float, depth_range: tuple[floa
     centre = np.array([W / 2.0, H / 2.0])
 
     inliers, relative = {}, {}            # relative: {(a, b): (cam_b_from_cam_a, inliers)}
+    matches = {}                          # {(a, b): the inliers' pixels in a and in b}
     for a in range(V):
         for b in range(a + 1, V):
             m = match_features(features[a], features[b])
@@ -249,6 +282,8 @@ def refine_cameras(photos, world_from_cam, focal: float, depth_range: tuple[floa
                                   MAX_ERROR * px)
             if pair is not None:
                 inliers[a, b] = m[pair[0]]
+                matches[a, b] = (features[a].uv[inliers[a, b][:, 0]],
+                                 features[b].uv[inliers[a, b][:, 1]])
                 relative[a, b] = (pair[1], float(pair[0].sum()))
     tracks = build_tracks(features, inliers)
     cam_from_world = np.linalg.inv(start)
@@ -273,6 +308,9 @@ def refine_cameras(photos, world_from_cam, focal: float, depth_range: tuple[floa
         best = _round(best, iterations, refine_focal, n == last, *args) if best else None
     best = _reconstruction(best, tracks, scale_view) if best else None
     if best is None or best.registered.sum() < 2:
+        return None
+    posed = {ab: m for ab, m in matches.items() if best.registered[list(ab)].all()}
+    if explained_share(best.R, best.t, best.focal, centre, posed, MAX_ERROR * px) < MIN_EXPLAINED:
         return None
     refined = best.registered                                      # canonical numbering
     cams = np.full((V, 4, 4), np.nan)
