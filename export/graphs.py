@@ -85,7 +85,7 @@ class EncoderGraph(nn.Module):
     ``field_maps [V, C', h, w]``, ``world_from_cam [V, 4, 4]`` (view 0 = I), ``focal [2]``
     (fx/W, fy/H): ``IrisModel.encode_batch`` with isolated references, then ``LatentField.prepare``.
     (``encode_batch``'s check that view 0 is a reference is data-dependent control flow, which
-    torch.export cannot trace; the wrapper calls the stages directly instead.)
+    torch.export cannot trace; the wrapper calls ``encode_stages`` instead.)
     """
 
     def __init__(self, model: IrisModel):
@@ -93,8 +93,7 @@ class EncoderGraph(nn.Module):
         self.model = model
 
     def forward(self, images: torch.Tensor, is_reference: torch.Tensor):
-        features, camera_tokens = self.model.encoder(images[None], is_reference)
-        world_from_cam, focal = self.model.camera_head(camera_tokens, images[None])
+        features, world_from_cam, focal = self.model.encode_stages(images[None], is_reference)
         return self.model.field.prepare(features[0]), world_from_cam[0], focal[0]
 
 

@@ -53,6 +53,11 @@ class ModelConfig:
     # The correlation head's grid in multiples of the token grid, 2 or 4 (64x64 photos, 8x8
     # tokens: 16x16 or 32x32 positions correlated; the volume grows with its fourth power).
     correlation_scale: int = 2
+    # True: the camera head reads the camera tokens of an encoder of its own
+    # (``IrisModel.camera_encoder``, the same shape as ``encoder``), so that training the cameras
+    # leaves the renderer's features as they were (as Monodepth2 gives its pose network its own
+    # encoder). False: one encoder for both (what checkpoints without this field hold).
+    camera_encoder: bool = False
     # Ray sampling (DESIGN.md: camera depths in [0.1, 1.0], 64 samples).
     near: float = 0.1
     far: float = 1.0

@@ -145,6 +145,8 @@ class IrisModel(nn.Module):
         self.camera_head = camera_head
         self.field = field
         self.renderer = renderer
+        # cfg.camera_encoder: the camera head's own encoder (build_model adds it).
+        self.camera_encoder: MultiViewEncoder | None = None
 
     # -- encoding ---------------------------------------------------------------------------
     def encode_batch(self, images: torch.Tensor, is_reference: torch.Tensor | None = None):
@@ -153,7 +155,15 @@ class IrisModel(nn.Module):
         (view 0 = I), focal ``[B, 2]``. Reference outputs never depend on the query views."""
         if is_reference is not None and not bool(is_reference[..., 0].all()):
             raise ValueError("is_reference: view 0 is the canonical frame and must be a reference")
+        return self.encode_stages(images, is_reference)
+
+    def encode_stages(self, images: torch.Tensor, is_reference: torch.Tensor | None):
+        """``encode_batch`` without its input check (what the exported graph traces): the
+        encoder's features, and the camera head's cameras from the camera tokens of its own
+        encoder where the model has one (``cfg.camera_encoder``), else of the same encoder."""
         features, camera_tokens = self.encoder(images, is_reference)
+        if self.camera_encoder is not None:
+            _, camera_tokens = self.camera_encoder(images, is_reference)
         # The correlation head also reads the images (each view against view 0, a reference).
         world_from_cam, focal = self.camera_head(camera_tokens, images)
         return features, world_from_cam, focal
@@ -278,7 +288,10 @@ def build_model(cfg: ModelConfig) -> IrisModel:
     # as before ``camera_head`` existed.
     encoder = MultiViewEncoder(cfg)
     head = CorrelationCameraHead(cfg) if cfg.camera_head == "correlation" else CameraHead(cfg)
-    return IrisModel(cfg, encoder, head, LatentField(cfg), RayRenderer(cfg))
+    model = IrisModel(cfg, encoder, head, LatentField(cfg), RayRenderer(cfg))
+    if cfg.camera_encoder:          # built last: the other stages draw the weights they did
+        model.camera_encoder = MultiViewEncoder(cfg)
+    return model
 
 
 # -- checkpoints ------------------------------------------------------------------------------

@@ -270,6 +270,8 @@ def make_optimizer(model: IrisModel, cfg: TrainConfig, extra: list | None = None
     """AdamW over the model (encoder + camera head at ``encoder_lr_scale``) and ``extra``
     training-only parameters (at the renderer's rate)."""
     slow = list(model.encoder.parameters()) + list(model.camera_head.parameters())
+    if model.camera_encoder is not None:
+        slow += list(model.camera_encoder.parameters())
     fast = list(model.field.parameters()) + list(model.renderer.parameters()) + list(extra or [])
 
     def split(params):   # no weight decay on norms and biases

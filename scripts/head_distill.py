@@ -8,7 +8,9 @@ Each step draws ``--batch`` training scenes with their cached solved cameras
 epipolar``; no camera label is read), 4-8 of their solved views in random order (view 0 of the
 order is the canonical frame), encodes them all as references and minimises
 ``iris_train.train.solve_losses`` (rotation ``1 - cos``, squared centre distance, squared log
-focal; weights 10, 10, 1 as in F1's distillation). Only the encoder and the camera head train.
+focal; weights 10, 10, 1 as in F1's distillation). Only the camera head and the encoder it reads
+train: the model's encoder, or with ``--separate-encoder`` (or an init that has one) the head's
+own, which leaves the renders as the init's.
 
 Every ``--eval-every`` steps and at the end: the head's held-out score, ``scripts/heldout_rpa.py``'s
 ``score`` (the 16 held-out scenes or the first ``--heldout-scenes``, iris-eval's split, encoder only, true poses used to score
@@ -209,6 +211,13 @@ def build(args):
                               correlation_scale=args.correlation_scale or cfg.correlation_scale)
     model = build_model(cfg)
     fresh = load_init_weights(model, payload)
+    if args.separate_encoder and not cfg.camera_encoder:
+        # The camera head gets an encoder of its own, the init's encoder to start.
+        separate = build_model(dataclasses.replace(cfg, camera_encoder=True))
+        state = model.state_dict()
+        separate.load_state_dict(state | {"camera_encoder." + k[len("encoder."):]: v
+                                          for k, v in state.items() if k.startswith("encoder.")})
+        model = separate
     # The renderer is the --init checkpoint's, untouched: its training record (the cameras it
     # was trained with, which the export's default follows) goes with it.
     return model, fresh, payload.get("train_config")
@@ -225,6 +234,10 @@ def main(argv=None) -> int:
     ap.add_argument("--capture", type=int, default=0)
     ap.add_argument("--batch", type=int, default=8)
     ap.add_argument("--lr", type=float, default=3e-4, help="camera head (the encoder: x0.3)")
+    ap.add_argument("--separate-encoder", action="store_true",
+                    help="train the camera head on an encoder of its own (ModelConfig."
+                         "camera_encoder, the init's encoder to start): the renders stay the "
+                         "init's")
     ap.add_argument("--steps", type=int, default=100_000)
     ap.add_argument("--lr-schedule", default="constant", choices=("constant", "cosine"),
                     help="cosine: the learning rate falls to 1%% of --lr over --steps (anneals a "
@@ -258,8 +271,10 @@ def main(argv=None) -> int:
     sets = training_sets(args.classic, args.capture)
     heldout = SyntheticScenes(HELDOUT_SEEDS[:args.heldout_scenes])
     head = list(model.camera_head.parameters())
+    # The encoder the head reads: its own where it has one (the renderer's stays as it was).
+    encoder = model.camera_encoder if model.camera_encoder is not None else model.encoder
     opt = torch.optim.AdamW([{"params": head, "lr": args.lr},
-                             {"params": list(model.encoder.parameters()), "lr": 0.3 * args.lr}],
+                             {"params": list(encoder.parameters()), "lr": 0.3 * args.lr}],
                             weight_decay=0.01)
     args.out.mkdir(parents=True, exist_ok=True)
     log = open(args.out / "log.jsonl", "a")

@@ -3,20 +3,52 @@ the optimiser state (a third of the size; `iris-train --resume` needs the full o
 
     python scripts/ship_checkpoint.py runs/L1/last.pt models/iris-tiny-rgb.pt
     python scripts/ship_checkpoint.py runs/hd/x/last.pt out.pt --train-config-from models/iris-tiny-rgb.pt
+    python scripts/ship_checkpoint.py G1.pt out.pt --camera-head-from runs/hd/x/last.pt
 
 ``--train-config-from``: the renderer's training record (``train_config``: the cameras it was
 trained with, which the export's default follows) from the checkpoint the run started from, for a
 camera-head run (``scripts/head_distill.py``) that left the renderer untouched and did not keep it.
+
+``--camera-head-from``: the cameras of another checkpoint of the same model (a camera-head run
+from this one): its camera head, and its encoder as the camera head's own
+(``ModelConfig.camera_encoder``); the renderer, its encoder and its training record stay the
+source's. A camera-head run moves the encoder the renderer reads (at a third of the head's rate),
+and so the renders; this keeps the renders of the source bit for bit and the cameras of the run.
 """
 from __future__ import annotations
 
 import argparse
+import dataclasses
 
 from iris_train import build_model, read_checkpoint
 from iris_train.config import ModelConfig
 from iris_train.model import save_checkpoint
 
 KEEP = ("step", "elapsed", "train_config", "distill")
+HEAD_FIELDS = ("camera_head", "correlation_scale", "camera_encoder")
+
+
+def with_cameras_of(payload: dict, cameras: dict, error) -> dict:
+    """``payload`` (a checkpoint dict) with the camera head of ``cameras`` and, as its own
+    encoder, the encoder ``cameras``' head reads; ``error(message)`` where the two models differ
+    in anything but the camera head."""
+    config, theirs = (ModelConfig.from_dict(p["config"]) for p in (payload, cameras))
+    head = {k: getattr(theirs, k) for k in HEAD_FIELDS}
+    if dataclasses.replace(config, **head) != theirs:
+        error("--camera-head-from: another model (only the camera head's settings may differ)")
+    encoder = "camera_encoder." if theirs.camera_encoder else "encoder."
+    state = {k: v for k, v in payload["model"].items()
+             if not k.startswith(("camera_head.", "camera_encoder."))}
+    for k, v in cameras["model"].items():
+        if k.startswith("camera_head."):
+            state[k] = v
+        elif k.startswith(encoder):
+            state["camera_encoder." + k[len(encoder):]] = v
+    out = dict(payload, config=dataclasses.replace(config, **(head | {"camera_encoder": True})).to_dict(),
+               model=state)
+    if "distill" in cameras:
+        out["distill"] = cameras["distill"]
+    return out
 
 
 def main() -> None:
@@ -24,8 +56,11 @@ def main() -> None:
     parser.add_argument("source")
     parser.add_argument("dest")
     parser.add_argument("--train-config-from", default=None, metavar="CKPT")
+    parser.add_argument("--camera-head-from", default=None, metavar="CKPT")
     args = parser.parse_args()
     payload = read_checkpoint(args.source)
+    if args.camera_head_from:
+        payload = with_cameras_of(payload, read_checkpoint(args.camera_head_from), parser.error)
     if args.train_config_from:
         if "train_config" in payload:
             parser.error(f"{args.source} has its own train_config")

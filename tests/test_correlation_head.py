@@ -139,18 +139,19 @@ def _old_token_head(head: CameraHead, camera_tokens: torch.Tensor):
     return world_from_cam, focal
 
 
-SHIPPED = ROOT / "models" / "iris-tiny-rgb.pt"
+# G1's weights with its token head: the training state the shipped model's renderer came from.
+G1 = ROOT / "models" / "iris-tiny-rgb.train.pt"
 
 
-@pytest.mark.parametrize("source", ["random", "shipped"])
+@pytest.mark.parametrize("source", ["random", "g1"])
 def test_token_head_is_bitwise_what_it_was(source, images):
     """Checkpoints without the field (all existing ones) build the token head, load strictly and
     give bit for bit the cameras of the token head's old forward."""
-    if source == "shipped":
-        if not SHIPPED.is_file():
-            pytest.skip("no shipped checkpoint")
-        tokens_model = load_model(SHIPPED)
-        assert "camera_head" not in torch.load(SHIPPED, map_location="cpu",
+    if source == "g1":
+        if not G1.is_file():
+            pytest.skip("no G1 checkpoint")
+        tokens_model = load_model(G1)
+        assert "camera_head" not in torch.load(G1, map_location="cpu",
                                                weights_only=True)["config"]
     else:
         torch.manual_seed(0)

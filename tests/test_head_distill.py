@@ -12,6 +12,7 @@ import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 SHIPPED = ROOT / "models" / "iris-tiny-rgb.pt"
+G1 = ROOT / "models" / "iris-tiny-rgb.train.pt"          # one encoder for the head and renderer
 
 
 def _script():
@@ -21,29 +22,39 @@ def _script():
     return module
 
 
-@pytest.mark.skipif(not SHIPPED.exists(), reason="needs the shipped checkpoint")
-@pytest.mark.parametrize("augment", [[], ["--augment-rotation", "8"]])
-def test_head_distill_trains_the_encoder_and_head_only(tmp_path, monkeypatch, augment):
+@pytest.mark.skipif(not (SHIPPED.exists() and G1.exists()), reason="needs the checkpoints")
+@pytest.mark.parametrize("init,augment", [
+    (SHIPPED, []), (SHIPPED, ["--augment-rotation", "8"]),
+    (G1, []), (G1, ["--separate-encoder"])])
+def test_head_distill_trains_the_encoder_and_head_only(tmp_path, monkeypatch, init, augment):
     from iris_train import load_model
     monkeypatch.setenv("IRIS_CACHE_DIR", str(tmp_path / "cache"))
     out = tmp_path / "run"
     assert _script().main(["--out", str(out), "--classic", "2", "--steps", "2", "--batch", "1",
-                           "--eval-every", "1", "--heldout-scenes", "1",
+                           "--eval-every", "1", "--heldout-scenes", "1", "--init", str(init),
                            "--camera-head", "correlation", *augment]) == 0
     log = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
     assert [e["step"] for e in log] == [0, 1, 2]
     # Every scene turned is zoomed: its focal is not the scene's and does not train.
-    assert set(log[-1]["train"]) == ({"solve_rot", "solve_trans"} if augment
+    assert set(log[-1]["train"]) == ({"solve_rot", "solve_trans"} if "--augment-rotation" in augment
                                      else {"solve_rot", "solve_trans", "solve_focal"})
     assert 0.0 <= log[-1]["heldout"]["rpa@15"] <= 1.0
-    trained, shipped = load_model(out / "last.pt"), load_model(SHIPPED)
+    trained, shipped = load_model(out / "last.pt"), load_model(init)
     assert trained.cfg.camera_head == "correlation"
+    assert trained.cfg.camera_encoder == (init == SHIPPED or "--separate-encoder" in augment)
     before, after = shipped.state_dict(), trained.state_dict()
-    for name in ("field", "renderer"):
+    # The encoder the head reads trains; the renderer (and, where the head has an encoder of its
+    # own, the encoder the renderer reads) stays as it was.
+    head_encoder = "camera_encoder." if trained.cfg.camera_encoder else "encoder."
+    kept = ("field", "renderer") + (("encoder",) if trained.cfg.camera_encoder else ())
+    for name in kept:
         for key, value in getattr(shipped, name).state_dict().items():
             assert torch.equal(value, after[f"{name}.{key}"]), key
-    moved = [k for k in before if k.startswith("encoder.") and not torch.equal(before[k], after[k])]
-    assert moved, "the encoder did not train"
+    # (A head's new encoder starts as the init's encoder.)
+    start = {k: before.get(k, before.get("encoder." + k.removeprefix("camera_encoder.")))
+             for k in after if k.startswith(head_encoder)}
+    moved = [k for k, v in start.items() if not torch.equal(v, after[k])]
+    assert moved, "the head's encoder did not train"
 
 
 def _blob_images(X: torch.Tensor, world_from_cam: torch.Tensor, focal: float, size: int = 64):
@@ -191,3 +202,54 @@ def test_fit_scores_a_head_against_the_teacher_by_baseline():
     assert len(quarters) == 4 and quarters[0]["baseline"][0] < quarters[-1]["baseline"][1]
     rot = [q["median_rotation_error"] for q in quarters]
     assert rot == sorted(rot) and rot[-1] > 20.0 and identity["rpa@15"] < 0.5
+
+
+def test_separate_camera_encoder_keeps_the_renderer_and_takes_the_head(tmp_path):
+    """``ship_checkpoint.py --camera-head-from``: the merged model's features (what the renderer
+    reads) are bit for bit the source's and its cameras the other checkpoint's; it exports and
+    its graphs match torch (``iris-export``'s validation)."""
+    import dataclasses
+    import subprocess
+    import sys
+
+    from iris_train import build_model, load_model
+    from iris_train.config import preset
+    from iris_train.model import save_checkpoint
+    cfg = dataclasses.replace(preset("tiny-rgb"), camera_head="correlation")
+    torch.manual_seed(1)
+    renderer = build_model(cfg).eval()
+    torch.manual_seed(2)
+    cameras = build_model(cfg).eval()
+    with torch.no_grad():                # cameras a little off the identity
+        for p in cameras.camera_head.parameters():
+            p.add_(0.01 * torch.randn_like(p))
+    save_checkpoint(tmp_path / "r.pt", renderer)
+    save_checkpoint(tmp_path / "c.pt", cameras)
+    subprocess.run([sys.executable, str(ROOT / "scripts" / "ship_checkpoint.py"),
+                    str(tmp_path / "r.pt"), str(tmp_path / "m.pt"),
+                    "--camera-head-from", str(tmp_path / "c.pt")], check=True, cwd=ROOT)
+    merged = load_model(tmp_path / "m.pt")
+    assert merged.cfg.camera_encoder and merged.camera_encoder is not None
+    images = torch.rand(1, 5, 3, 64, 64)
+    with torch.no_grad():
+        f_m, T_m, k_m = merged.encode_batch(images)
+        f_r, _, _ = renderer.encode_batch(images)
+        _, T_c, k_c = cameras.encode_batch(images)
+    assert torch.equal(f_m, f_r) and torch.equal(T_m, T_c) and torch.equal(k_m, k_c)
+    assert (T_m[0, 1:, :3, 3].abs() > 1e-4).any()
+    # Merging again from the merged checkpoint (a camera encoder of its own) gives the same.
+    subprocess.run([sys.executable, str(ROOT / "scripts" / "ship_checkpoint.py"),
+                    str(tmp_path / "r.pt"), str(tmp_path / "m2.pt"),
+                    "--camera-head-from", str(tmp_path / "m.pt")], check=True, cwd=ROOT)
+    again = load_model(tmp_path / "m2.pt")
+    for k, v in merged.state_dict().items():
+        assert torch.equal(v, again.state_dict()[k]), k
+    from export.pipeline import export_model
+    export_model(tmp_path / "m.pt", tmp_path / "out", quick=True, progress=False, threads=1)
+    from iris_runtime import IrisRuntime
+    rt = IrisRuntime(tmp_path / "out", threads=1)
+    x = (images[0].permute(0, 2, 3, 1).numpy() * 255).round().astype(np.uint8)
+    scene = rt.encode(list(x), cameras="model")
+    with torch.no_grad():
+        _, T_q, _ = merged.encode_batch(torch.from_numpy(x).permute(0, 3, 1, 2)[None].float() / 255)
+    assert np.abs(scene.world_from_cam - T_q[0].double().numpy()).max() < 1e-4
