@@ -13,7 +13,9 @@ the focal free. Like the solve it runs in ``canonical_order`` and its result is 
 terms (``solve.CameraSolve``: its unit, root and point map), so it replaces a model's cameras as
 the solve does (``replace.refine_model_cameras``). Its accuracy rests on its starts: where the
 head and the pairs are both far off, the adjustment ends in a wrong minimum (docs/CAMERAS.md,
-"Refining the model's cameras").
+"Refining the model's cameras"); where that minimum leaves many of the pairs' matches
+unexplained (``explained_share``), the caller is told to run the solve instead ("Telling a wrong
+refinement").
 """
 from __future__ import annotations
 
@@ -250,8 +252,9 @@ def refine_cameras(photos, world_from_cam, focal: float, depth_range: tuple[floa
     ``REFINED_MIN_OBSERVATIONS`` observations "unposed"), or None when the photos do not
     constrain the cameras (fewer than two views refined, a start without a baseline, an
     adjustment that left the focal non-positive) or when the refined cameras explain less than
-    ``MIN_EXPLAINED`` of the pairs' matches between refined views (a wrong minimum). ``options``: ``max_error`` and ``loss_scale``
-    are used (pixels at ``two_view.REFERENCE_SIZE``)."""
+    ``MIN_EXPLAINED`` of the pairs' matches between refined views (a wrong minimum).
+    ``options``: ``max_error`` and ``loss_scale`` are used (pixels at
+    ``two_view.REFERENCE_SIZE``)."""
     photos = check_photos(photos)
     near, far = check_depth_range(depth_range)
     V = len(photos)
