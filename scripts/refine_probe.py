@@ -27,12 +27,14 @@ from iris_train.metrics import relative_pose_errors
 DEPTH_RANGE = (0.1, 1.0)
 
 
-def rpa15(pred: np.ndarray, truth: np.ndarray) -> float:
-    """RPA@15 over every pair; a pair with an unposed view counts as wrong."""
+def rpa15(pred: np.ndarray, truth: np.ndarray, threshold: float = 15.0) -> float:
+    """RPA@15 (or at ``threshold`` degrees) over every pair; a pair with an unposed view counts
+    as wrong."""
     posed = np.isfinite(pred).all(axis=(1, 2))
     rot, trans = relative_pose_errors(np.where(posed[:, None, None], pred, np.eye(4)), truth)
     i, j = np.triu_indices(len(truth), 1)
-    return float(np.mean(np.where(posed[i] & posed[j], np.maximum(rot, trans), 180.0) < 15))
+    return float(np.mean(np.where(posed[i] & posed[j], np.maximum(rot, trans), 180.0)
+                         < threshold))
 
 
 def main() -> None:

@@ -34,7 +34,7 @@ import numpy as np
 from iris_runtime import IrisRuntime
 from iris_runtime.cameras import refine as R
 from iris_train.evaluate.scenes import load_scenes
-from iris_train.metrics import relative_pose_errors
+from refine_probe import rpa15 as rpa
 
 _seen: dict = {}
 
@@ -89,15 +89,6 @@ def signals() -> dict:
             "kept": float(last.active.sum() / max(_seen["observed"].sum(), 1)),
             "start_rotation": float(np.median(start_rot)) if start_rot else None,
             "focal_ratio": float(last.focal / _seen["focal_start"]), "pairs": len(start_rot)}
-
-
-def rpa(pred, truth, threshold=15.0) -> float:
-    """RPA over every pair; a pair with an unposed view counts as wrong."""
-    posed = np.isfinite(pred).all(axis=(1, 2))
-    rot, trans = relative_pose_errors(np.where(posed[:, None, None], pred, np.eye(4)), truth)
-    i, j = np.triu_indices(len(truth), 1)
-    return float(np.mean(np.where(posed[i] & posed[j], np.maximum(rot, trans), 180.0)
-                         < threshold))
 
 
 def main() -> None:
