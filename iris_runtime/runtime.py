@@ -318,9 +318,11 @@ class IrisRuntime:
                  photos in ``cameras.canonical_order`` (a second encoder run where that order
                  differs), so that, as the solve's, the cameras do not depend on the order the
                  photos come in. Where the photos cannot constrain the cameras
-                 (fewer than two views keep enough observations) or view 0 is not refined, the
-                 solve replaces them as with "epipolar". As accurate as the encoder's start is close
-                 (docs/CAMERAS.md, "Refining the model's cameras").
+                 (fewer than two views keep enough observations), view 0 is not refined, or the
+                 adjustment from no other start agrees with the one kept (a wrong minimum,
+                 ``cameras.refine.MIN_AGREEMENT``), the solve replaces them as with "epipolar".
+                 As accurate as the encoder's start is close (docs/CAMERAS.md, "Refining the
+                 model's cameras").
         """
         return self._encode(images, {}, self._check_cameras(
             self.default_cameras if cameras is None else cameras))

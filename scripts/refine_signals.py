@@ -1,26 +1,20 @@
-"""Can a refinement tell when it went wrong? Signals of ``cameras="refined"`` per scene, beside
-its RPA and the solve's: a probe for a fallback from the refinement to the solve
-(docs/CAMERAS.md, "Telling a wrong refinement").
+"""Can a refinement tell when it went wrong? The agreement between the starts of
+``cameras="refined"`` per scene, each start's RPA, beside the solve: the evidence behind
+``refine.MIN_AGREEMENT`` (docs/CAMERAS.md, "Telling a wrong refinement").
 
     python scripts/refine_signals.py MODEL_DIR out.json synthetic:heldout@64 \\
         synthetic:capture-heldout /work/real/castle /work/real/castel /work/real/cube
 
 Each DATA is an iris-eval set (``@64``: the model's 64x64 images as the photos, as
-``benchmarks/encode_cost.py --heldout`` gives them); all 8 frames of every scene are encoded
-with ``cameras="refined"`` and (unless ``--no-solve``) ``"epipolar"``. The signals are read
-from inside ``refine.refine_cameras`` (its pairs' essential matrices, its start and its last
-round), with no change to it:
-
-- ``explained``: ``refine.explained_share``, the share of the pairs' essential-matrix inliers
-  that the refined cameras explain (what ``refine.MIN_EXPLAINED`` gates; here the gate is off,
-  so that every refinement is seen);
-- ``kept``: the share of the tracks' observations the last round keeps;
-- ``start_rotation``: the median angle between the head's relative rotation of a pair and its
-  essential matrix's (degrees): how far the start is from the photos' own evidence;
-- ``focal_ratio``: the refined focal over the head's.
-
-Per scene: RPA@15 of the refined and solved cameras against the truth where the set has it,
-and ``agree@5``, the share of pairs on which the two agree within 5 degrees.
+``benchmarks/encode_cost.py --heldout`` gives them). All 8 frames of every scene are encoded
+with ``cameras="refined"`` through the runtime's public entry point: as shipped, recording the
+values ``refine.agreement`` returns to the check (the chosen start's cameras against each other
+start's, after ``refine.CHOOSE_AFTER`` rounds; the check passes when the largest reaches
+``MIN_AGREEMENT``), the source and the seconds; then with ``MIN_AGREEMENT = 0`` (the chosen
+start's cameras, whatever the check says) and with ``STARTS`` one start at a time (each start's
+own end; a start that leaves view 0 unposed is handed to the solve by the runtime and has no
+RPA of its own). Where the set has true cameras: RPA@15 of each, of the cameras as shipped and
+of the solve (``"epipolar"``, unless ``--no-solve``).
 """
 from __future__ import annotations
 
@@ -36,59 +30,42 @@ from iris_runtime.cameras import refine as R
 from iris_train.evaluate.scenes import load_scenes
 from refine_probe import rpa15 as rpa
 
-_seen: dict = {}
 
+def scene_signals(rt: IrisRuntime, photos, truth, solve: bool) -> dict:
+    shipped = R.MIN_AGREEMENT, R.STARTS, R.agreement
+    seen: list[float] = []
 
-def _watch():
-    """Wrap refine's start, rounds and pair estimates to record what each saw (one scene at a
-    time, in ``_seen``)."""
-    start, round_, pair = R._start, R._round, R.essential_pose
+    def recorded(*args):
+        seen.append(shipped[2](*args))
+        return seen[-1]
 
-    def watched_start(Rs, *a, **k):
-        _seen.setdefault("R_start", Rs.copy())
-        return start(Rs, *a, **k)
-
-    def watched_round(a, iterations, refine_focal, last, centre, tracks, *rest, **k):
-        _seen.setdefault("focal_start", a.focal)
-        out = round_(a, iterations, refine_focal, last, centre, tracks, *rest, **k)
-        _seen.update(last=out, observed=tracks.observed, centre=centre)
-        return out
-
-    def watched_pair(p, q, focal, size, max_error):
-        out = pair(p, q, focal, size, max_error)
-        _seen["max_error"] = max_error
-        _seen.setdefault("pairs", []).append(
-            None if out is None else (out[1], p[out[0]], q[out[0]]))
-        return out
-
-    R._start, R._round, R.essential_pose = watched_start, watched_round, watched_pair
-
-
-def _angle(Ra, Rb) -> float:
-    return float(np.degrees(np.arccos(np.clip((np.trace(Ra.T @ Rb) - 1) / 2, -1, 1))))
-
-
-def signals() -> dict:
-    last = _seen["last"]
-    registered = last.active.sum(0) >= R.REFINED_MIN_OBSERVATIONS
-    V = len(last.R)
-    pairs = iter(_seen["pairs"])
-    matches, start_rot = {}, []
-    for a in range(V):
-        for b in range(a + 1, V):
-            p = next(pairs)
-            if p is None:
-                continue
-            T, ua, ub = p
-            if registered[a] and registered[b]:
-                matches[a, b] = (ua, ub)
-            Rs = _seen["R_start"]
-            start_rot.append(_angle(T[:3, :3], Rs[b] @ Rs[a].T))
-    return {"explained": R.explained_share(last.R, last.t, last.focal, _seen["centre"], matches,
-                                           _seen["max_error"]),
-            "kept": float(last.active.sum() / max(_seen["observed"].sum(), 1)),
-            "start_rotation": float(np.median(start_rot)) if start_rot else None,
-            "focal_ratio": float(last.focal / _seen["focal_start"]), "pairs": len(start_rot)}
+    R.agreement = recorded
+    try:
+        t0 = time.perf_counter()
+        as_shipped = rt.encode(photos, cameras="refined")
+        row = {"refined_seconds": time.perf_counter() - t0, "source": as_shipped.camera_source,
+               "agreement": list(seen)}
+        R.MIN_AGREEMENT = 0.0
+        chosen = rt.encode(photos, cameras="refined")
+        ends = {}
+        for kind in shipped[1]:
+            R.STARTS = (kind,)
+            ends[kind] = rt.encode(photos, cameras="refined")
+    finally:
+        R.MIN_AGREEMENT, R.STARTS, R.agreement = shipped
+    if truth is not None:
+        row["refined_rpa@15"] = rpa(as_shipped.world_from_cam, truth)
+        if chosen.camera_source == "refined":
+            row["chosen_rpa@15"] = rpa(chosen.world_from_cam, truth)
+        row["rpa@15"] = {k: rpa(e.world_from_cam, truth) for k, e in ends.items()
+                         if e.camera_source == "refined"}
+    if solve:
+        t0 = time.perf_counter()
+        solved = rt.encode(photos, cameras="epipolar")
+        row["solve_seconds"] = time.perf_counter() - t0
+        if truth is not None:
+            row["solve_rpa@15"] = rpa(solved.world_from_cam, truth)
+    return row
 
 
 def main() -> None:
@@ -96,11 +73,9 @@ def main() -> None:
     ap.add_argument("model_dir")
     ap.add_argument("out")
     ap.add_argument("data", nargs="+")
-    ap.add_argument("--no-solve", action="store_true", help="refine only (no agree@5, no solve RPA)")
+    ap.add_argument("--no-solve", action="store_true", help="no solve RPA")
     args = ap.parse_args()
     cv2.setNumThreads(1)
-    _watch()
-    R.MIN_EXPLAINED = 0.0     # every refinement is kept, so that its signals and RPA are seen
     rt = IrisRuntime(args.model_dir, threads=1)
     rows = []
     for data in args.data:
@@ -109,24 +84,10 @@ def main() -> None:
         for index, scene in enumerate(scenes):
             photos = list(scene.images if small else (getattr(scene, "photos", None)
                                                       or scene.images))
-            _seen.clear()
-            t0 = time.perf_counter()
-            refined = rt.encode(photos, cameras="refined")
-            row = {"data": data, "scene": index, "source": refined.camera_source,
-                   "refined_seconds": time.perf_counter() - t0}
-            if refined.camera_source == "refined":
-                row |= signals()
             truth = getattr(scene, "world_from_cam", None)
-            if truth is not None:
-                truth = np.linalg.inv(truth[0]) @ truth
-                row["refined_rpa@15"] = rpa(refined.world_from_cam, truth)
-            if not args.no_solve:
-                t0 = time.perf_counter()
-                solved = rt.encode(photos, cameras="epipolar")
-                row["solve_seconds"] = time.perf_counter() - t0
-                row["agree@5"] = rpa(refined.world_from_cam, solved.world_from_cam, 5.0)
-                if truth is not None:
-                    row["solve_rpa@15"] = rpa(solved.world_from_cam, truth)
+            truth = None if truth is None else np.linalg.inv(truth[0]) @ truth
+            row = {"data": data, "scene": index} | scene_signals(rt, photos, truth,
+                                                                 not args.no_solve)
             rows.append(row)
             print(json.dumps(row), flush=True)
     with open(args.out, "w") as f:

@@ -759,61 +759,67 @@ def test_rotation_and_centre_averaging_recover_the_cameras_despite_a_wrong_pair(
     assert max(_angle_deg(a, b) for a, b in zip(linked[:5], R_true[:5])) < 1e-4
 
 
-def test_explained_share_counts_the_matches_a_pair_of_cameras_explains():
-    """Exact matches of 4 cameras are all explained; one camera turned by 2 degrees leaves its
-    three pairs' matches unexplained at 1 px and the other three pairs' explained. With every
-    fourth match moved 3 px, the share is the one OpenCV's Sampson distance of the true
-    essential matrices gives."""
-    import cv2
-
-    from iris_runtime.cameras.refine import explained_share
-    rng = np.random.default_rng(11)
-    truth = _forward_cameras(rng, 4, spread=0.4, max_angle=0.2)
-    X = _cloud(rng, 300)
-    uv = [_project(T, X)[0] for T in truth]
+def test_agreement_counts_the_pairs_two_sets_of_cameras_agree_on():
+    """The same 6 cameras in another frame and unit agree on every pair; one turned by 10
+    degrees, one moved sideways by a third of its baseline, or one the second set leaves unposed,
+    on the 10 of the 15 pairs without it; at 4 degrees (under ``AGREEMENT_DEGREES``) on all of
+    them. Pairs the first set leaves unposed do not count. A mirrored path (baselines reversed)
+    agrees on none."""
+    from iris_runtime.cameras.refine import agreement
+    rng = np.random.default_rng(12)
+    truth = _forward_cameras(rng, 6, spread=0.4, max_angle=0.4)
     cam_from_world = np.linalg.inv(truth)
     R, t = cam_from_world[:, :3, :3], cam_from_world[:, :3, 3]
-    centre = np.array([SIZE[1] / 2, SIZE[0] / 2])
-    pairs = [(a, b) for a in range(4) for b in range(a + 1, 4)]
-    matches = {(a, b): (uv[a], uv[b]) for a, b in pairs}
-    assert explained_share(R, t, FOCAL, centre, matches, 1e-6) == 1.0
-    turned = R.copy()
-    turned[2] = _rotation_about([0.3, 1.0, 0.1], np.radians(2.0)) @ R[2]
-    untouched = {ab: m for ab, m in matches.items() if 2 not in ab}
-    assert explained_share(turned, t, FOCAL, centre, untouched, 1.0) == 1.0
-    assert explained_share(turned, t, FOCAL, centre, matches, 1.0) < 0.5 + 0.5 * 0.1
-    moved = np.arange(len(X)) % 4 == 0
-    angle = rng.uniform(0, 2 * np.pi, len(X))
-    offset = 3.0 * np.stack([np.cos(angle), np.sin(angle)], 1) * moved[:, None]
-    noisy = {ab: (ua, ub + offset) for ab, (ua, ub) in matches.items()}
-    K = intrinsics(FOCAL, SIZE)
-    within = []
-    for a, b in pairs:
-        rel = cam_from_world[b] @ truth[a]                          # cam_b_from_cam_a
-        E = np.cross(np.eye(3), rel[:3, 3] / np.linalg.norm(rel[:3, 3])) @ rel[:3, :3]
-        pa, pb = (cv2.undistortPoints(p[:, None], K, None)[:, 0] for p in noisy[a, b])
-        within += [np.sqrt(cv2.sampsonDistance(np.r_[x, 1.0][:, None], np.r_[y, 1.0][:, None], E))
-                   * FOCAL <= 1.0 for x, y in zip(pa, pb)]
-    share = explained_share(R, t, FOCAL, centre, noisy, 1.0)
-    assert share == pytest.approx(np.mean(within), abs=1e-9)
-    assert 0.75 <= share < 1.0
+    posed = np.ones(6, bool)
+    similar = np.eye(4)
+    similar[:3, :3] = _rotation_about([1.0, 2.0, 0.5], 1.0)
+    similar[:3, 3] = [3.0, -1.0, 2.0]
+    other = truth.copy()
+    other[:, :3, 3] *= 2.5                                      # another unit ...
+    other = similar @ other                                     # ... and frame
+    c = np.linalg.inv(other)
+    assert agreement(R, t, posed, c[:, :3, :3], c[:, :3, 3], posed) == pytest.approx(1.0)
+
+    def changed(view, degrees=0.0, shift=0.0):
+        T = truth.copy()
+        T[view, :3, :3] = _rotation_about([0.2, 1.0, 0.3], np.radians(degrees)) @ T[view, :3, :3]
+        baseline = np.linalg.norm(T[view, :3, 3] - T[0, :3, 3])
+        T[view, :3, 3] += shift * baseline * T[view, :3, 0]     # along the camera's x axis
+        c = np.linalg.inv(T)
+        return c[:, :3, :3], c[:, :3, 3]
+
+    assert agreement(R, t, posed, *changed(2, degrees=10.0), posed) == pytest.approx(10 / 15)
+    assert agreement(R, t, posed, *changed(2, degrees=4.0), posed) == pytest.approx(1.0)
+    assert agreement(R, t, posed, *changed(3, shift=1 / 3), posed) == pytest.approx(10 / 15)
+    unposed = posed.copy()
+    unposed[4] = False
+    assert agreement(R, t, posed, R, t, unposed) == pytest.approx(10 / 15)
+    assert agreement(R, t, unposed, R, t, posed) == 1.0      # only the pairs a poses count
+    mirrored = truth.copy()
+    mirrored[:, :3, 3] = 2 * truth[0, :3, 3] - truth[:, :3, 3]
+    c = np.linalg.inv(mirrored)
+    assert agreement(R, t, posed, c[:, :3, :3], c[:, :3, 3], posed) == 0.0
 
 
-def test_refine_cameras_falls_back_where_its_cameras_do_not_explain_the_matches(corner,
-                                                                               monkeypatch):
-    """The gate on ``MIN_EXPLAINED``: a refinement that explains its pairs' matches is kept; one
-    held to a share it does not reach gives None, and ``refine_model_cameras`` the solve."""
+def test_refine_cameras_falls_back_where_no_other_start_agrees(corner, monkeypatch):
+    """The gate on ``MIN_AGREEMENT``: a refinement whose starts end at the same cameras is kept;
+    held to an agreement no start reaches it gives None, and ``refine_model_cameras`` the solve.
+    With one start the check is off."""
     import iris_runtime.cameras.refine as refine
     from iris_runtime.cameras import refine_model_cameras
     photos, truth, solved = corner
-    start = _perturbed(truth, np.random.default_rng(4), degrees=3.0)
-    assert refine.refine_cameras(list(photos), start, FOCAL, DEPTH_RANGE) is not None
-    monkeypatch.setattr(refine, "MIN_EXPLAINED", 1.01)
+    start = _perturbed(truth, np.random.default_rng(4), degrees=6.0)
+    kept = refine.refine_cameras(list(photos), start, FOCAL, DEPTH_RANGE)
+    assert kept is not None and _pair_errors(kept.world_from_cam, truth).max() < 2.0
+    monkeypatch.setattr(refine, "MIN_AGREEMENT", 1.01)
     assert refine.refine_cameras(list(photos), start, FOCAL, DEPTH_RANGE) is None
     H, W = SIZE
     cams = refine_model_cameras(list(photos), start, [FOCAL / W, FOCAL / H], SIZE, DEPTH_RANGE)
     assert cams.source == "epipolar"
     np.testing.assert_array_equal(cams.world_from_cam, solved.world_from_cam)
+    monkeypatch.setattr(refine, "STARTS", ("model",))
+    alone = refine.refine_cameras(list(photos), start, FOCAL, DEPTH_RANGE)
+    assert alone is not None and _pair_errors(alone.world_from_cam, truth).max() < 2.0
 
 
 def test_refine_cameras_reports_what_the_photos_cannot_constrain(corner):

@@ -51,8 +51,8 @@ def refine_model_cameras(photos, world_from_cam, focal, image_size: tuple[int, i
                          depth_range: tuple[float, float]) -> ModelCameras:
     """As ``replace_model_cameras``, but the cameras are ``refine_cameras`` of the photos started
     from the model's: the same photos' copies, the model's focal carried to their pixels. Where
-    the refinement cannot constrain the cameras (it returns None) or leaves view 0 (the frame)
-    unposed, the solve replaces them."""
+    the refinement cannot constrain the cameras or finds no start to agree with (it returns
+    None), or leaves view 0 (the frame) unposed, the solve replaces them."""
     model, model_focal, model_K = _model(world_from_cam, focal, image_size)
     copies, model_from_camera = camera_copies([np.asarray(p) for p in photos], image_size)
     camera_K = np.linalg.inv(model_from_camera) @ model_K
