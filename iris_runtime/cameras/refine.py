@@ -11,11 +11,12 @@ gets a first round of bundle adjustment (``bundle``) with the focal held (a pose
 several degrees moves the focal as much as a wrong focal does), after which the best is chosen,
 and a second with the focal free. Like the solve it runs in ``canonical_order`` and its result
 is in the solve's terms (``solve.CameraSolve``: its unit, root and point map), so it replaces a
-model's cameras as the solve does (``replace.refine_model_cameras``). Its accuracy rests on its starts: where the
-head and the pairs are both far off, the adjustment ends in a wrong minimum (docs/CAMERAS.md,
-"Refining the model's cameras"). A wrong minimum is rarely reached from two starts, so every
-start is adjusted to the end, and unless another start's cameras agree with the chosen ones
-(``agreement``) the caller is told to run the solve instead ("Telling a wrong refinement").
+model's cameras as the solve does (``replace.refine_model_cameras``). Its accuracy rests on its
+starts: where the head and the pairs are both far off, the adjustment ends in a wrong minimum
+(docs/CAMERAS.md, "Refining the model's cameras"). A wrong minimum is rarely reached from two
+starts, so every start is adjusted to the end, and unless another start's cameras agree with the
+chosen ones (``agreement``) the caller is told to run the solve instead ("Telling a wrong
+refinement").
 """
 from __future__ import annotations
 
@@ -170,7 +171,7 @@ def agreement(R_a: np.ndarray, t_a: np.ndarray, posed_a: np.ndarray, R_b: np.nda
     within ``AGREEMENT_DEGREES``. 0 when a poses fewer than two views."""
     C_a = -np.einsum("vji,vj->vi", R_a, t_a)
     C_b = -np.einsum("vji,vj->vi", R_b, t_b)
-    cos = np.cos(np.radians(AGREEMENT_DEGREES))
+    tolerance = np.radians(AGREEMENT_DEGREES)
     pairs = agreed = 0
     for i in range(len(R_a)):
         for j in range(i + 1, len(R_a)):
@@ -179,12 +180,12 @@ def agreement(R_a: np.ndarray, t_a: np.ndarray, posed_a: np.ndarray, R_b: np.nda
             pairs += 1
             if not (posed_b[i] and posed_b[j]):
                 continue
-            turn = (R_a[j] @ R_a[i].T) @ (R_b[j] @ R_b[i].T).T
             # Baselines in camera i's frame: the frames of a and b may differ by any similarity.
             d_a, d_b = R_a[i] @ (C_a[j] - C_a[i]), R_b[i] @ (C_b[j] - C_b[i])
             n = np.linalg.norm(d_a) * np.linalg.norm(d_b)
-            agreed += bool((np.trace(turn) - 1.0) / 2.0 >= cos and n > 0
-                           and d_a @ d_b >= cos * n)
+            agreed += bool(n > 0
+                           and _angle(R_a[j] @ R_a[i].T, R_b[j] @ R_b[i].T) <= tolerance
+                           and np.arccos(np.clip(d_a @ d_b / n, -1.0, 1.0)) <= tolerance)
     return agreed / pairs if pairs else 0.0
 
 
