@@ -356,6 +356,31 @@ def test_bundle_adjustment_recovers_cameras_focal_and_points_despite_outliers():
     assert fixed.focal == 1.15 * FOCAL
 
 
+def test_bundle_adjustment_tolerance_ends_it_at_the_first_small_step():
+    """``tolerance``: the adjustment stops at the first step that lowers the cost by less than
+    that share of it. A loose one runs fewer iterations and, on a well-posed problem whose
+    Gauss-Newton steps shrink fast, ends within about that share of the tight one's cost, at
+    the same cameras to a hundredth of a degree."""
+    rng = np.random.default_rng(4)
+    T = _forward_cameras(rng, 5, spread=0.6, max_angle=0.2)
+    cfw = np.linalg.inv(T)
+    X = _cloud(rng, 300)
+    uv = np.stack([_project(Tk, X)[0] for Tk in T], 1) + rng.normal(0, 0.3, (300, 5, 2))
+    active = np.ones((300, 5), bool)
+    R0 = np.stack([_rotation(rng, 0.02) @ R for R in cfw[:, :3, :3]])
+    R0[0] = cfw[0, :3, :3]
+    t0 = cfw[:, :3, 3] + np.r_[[[0, 0, 0]], 0.03 * rng.normal(size=(4, 3))]
+    X0 = X + 0.05 * rng.normal(size=X.shape)
+    centre = np.array([SIZE[1] / 2, SIZE[0] / 2])
+    kw = dict(fixed_view=0, scale_view=1, refine_focal=False, max_iterations=100)
+    tight = bundle_adjust(R0, t0, FOCAL, centre, X0, uv, active, tolerance=1e-9, **kw)
+    loose = bundle_adjust(R0, t0, FOCAL, centre, X0, uv, active, tolerance=1e-2, **kw)
+    assert loose.iterations < tight.iterations < 100
+    assert tight.cost <= loose.cost <= (1 + 1e-2) * tight.cost
+    for k in range(5):
+        assert _angle_deg(loose.R[k], tight.R[k]) < 0.01
+
+
 def test_point_block_inverse_matches_lapack_on_stiff_blocks():
     """The adjustment's closed-form inverse of the 3x3 point blocks (Q^T Q, Q the inverse of
     the Cholesky factor) against np.linalg.inv, on blocks like a far point's (depth barely

@@ -143,11 +143,14 @@ def _inverse_factor(A):
 
 def bundle_adjust(R, t, focal, centre, points, uv, active, *, fixed_view: int, scale_view: int,
                   refine_focal: bool = True, loss_scale: float = 1.0,
-                  max_iterations: int = 50) -> BundleResult:
+                  max_iterations: int = 50,
+                  tolerance: float = RELATIVE_TOLERANCE) -> BundleResult:
     """Refine ``R [V, 3, 3]``, ``t [V, 3]`` (cam_from_world), ``focal`` (pixels; principal point
     ``centre`` [2]) and ``points [P, 3]`` on the observations ``uv [P, V, 2]`` where ``active
     [P, V]`` is True. View ``fixed_view`` does not move; the largest coordinate of view
-    ``scale_view``'s translation does not either. ``loss_scale``: the Cauchy scale in pixels."""
+    ``scale_view``'s translation does not either. ``loss_scale``: the Cauchy scale in pixels.
+    Stops after ``max_iterations``, or at the first step that lowers the cost by less than
+    ``tolerance`` of it."""
     R, t, X = np.array(R, np.float64), np.array(t, np.float64), np.array(points, np.float64)
     f = float(focal)
     prob = _Problem(np.asarray(uv, np.float64), np.asarray(active, bool),
@@ -215,7 +218,7 @@ def bundle_adjust(R, t, focal, centre, points, uv, active, *, fixed_view: int, s
                 t2, f2, X2 = t + d7[:, 3:6], f + d7[0, 6], X + dp
                 new = prob.cost(R2, t2, f2, X2)
                 if new < cost:
-                    done = (cost - new) < RELATIVE_TOLERANCE * cost
+                    done = (cost - new) < tolerance * cost
                     R, t, f, X, cost = R2, t2, f2, X2, new
                     lam = max(lam / 10.0, 1e-10)
                     break

@@ -35,7 +35,7 @@ from .triangulation import triangulate
 from .two_view import MAX_ERROR, essential_pose, pixel_scale
 
 __all__ = ["refine_cameras", "average_rotations", "average_centres", "agreement", "STARTS",
-           "REFINE_ROUNDS", "MIN_AGREEMENT", "AGREEMENT_DEGREES",
+           "REFINE_ROUNDS", "REFINE_TOLERANCE", "MIN_AGREEMENT", "AGREEMENT_DEGREES",
            "RETRIANGULATION_ANGLE", "REFINED_MIN_OBSERVATIONS", "AVERAGING_ROUNDS",
            "AVERAGING_SCALE"]
 
@@ -54,6 +54,12 @@ AVERAGING_SCALE = 5.0
 
 #: The bundle adjustment's rounds: (Levenberg-Marquardt iterations, whether the focal moves).
 REFINE_ROUNDS = ((20, False), (50, True))
+#: A round ends early at a step that lowers the cost by less than this share of it (the solve's
+#: adjustments go on to ``bundle.RELATIVE_TOLERANCE``, a hundredth of this). The three starts'
+#: six rounds are the refinement's largest cost; the last hundredths of a per cent of the cost
+#: are a third of their iterations and change neither the accuracy nor which scenes go to the
+#: solve (docs/CAMERAS.md, "What the refinement costs").
+REFINE_TOLERANCE = 1e-4
 #: Keypoints matched per photo (the strongest of the solve's ``features.MAX_FEATURES``): the
 #: matching's cost grows with their square and a start needs fewer than a mapper; 0: all.
 MAX_KEYPOINTS = 1024
@@ -225,7 +231,8 @@ def _round(a: _Adjustment, iterations: int, refine_focal: bool, last: bool, cent
     keep = a.active.sum(1) >= 2
     res = bundle_adjust(a.R, a.t, a.focal, centre, a.X[keep], tracks.uv[keep], a.active[keep],
                         fixed_view=0, scale_view=scale_view, refine_focal=refine_focal,
-                        loss_scale=loss_scale, max_iterations=iterations)
+                        loss_scale=loss_scale, max_iterations=iterations,
+                        tolerance=REFINE_TOLERANCE)
     if not (np.isfinite(res.focal) and res.focal > 0):
         return None
     X = a.X.copy()
@@ -269,7 +276,10 @@ def refine_cameras(photos, world_from_cam, focal: float, depth_range: tuple[floa
     opts = options or MapperOptions()
     # As the solve: the photos in canonical_order, so that their order only decides the root.
     perm = canonical_order(photos)
-    start = start[perm]
+    # ... and the start in the frame of canonical view 0 (the adjustment's gauge), so that the
+    # same cameras given in another frame start the same adjustment: a round that ends at its
+    # tolerance ends where it would have in any frame.
+    start = np.linalg.inv(start[perm[0]]) @ start[perm]
     # The scale gauge: one coordinate of the view farthest from view 0 stays where it starts.
     baseline = np.linalg.norm(start[:, :3, 3] - start[0, :3, 3], axis=1)
     scale_view = int(np.argmax(baseline))
