@@ -226,7 +226,12 @@ def store_folder(scenes, train_size: tuple[int, int], store_dir: Path = STORE_DI
     if render is None or kind_of is None or isinstance(kind, dict):
         return None
     from .data import kind_version
-    name = "classic-1" if kind is None else f"{kind}-{kind_version(kind)}"
+    from .synthetic import CAPTURE_KINDS
+    # "capture" draws one of the capture kinds per seed: the folder carries the newest of their
+    # versions, so that a change to any of them starts a new folder.
+    kinds = CAPTURE_KINDS if kind == "capture" else (kind,)
+    name = ("classic-1" if kind is None
+            else f"{kind}-{max(kind_version(k) for k in kinds)}")
     return Path(store_dir) / (f"{name}_{render[0]}x{render[1]}_to_{train_size[0]}x{train_size[1]}"
                               f"_v{scenes.n_views}_solve{SOLVE_VERSION}")
 

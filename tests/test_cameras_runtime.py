@@ -447,6 +447,28 @@ def test_teacher_solves_on_the_largest_photos_and_caches_per_training_size(corne
 
 
 @pytest.mark.torch
+def test_teacher_store_names_a_folder_for_each_dataset_it_keeps(tmp_path):
+    """The store's folder names what the cameras depend on: the classic scenes, the capture-like
+    ones (a kind drawn per seed: the newest of their generator versions) and a single kind; a
+    mix of kinds is not kept."""
+    pytest.importorskip("torch")
+    from iris_train import pseudo_poses as PP
+    from iris_train.data import SyntheticScenes
+    from iris_train.synthetic import CAPTURE_KINDS, KIND_VERSIONS
+    v, solve = max(KIND_VERSIONS[k] for k in CAPTURE_KINDS), PP.SOLVE_VERSION
+    kw = dict(size=(64, 64), render_size=(256, 256), cache_dir=tmp_path)
+    assert PP.store_folder(SyntheticScenes(range(3), **kw), (64, 64), tmp_path).name == \
+        f"classic-1_256x256_to_64x64_v8_solve{solve}"
+    assert PP.store_folder(SyntheticScenes(range(3), kind="capture", **kw), (64, 64),
+                           tmp_path).name == f"capture-{v}_256x256_to_64x64_v8_solve{solve}"
+    assert PP.store_folder(SyntheticScenes(range(3), kind="orbit", **kw), (64, 64),
+                           tmp_path).name == \
+        f"orbit-{KIND_VERSIONS['orbit']}_256x256_to_64x64_v8_solve{solve}"
+    assert PP.store_folder(SyntheticScenes(range(3), kind={"orbit": 1, "walk": 1}, **kw),
+                           (64, 64), tmp_path) is None
+
+
+@pytest.mark.torch
 def test_teacher_store_packs_whole_blocks_and_serves_them_without_solving(corner, tmp_path,
                                                                           monkeypatch):
     """``pseudo_poses.pack`` gathers the per-scene solved cameras of whole blocks of seeds into
