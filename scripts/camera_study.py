@@ -26,7 +26,7 @@ sys.path.insert(0, str(REPO))
 import numpy as np  # noqa: E402
 
 MODULES = ("features", "two_view", "tracks", "triangulation", "bundle", "locate", "mapper",
-           "solve", "replace")
+           "solve", "replace", "refine")
 
 
 def _value(text: str, like):

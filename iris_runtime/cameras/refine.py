@@ -56,9 +56,9 @@ AVERAGING_SCALE = 5.0
 REFINE_ROUNDS = ((20, False), (50, True))
 #: A round ends early at a step that lowers the cost by less than this share of it (the solve's
 #: adjustments go on to ``bundle.RELATIVE_TOLERANCE``, a hundredth of this). The three starts'
-#: six rounds are the refinement's largest cost; the last hundredths of a per cent of the cost
-#: are a third of their iterations and change neither the accuracy nor which scenes go to the
-#: solve (docs/CAMERAS.md, "What the refinement costs").
+#: six rounds are the refinement's largest cost, and on the held-out scenes the steps past this
+#: are a third of their iterations for 0.003 of RPA@15 (docs/CAMERAS.md, "What the refinement
+#: costs").
 REFINE_TOLERANCE = 1e-4
 #: Keypoints matched per photo (the strongest of the solve's ``features.MAX_FEATURES``): the
 #: matching's cost grows with their square and a start needs fewer than a mapper; 0: all.
