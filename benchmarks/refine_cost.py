@@ -6,6 +6,10 @@ whole encode (one run, one thread: a ranking, not a timing; ``encode_cost.py`` t
 
     python benchmarks/refine_cost.py MODEL_DIR
     python benchmarks/refine_cost.py MODEL_DIR --set refine.REFINE_TOLERANCE=1e-6 --json out.json
+    python benchmarks/refine_cost.py MODEL_DIR --profile      # + the refinement's time by step
+
+``--profile`` runs the scenes under cProfile and adds the share of the refinement's time in each
+of its steps (SIFT, matching, essential matrices, tracks, bundle adjustment, triangulation).
 
 ``--set`` takes ``scripts/camera_study.py``'s settings (a scalar or flat-tuple constant of a
 module of ``iris_runtime.cameras``). Needs the [train] extra (the held-out scenes).
@@ -25,7 +29,33 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 
-def measure(model_dir: str, settings: list[str]) -> dict:
+#: The refinement's steps, by the function that does each (``iris_runtime.cameras``).
+STEPS = {"scene_features": "SIFT", "match_features": "matching",
+         "essential_pose": "essential matrices", "build_tracks": "tracks",
+         "bundle_adjust": "bundle adjustment", "triangulate": "triangulation"}
+
+
+def step_shares(profile) -> dict:
+    """{step: share of ``refine_cameras``' cumulative time} from a ``cProfile.Profile``."""
+    import pstats
+    total, shares = 0.0, {}
+    for (path, _, name), (_, _, _, cumulative, callers) in pstats.Stats(profile).stats.items():
+        if "iris_runtime" not in path:
+            continue
+        if name == "refine_cameras":
+            total += cumulative
+        elif name in STEPS:
+            # Only the calls made inside the refinement (the solve calls some of them too).
+            inside = sum(c[3] for (_, _, caller), c in callers.items()
+                         if caller in ("refine_cameras", "_round", "_start", "counted"))
+            shares[STEPS[name]] = shares.get(STEPS[name], 0.0) + inside
+    return {k: v / total for k, v in sorted(shares.items(), key=lambda kv: -kv[1])} if total \
+        else {}
+
+
+def measure(model_dir: str, settings: list[str], profile: bool = False) -> dict:
+    import cProfile
+
     import cv2
     import numpy as np
 
@@ -54,10 +84,15 @@ def measure(model_dir: str, settings: list[str]) -> dict:
     refine.bundle_adjust, replace.refine_cameras = counted, timed
     rt = IrisRuntime(model_dir, threads=1)
     rows = []
+    profiler = cProfile.Profile() if profile else None
     for scene in heldout_64_scenes():
         counts.update(iterations=0, refine_s=0.0)
         t0 = time.perf_counter()
+        if profiler is not None:
+            profiler.enable()
         encoded = rt.encode(scene.photos, cameras="refined")
+        if profiler is not None:
+            profiler.disable()
         seconds = time.perf_counter() - t0
         rpa = float(np.mean(pair_errors(encoded.world_from_cam, scene.world_from_cam) < 15))
         rows.append({"scene": scene.name.split(" (")[0], "rpa@15": rpa,
@@ -70,6 +105,8 @@ def measure(model_dir: str, settings: list[str]) -> dict:
                "handed_to_solve": [r["scene"] for r in rows if r["source"] != "refined"],
                "mean_iterations": float(np.mean([r["iterations"] for r in rows])),
                "median_refine_s": statistics.median(r["refine_s"] for r in rows)}
+    if profiler is not None:
+        summary["refine_time_by_step"] = step_shares(profiler)
     print(json.dumps(summary))
     return {"settings": list(settings), "load_before": list(os.getloadavg()), "scenes": rows,
             "summary": summary}
@@ -80,8 +117,10 @@ def main(argv=None) -> int:
     ap.add_argument("model_dir")
     ap.add_argument("--set", action="append", default=[], metavar="NAME=VALUE")
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--profile", action="store_true",
+                    help="also the share of the refinement's time in each of its steps")
     args = ap.parse_args(argv)
-    res = measure(args.model_dir, args.set)
+    res = measure(args.model_dir, args.set, args.profile)
     if args.json is not None:
         from iris_runtime.fileio import atomic_write_bytes
         atomic_write_bytes(args.json, json.dumps(res, indent=1).encode())
