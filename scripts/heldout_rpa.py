@@ -8,7 +8,9 @@ the median rotation and translation-direction errors, the median true rotation (
 cameras would score), the spread of the predicted camera centres and the predicted focal against
 the true one, and the errors by quarter of the true baselines (shortest first). ``--fit N``
 adds the head's fit to the teacher on N training scenes (label-free): a head that fits its
-training scenes no better than the held-out ones needs evidence, not data. Used to pick
+training scenes no better than the held-out ones needs evidence, not data. ``--capture`` adds
+the capture-like held-out scenes (wide fields of view, hand-held paths): off the classic
+distribution. Used to pick
 recipes in docs/TRAINING.md: it runs in seconds, so it can score a checkpoint while another run
 trains.
 """
@@ -107,11 +109,20 @@ def main() -> None:
     parser.add_argument("--fit", type=int, default=0, metavar="N",
                         help="also the fit to the teacher on N classic training scenes (every "
                              "20th seed, 256x256 renders' solve; fit())")
+    parser.add_argument("--capture", action="store_true",
+                        help="also the capture-like held-out scenes (iris-eval's "
+                             "synthetic:capture-heldout, rendered at 256x256 and area-averaged "
+                             "to 64x64 as the training scenes are), under 'capture_heldout'")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     model = load_model(args.checkpoint)
     result = {"step": read_checkpoint(args.checkpoint).get("step"),
               **score(model, SyntheticScenes(HELDOUT_SEEDS[:args.scenes]))}
+    if args.capture:
+        from iris_train.data import CAPTURE_HELDOUT_SEEDS
+        result["capture_heldout"] = score(model, SyntheticScenes(
+            list(CAPTURE_HELDOUT_SEEDS)[:args.scenes], size=(64, 64), kind="capture",
+            render_size=(256, 256)))
     if args.fit:
         from iris_train import pseudo_poses
         train = SyntheticScenes(range(20 * args.fit), size=(64, 64), render_size=(256, 256))
