@@ -173,16 +173,17 @@ def augment_rotation(photos: np.ndarray, world_from_cam: torch.Tensor, focal: to
 
 
 def draw(sets, batch: int, rng: np.random.Generator, max_roll_deg: float = 0.0,
-         max_rotation_deg: float = 0.0, rotation_fraction: float = 1.0):
+         max_rotation_deg: float = 0.0, rotation_fraction: float = 1.0, shares=None):
     """``images [B, V, 3, 64, 64]``, solved ``world_from_cam [B, V, 4, 4]``, ``focal [B, 2]``,
     ``zoomed [B]`` bool (``augment``-ed when ``max_roll_deg`` > 0; with ``max_rotation_deg`` > 0,
     each scene ``augment_rotation``-ed with probability ``rotation_fraction``; ``zoomed``: those
-    turned and zoomed, whose focal is not the scene's any more)."""
+    turned and zoomed, whose focal is not the scene's any more). Each scene comes from one of
+    ``sets``, drawn with probabilities ``shares`` (None: alike)."""
     from iris_train.train import _draw_solved
     n_views = int(rng.integers(4, 9))
     images, cams, focals, zoomed = [], [], [], []
     for _ in range(batch):
-        scenes, solutions = sets[int(rng.integers(len(sets)))]
+        scenes, solutions = sets[int(rng.choice(len(sets), p=shares))]
         index, order, (T, f) = _draw_solved(scenes, solutions, rng, n_views)
         zoom = 1.0
         if max_rotation_deg > 0 and rng.random() < rotation_fraction:
@@ -232,6 +233,9 @@ def main(argv=None) -> int:
                     help="the correlation grid in token grids (0: the --init checkpoint's)")
     ap.add_argument("--classic", type=int, default=400)
     ap.add_argument("--capture", type=int, default=0)
+    ap.add_argument("--capture-share", type=float, default=0.5,
+                    help="with --classic and --capture: the share of the batch's scenes drawn "
+                         "from the capture-like ones")
     ap.add_argument("--batch", type=int, default=8)
     ap.add_argument("--lr", type=float, default=3e-4, help="camera head (the encoder: x0.3)")
     ap.add_argument("--separate-encoder", action="store_true",
@@ -260,16 +264,21 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args(argv)
+    if not 0.0 < args.capture_share < 1.0:
+        ap.error(f"--capture-share: expected a share in (0, 1), got {args.capture_share}")
     torch.manual_seed(args.seed)
     torch.set_num_threads(args.threads)
-    from heldout_rpa import score
+    from heldout_rpa import capture_heldout_scenes, score
 
     from iris_train.data import HELDOUT_SEEDS, SyntheticScenes
     from iris_train.model import save_checkpoint
     from iris_train.train import solve_losses
     model, fresh, train_config = build(args)
     sets = training_sets(args.classic, args.capture)
+    shares = ([1 - args.capture_share, args.capture_share] if args.classic and args.capture
+              else None)
     heldout = SyntheticScenes(HELDOUT_SEEDS[:args.heldout_scenes])
+    capture_heldout = capture_heldout_scenes(args.heldout_scenes) if args.capture else None
     head = list(model.camera_head.parameters())
     # The encoder the head reads: its own where it has one (the renderer's stays as it was).
     encoder = model.camera_encoder if model.camera_encoder is not None else model.encoder
@@ -284,6 +293,8 @@ def main(argv=None) -> int:
     def evaluate():
         model.eval()
         result = score(model, heldout)
+        if capture_heldout is not None:
+            result["capture_heldout"] = score(model, capture_heldout)
         model.train()
         entry = {"step": step, "minutes": round((time.time() - t0) / 60, 2), "heldout": result,
                  "train": {k: v / max(running.get("n", 1), 1) for k, v in running.items()
@@ -312,7 +323,7 @@ def main(argv=None) -> int:
     evaluate()
     while step < args.steps and time.time() - t0 < 60 * args.max_minutes:
         images, cams, focal, zoomed = draw(sets, args.batch, rng, args.augment_roll,
-                                           args.augment_rotation, args.rotation_fraction)
+                                           args.augment_rotation, args.rotation_fraction, shares)
         _, world_from_cam, pred_focal = model.encode_batch(images)
         terms: dict = {}
         for b in range(images.shape[0]):

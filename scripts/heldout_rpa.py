@@ -72,6 +72,14 @@ def fit(model, scenes, solutions, indices) -> dict:
             "by_baseline": by_baseline(rot, trans, base)}
 
 
+def capture_heldout_scenes(n: int):
+    """The first ``n`` capture-like held-out scenes (iris-eval's synthetic:capture-heldout),
+    rendered at 256x256 and area-averaged to 64x64 as the training scenes are."""
+    from iris_train.data import CAPTURE_HELDOUT_SEEDS
+    return SyntheticScenes(list(CAPTURE_HELDOUT_SEEDS)[:n], size=(64, 64), kind="capture",
+                           render_size=(256, 256))
+
+
 def score(model, scenes) -> dict:
     refs, targets = split_frames(8)
     order = list(refs) + list(targets)             # references first: view 0 = frame 0
@@ -119,10 +127,7 @@ def main() -> None:
     result = {"step": read_checkpoint(args.checkpoint).get("step"),
               **score(model, SyntheticScenes(HELDOUT_SEEDS[:args.scenes]))}
     if args.capture:
-        from iris_train.data import CAPTURE_HELDOUT_SEEDS
-        result["capture_heldout"] = score(model, SyntheticScenes(
-            list(CAPTURE_HELDOUT_SEEDS)[:args.scenes], size=(64, 64), kind="capture",
-            render_size=(256, 256)))
+        result["capture_heldout"] = score(model, capture_heldout_scenes(args.scenes))
     if args.fit:
         from iris_train import pseudo_poses
         train = SyntheticScenes(range(20 * args.fit), size=(64, 64), render_size=(256, 256))

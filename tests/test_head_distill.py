@@ -25,6 +25,7 @@ def _script():
 @pytest.mark.skipif(not (SHIPPED.exists() and G1.exists()), reason="needs the checkpoints")
 @pytest.mark.parametrize("init,augment", [
     (SHIPPED, []), (SHIPPED, ["--augment-rotation", "8"]),
+    (SHIPPED, ["--capture", "2", "--capture-share", "0.25"]),
     (G1, []), (G1, ["--separate-encoder"])])
 def test_head_distill_trains_the_encoder_and_head_only(tmp_path, monkeypatch, init, augment):
     from iris_train import load_model
@@ -39,6 +40,8 @@ def test_head_distill_trains_the_encoder_and_head_only(tmp_path, monkeypatch, in
     assert set(log[-1]["train"]) == ({"solve_rot", "solve_trans"} if "--augment-rotation" in augment
                                      else {"solve_rot", "solve_trans", "solve_focal"})
     assert 0.0 <= log[-1]["heldout"]["rpa@15"] <= 1.0
+    # With capture-like training scenes the capture-like held-out ones are scored too.
+    assert ("capture_heldout" in log[-1]["heldout"]) == ("--capture" in augment)
     trained, shipped = load_model(out / "last.pt"), load_model(init)
     assert trained.cfg.camera_head == "correlation"
     assert trained.cfg.camera_encoder == (init == SHIPPED or "--separate-encoder" in augment)
