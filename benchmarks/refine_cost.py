@@ -1,5 +1,5 @@
 """Where ``cameras="refined"`` spends its time, and what a setting of it changes: per held-out
-scene at the model's 64x64, the RPA@15 of the cameras ``IrisRuntime.encode`` gives (all 28
+(or ``--scenes validation``) scene at the model's 64x64, the RPA@15 of the cameras ``IrisRuntime.encode`` gives (all 28
 pairs), whether the refinement kept them or handed the scene to the solve, the bundle
 adjustment's iterations (all starts and rounds) and the seconds of the refinement and of the
 whole encode (one run, one thread: a ranking, not a timing; ``encode_cost.py`` times).
@@ -53,7 +53,8 @@ def step_shares(profile) -> dict:
         else {}
 
 
-def measure(model_dir: str, settings: list[str], profile: bool = False) -> dict:
+def measure(model_dir: str, settings: list[str], profile: bool = False,
+            scenes: str = "heldout") -> dict:
     import cProfile
 
     import cv2
@@ -61,7 +62,7 @@ def measure(model_dir: str, settings: list[str], profile: bool = False) -> dict:
 
     import iris_runtime.cameras.refine as refine
     import iris_runtime.cameras.replace as replace
-    from benchmarks.camera_solve import heldout_64_scenes, pair_errors
+    from benchmarks.camera_solve import heldout_64_scenes, pair_errors, validation_64_scenes
     from iris_runtime import IrisRuntime
     from scripts.camera_study import apply
     cv2.setNumThreads(1)
@@ -85,7 +86,7 @@ def measure(model_dir: str, settings: list[str], profile: bool = False) -> dict:
     rt = IrisRuntime(model_dir, threads=1)
     rows = []
     profiler = cProfile.Profile() if profile else None
-    for scene in heldout_64_scenes():
+    for scene in (heldout_64_scenes() if scenes == "heldout" else validation_64_scenes()):
         counts.update(iterations=0, refine_s=0.0)
         t0 = time.perf_counter()
         if profiler is not None:
@@ -108,7 +109,8 @@ def measure(model_dir: str, settings: list[str], profile: bool = False) -> dict:
     if profiler is not None:
         summary["refine_time_by_step"] = step_shares(profiler)
     print(json.dumps(summary))
-    return {"settings": list(settings), "load_before": list(os.getloadavg()), "scenes": rows,
+    return {"settings": list(settings), "set": scenes, "load_before": list(os.getloadavg()),
+            "scenes": rows,
             "summary": summary}
 
 
@@ -117,10 +119,13 @@ def main(argv=None) -> int:
     ap.add_argument("model_dir")
     ap.add_argument("--set", action="append", default=[], metavar="NAME=VALUE")
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--scenes", choices=("heldout", "validation"), default="heldout",
+                    help="the 16 held-out scenes, or the first 24 validation scenes (where a "
+                         "setting is chosen), at 64x64")
     ap.add_argument("--profile", action="store_true",
                     help="also the share of the refinement's time in each of its steps")
     args = ap.parse_args(argv)
-    res = measure(args.model_dir, args.set, args.profile)
+    res = measure(args.model_dir, args.set, args.profile, args.scenes)
     if args.json is not None:
         from iris_runtime.fileio import atomic_write_bytes
         atomic_write_bytes(args.json, json.dumps(res, indent=1).encode())

@@ -8,9 +8,11 @@
 Each DATA is an iris-eval set (``@64``: the model's 64x64 images as the photos, as
 ``benchmarks/encode_cost.py --heldout`` gives them). All 8 frames of every scene are encoded
 with ``cameras="refined"`` through the runtime's public entry point: as shipped, recording the
-values ``refine.agreement`` returns to the check (the chosen start's cameras against each other
-start's, after ``refine.CHOOSE_AFTER`` rounds; the check passes when the largest reaches
-``MIN_AGREEMENT``), the source and the seconds; then with ``MIN_AGREEMENT = 0`` (the chosen
+values ``refine.agreement`` returns to the check (the best-ranked start's cameras against each
+other start's, until one reaches ``MIN_AGREEMENT``), where none does, the salvage (``"core"``:
+the views of the largest set another start agrees with it on; ``"salvaged"``: the views it
+posed, 0 where the set was too small and the scene went to the solve), the source and the
+seconds; then with ``MIN_AGREEMENT = 0`` (the chosen
 start's cameras, whatever the check says) and with ``STARTS`` one start at a time (each start's
 own end; a start that leaves view 0 unposed is handed to the solve by the runtime and has no
 RPA of its own). Where the set has true cameras: RPA@15 of each, of the cameras as shipped and
@@ -32,19 +34,32 @@ from refine_probe import rpa15 as rpa
 
 
 def scene_signals(rt: IrisRuntime, photos, truth, solve: bool) -> dict:
-    shipped = R.MIN_AGREEMENT, R.STARTS, R.agreement
+    shipped = R.MIN_AGREEMENT, R.STARTS, R.agreement, R._salvaged, R.agreeing_views
     seen: list[float] = []
+    salvaged: list[int] = []
+    core = [0]
+
+    def views(*args):
+        out = shipped[4](*args)
+        core[0] = max(core[0], int(out.sum()))
+        return out
 
     def recorded(*args):
         seen.append(shipped[2](*args))
         return seen[-1]
 
-    R.agreement = recorded
+    def salvage(*args):
+        rec = shipped[3](*args)
+        salvaged.append(0 if rec is None else int(rec.registered.sum()))
+        return rec
+
+    R.agreement, R._salvaged, R.agreeing_views = recorded, salvage, views
     try:
         t0 = time.perf_counter()
         as_shipped = rt.encode(photos, cameras="refined")
         row = {"refined_seconds": time.perf_counter() - t0, "source": as_shipped.camera_source,
-               "agreement": list(seen)}
+               "agreement": list(seen), **({"core": core[0], "salvaged": salvaged[0]} if salvaged else {})}
+        R._salvaged = shipped[3]
         R.MIN_AGREEMENT = 0.0
         chosen = rt.encode(photos, cameras="refined")
         ends = {}
@@ -52,7 +67,7 @@ def scene_signals(rt: IrisRuntime, photos, truth, solve: bool) -> dict:
             R.STARTS = (kind,)
             ends[kind] = rt.encode(photos, cameras="refined")
     finally:
-        R.MIN_AGREEMENT, R.STARTS, R.agreement = shipped
+        R.MIN_AGREEMENT, R.STARTS, R.agreement, R._salvaged, R.agreeing_views = shipped
     if truth is not None:
         row["refined_rpa@15"] = rpa(as_shipped.world_from_cam, truth)
         if chosen.camera_source == "refined":

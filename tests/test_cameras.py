@@ -828,8 +828,9 @@ def test_agreement_counts_the_pairs_two_sets_of_cameras_agree_on():
 
 def test_refine_cameras_falls_back_where_no_other_start_agrees(corner, monkeypatch):
     """The gate on ``MIN_AGREEMENT``: a refinement whose starts end at the same cameras is kept;
-    held to an agreement no start reaches it gives None, and ``refine_model_cameras`` the solve.
-    With one start the check is off."""
+    held to an agreement no start reaches, and with no set of views large enough to salvage
+    (``MIN_CORE_SHARE``), it gives None, and ``refine_model_cameras`` the solve. With one start
+    the check is off."""
     import iris_runtime.cameras.refine as refine
     from iris_runtime.cameras import refine_model_cameras
     photos, truth, solved = corner
@@ -837,6 +838,7 @@ def test_refine_cameras_falls_back_where_no_other_start_agrees(corner, monkeypat
     kept = refine.refine_cameras(list(photos), start, FOCAL, DEPTH_RANGE)
     assert kept is not None and _pair_errors(kept.world_from_cam, truth).max() < 2.0
     monkeypatch.setattr(refine, "MIN_AGREEMENT", 1.01)
+    monkeypatch.setattr(refine, "MIN_CORE_SHARE", 1.01)
     assert refine.refine_cameras(list(photos), start, FOCAL, DEPTH_RANGE) is None
     H, W = SIZE
     cams = refine_model_cameras(list(photos), start, [FOCAL / W, FOCAL / H], SIZE, DEPTH_RANGE)
@@ -845,6 +847,52 @@ def test_refine_cameras_falls_back_where_no_other_start_agrees(corner, monkeypat
     monkeypatch.setattr(refine, "STARTS", ("model",))
     alone = refine.refine_cameras(list(photos), start, FOCAL, DEPTH_RANGE)
     assert alone is not None and _pair_errors(alone.world_from_cam, truth).max() < 2.0
+
+
+@pytest.mark.parametrize("core_share", [0.5, 5 / 6, 1.0])
+def test_refine_cameras_salvages_the_views_two_starts_agree_on(corner, monkeypatch, core_share):
+    """Where no start confirms the best, the views another start agrees with it on are kept and
+    the others posed against their points: with view 2 made to disagree and every start's pose
+    of it turned 30 degrees, the salvage still ends at the true cameras (view 2 re-posed by PnP, not kept);
+    with a core share above the 5 of 6 views that agree, the scene goes to the solve."""
+    import iris_runtime.cameras.refine as refine
+    photos, truth, _ = corner
+    start = _perturbed(truth, np.random.default_rng(4), degrees=6.0)
+    pairs, salvaged = refine.agreeing_pairs, refine._salvaged
+
+    def view_2_disagrees(*args):
+        agree = pairs(*args)
+        agree[2, :] = agree[:, 2] = False
+        return agree
+
+    def turned(best, witnesses, *args):
+        for rec in (best, *witnesses):
+            rec.R[2] = _rotation_about([0.3, 1.0, 0.1], np.radians(30.0)) @ rec.R[2]
+        return salvaged(best, witnesses, *args)
+
+    monkeypatch.setattr(refine, "agreeing_pairs", view_2_disagrees)
+    monkeypatch.setattr(refine, "_salvaged", turned)
+    monkeypatch.setattr(refine, "MIN_AGREEMENT", 1.01)
+    monkeypatch.setattr(refine, "MIN_CORE_SHARE", core_share)
+    out = refine.refine_cameras(list(photos), start, FOCAL, DEPTH_RANGE)
+    if core_share > 5 / 6:
+        assert out is None
+        return
+    assert out.status == ("solved",) * 6
+    assert _pair_errors(out.world_from_cam, truth).max() < 2.0
+
+
+def test_agreeing_views_is_the_largest_set_that_agrees_pair_by_pair():
+    """A largest clique of the agreement graph, the lowest views among equals; no two views
+    agree: none."""
+    from iris_runtime.cameras.refine import agreeing_views
+    agree = np.zeros((6, 6), bool)
+    for i, j in [(0, 1), (0, 2), (1, 2), (2, 3), (3, 4), (4, 5), (3, 5), (2, 4), (2, 5)]:
+        agree[i, j] = agree[j, i] = True
+    np.testing.assert_array_equal(agreeing_views(agree), [0, 0, 1, 1, 1, 1])    # {2, 3, 4, 5}
+    agree[2, 5] = agree[5, 2] = False                     # now {0, 1, 2}, {2, 3, 4}, {3, 4, 5}
+    np.testing.assert_array_equal(agreeing_views(agree), [1, 1, 1, 0, 0, 0])
+    np.testing.assert_array_equal(agreeing_views(np.zeros((4, 4), bool)), [0, 0, 0, 0])
 
 
 def test_refine_cameras_reports_what_the_photos_cannot_constrain(corner):

@@ -96,14 +96,14 @@ def scene_features(photos, small_size: int = LOW_TEXTURE_SIZE) -> tuple[list[Fea
     (under ``MIN_SIZE``) are enlarged that far at once: nearly all of them are low-texture at
     ``MIN_SIZE``, and one SIFT pass is spared (docs/CAMERAS.md, "Small photos"); their keypoints
     are found at ``contrast_threshold``. ``small_size``: the longer side photos under ``MIN_SIZE``
-    are enlarged to at least (``MIN_SIZE``: one SIFT pass at that size, as ``refine`` does). The
-    factor depends on the set of photos, not on their order."""
+    are enlarged to at least (``refine`` takes a smaller one). The factor depends on the set of
+    photos, not on their order."""
     size = np.asarray(photos[0]).shape[:2]
     k = enlargement(size)
     small = k > 1
-    k_low = max(k, -(-(small_size if small else LOW_TEXTURE_SIZE) // max(size)))
     if small:
-        k = k_low
+        k = -(-small_size // max(size))
+    k_low = max(k, -(-LOW_TEXTURE_SIZE // max(size)))
     threshold = contrast_threshold(size)
     feats = [extract_features(enlarge(np.asarray(p), k), contrast_threshold=threshold)
              for p in photos]

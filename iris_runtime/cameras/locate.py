@@ -60,10 +60,13 @@ class PointMap:
 def pose_from_points(points: np.ndarray, uv: np.ndarray, focal: float,
                      image_size: tuple[int, int], *, max_error: float,
                      min_inliers: int = PNP_MIN_INLIERS,
-                     min_inlier_ratio: float = PNP_MIN_INLIER_RATIO):
+                     min_inlier_ratio: float = PNP_MIN_INLIER_RATIO,
+                     method: int = cv2.SOLVEPNP_SQPNP):
     """cam_from_world ``(R [3, 3], t [3], inliers bool [N])`` of a photo whose pixels ``uv [N, 2]``
     see ``points [N, 3]``, or None when fewer than ``min_inliers`` (or ``min_inlier_ratio`` of
-    them) reproject within ``max_error`` pixels. Deterministic (OpenCV's RNG seeded with 0)."""
+    them) reproject within ``max_error`` pixels. ``method``: OpenCV's PnP in the RANSAC (the
+    pose is then refined on the inliers either way). Deterministic (OpenCV's RNG seeded
+    with 0)."""
     N = len(points)
     if N < max(min_inliers, 6):
         return None
@@ -73,7 +76,7 @@ def pose_from_points(points: np.ndarray, uv: np.ndarray, focal: float,
     try:
         ok, rvec, tvec, inl = cv2.solvePnPRansac(obj, img, K, None, iterationsCount=PNP_ITERATIONS,
                                                  reprojectionError=max_error,
-                                                 confidence=CONFIDENCE, flags=cv2.SOLVEPNP_SQPNP)
+                                                 confidence=CONFIDENCE, flags=method)
     except cv2.error:
         return None
     if not ok or inl is None or len(inl) < min_inliers:

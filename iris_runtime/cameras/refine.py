@@ -14,19 +14,24 @@ is in the solve's terms (``solve.CameraSolve``: its unit, root and point map), s
 model's cameras as the solve does (``replace.refine_model_cameras``). Its accuracy rests on its
 starts: where the head and the pairs are both far off, the adjustment ends in a wrong minimum
 (docs/CAMERAS.md, "Refining the model's cameras"). A wrong minimum is rarely reached from two
-starts, so every start is adjusted to the end, and unless another start's cameras agree with the
-chosen ones (``agreement``) the caller is told to run the solve instead ("Telling a wrong
-refinement").
+starts, so the chosen start is kept only where another start's cameras agree with it
+(``agreement``; "Telling a wrong refinement"). Where none does, the views on which one does
+(``agreeing_views``) are kept if they are half the views or more, and the others are posed
+against their points as the mapper registers a view (``_salvaged``); otherwise the caller is
+told to run the solve ("Salvaging the views two starts agree on").
 """
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from ..errors import InputError
 from .bundle import bundle_adjust, reprojection_errors
-from .features import MIN_SIZE, canonical_order, match_features, scene_features
+from .features import canonical_order, match_features, scene_features
+from .locate import PNP_MIN_INLIERS, pose_from_points
 from .mapper import MapperOptions, Reconstruction, reprojection_score
 from .solve import (LOCATE_MIN_INLIERS, CameraSolve, check_depth_range, check_photos,
                     finish_solve)
@@ -34,8 +39,9 @@ from .tracks import build_tracks
 from .triangulation import triangulate
 from .two_view import MAX_ERROR, essential_pose, pixel_scale
 
-__all__ = ["refine_cameras", "average_rotations", "average_centres", "agreement", "STARTS",
-           "REFINE_ROUNDS", "REFINE_TOLERANCE", "MIN_AGREEMENT", "AGREEMENT_DEGREES",
+__all__ = ["refine_cameras", "average_rotations", "average_centres", "agreement",
+           "agreeing_pairs", "agreeing_views", "STARTS", "REFINE_ROUNDS", "REFINE_TOLERANCE",
+           "MIN_AGREEMENT", "AGREEMENT_DEGREES", "MIN_CORE_SHARE",
            "RETRIANGULATION_ANGLE", "REFINED_MIN_OBSERVATIONS", "AVERAGING_ROUNDS",
            "AVERAGING_SCALE"]
 
@@ -64,10 +70,12 @@ REFINE_TOLERANCE = 1e-4
 #: matching's cost grows with their square and a start needs fewer than a mapper; 0: all.
 MAX_KEYPOINTS = 1024
 #: Photos under ``features.MIN_SIZE`` are enlarged to this longer side (the solve: to
-#: ``features.LOW_TEXTURE_SIZE``): 64x64 photos 4 times instead of 5, a third less SIFT time.
-SMALL_SIZE = MIN_SIZE
-#: Rounds after which the best start is chosen (every start then runs the others too, for
-#: ``agreement``).
+#: ``features.LOW_TEXTURE_SIZE``): 64x64 photos 3 times instead of 5, a third of the pixels SIFT
+#: reads. Chosen on the validation scenes at 64x64 among 2, 3 and 4 times (docs/CAMERAS.md,
+#: "What the refinement costs").
+SMALL_SIZE = 192
+#: Rounds after which the best start is chosen; the others run the rest of their rounds only as
+#: long as none has confirmed it (``agreement``).
 CHOOSE_AFTER = 1
 #: Points dropped after the first round are triangulated again where seen under this angle
 #: (degrees) or more.
@@ -77,12 +85,23 @@ RETRIANGULATION_ANGLE = 0.5
 REFINED_MIN_OBSERVATIONS = LOCATE_MIN_INLIERS
 #: The chosen start's refined cameras must agree with another start's on this share of the pairs
 #: of views (``agreement``: relative rotation and baseline direction within
-#: ``AGREEMENT_DEGREES``), or the refinement is taken to have ended in a wrong minimum and
-#: returns None (the caller runs the solve). Off with fewer than two ``STARTS``. Two thirds: on
+#: ``AGREEMENT_DEGREES``), or the refinement is taken to have ended in a wrong minimum and is
+#: salvaged (``MIN_CORE_SHARE``) or returns None (the caller runs the solve). Off with fewer than two ``STARTS``. Two thirds: on
 #: the held-out scenes the starts agree on 0.75 or more or on 0.64 or less, and the wrong
 #: minimum of a real scene reaches 0.54 (docs/CAMERAS.md, "Telling a wrong refinement").
 MIN_AGREEMENT = 2.0 / 3.0
 AGREEMENT_DEGREES = 5.0
+#: Where no start confirms the chosen one, the largest set of views on which one agrees with it
+#: pair by pair is kept if it holds this share of the views (and three or more), and the others
+#: are posed against its points (``_salvaged``); otherwise the caller runs the solve. Half: the
+#: kept views are then the majority the scene's points come from; on the real sets, whose starts
+#: end far apart, the largest such set holds 0-3 of 8 views (docs/CAMERAS.md, "Salvaging the
+#: views two starts agree on").
+MIN_CORE_SHARE = 0.5
+#: OpenCV's PnP in the RANSAC that poses the views a salvage did not keep: AP3P on four-point
+#: samples, not the mapper's SQPnP, which takes several times as long on a view with few inliers
+#: (docs/CAMERAS.md, "Salvaging the views two starts agree on").
+SALVAGE_PNP = cv2.SOLVEPNP_AP3P
 #: Rigid-pose tolerance of the model's cameras: |R^T R - I| and the last row.
 _RIGID_TOLERANCE = 1e-3
 
@@ -169,30 +188,52 @@ def average_centres(relative: dict[tuple[int, int], tuple[np.ndarray, float]], R
     return start[0] + c * (np.sum(c * rel) / max(np.sum(c * c), 1e-300))
 
 
-def agreement(R_a: np.ndarray, t_a: np.ndarray, posed_a: np.ndarray, R_b: np.ndarray,
-              t_b: np.ndarray, posed_b: np.ndarray) -> float:
-    """The share of the pairs of views posed in cameras a (cam_from_world ``R [V, 3, 3]``,
-    ``t [V, 3]``, ``posed bool [V]``) on which cameras b agree: both views posed in b too, and
-    the pair's relative rotation and its baseline direction (scale-free, as RPA measures them)
-    within ``AGREEMENT_DEGREES``. 0 when a poses fewer than two views."""
+def agreeing_pairs(R_a: np.ndarray, t_a: np.ndarray, posed_a: np.ndarray, R_b: np.ndarray,
+                   t_b: np.ndarray, posed_b: np.ndarray) -> np.ndarray:
+    """bool [V, V], symmetric: the pairs of views posed in both cameras a and b (cam_from_world
+    ``R [V, 3, 3]``, ``t [V, 3]``, ``posed bool [V]``) whose relative rotation and baseline
+    direction (scale-free, as RPA measures them) agree within ``AGREEMENT_DEGREES``."""
     C_a = -np.einsum("vji,vj->vi", R_a, t_a)
     C_b = -np.einsum("vji,vj->vi", R_b, t_b)
     tolerance = np.radians(AGREEMENT_DEGREES)
-    pairs = agreed = 0
-    for i in range(len(R_a)):
-        for j in range(i + 1, len(R_a)):
-            if not (posed_a[i] and posed_a[j]):
-                continue
-            pairs += 1
-            if not (posed_b[i] and posed_b[j]):
+    V = len(R_a)
+    agree = np.zeros((V, V), bool)
+    for i in range(V):
+        for j in range(i + 1, V):
+            if not (posed_a[i] and posed_a[j] and posed_b[i] and posed_b[j]):
                 continue
             # Baselines in camera i's frame: the frames of a and b may differ by any similarity.
             d_a, d_b = R_a[i] @ (C_a[j] - C_a[i]), R_b[i] @ (C_b[j] - C_b[i])
             n = np.linalg.norm(d_a) * np.linalg.norm(d_b)
-            agreed += bool(n > 0
-                           and _angle(R_a[j] @ R_a[i].T, R_b[j] @ R_b[i].T) <= tolerance
-                           and np.arccos(np.clip(d_a @ d_b / n, -1.0, 1.0)) <= tolerance)
-    return agreed / pairs if pairs else 0.0
+            agree[i, j] = agree[j, i] = bool(
+                n > 0 and _angle(R_a[j] @ R_a[i].T, R_b[j] @ R_b[i].T) <= tolerance
+                and np.arccos(np.clip(d_a @ d_b / n, -1.0, 1.0)) <= tolerance)
+    return agree
+
+
+def agreement(R_a: np.ndarray, t_a: np.ndarray, posed_a: np.ndarray, R_b: np.ndarray,
+              t_b: np.ndarray, posed_b: np.ndarray) -> float:
+    """The share of the pairs of views posed in cameras a on which cameras b agree
+    (``agreeing_pairs``; a pair b leaves unposed disagrees). 0 when a poses fewer than two
+    views."""
+    i, j = np.triu_indices(len(R_a), 1)
+    counted = posed_a[i] & posed_a[j]
+    agree = agreeing_pairs(R_a, t_a, posed_a, R_b, t_b, posed_b)[i, j]
+    return float(agree[counted].mean()) if counted.any() else 0.0
+
+
+def agreeing_views(agree: np.ndarray) -> np.ndarray:
+    """bool [V]: the largest set of views every pair of which agrees (``agree`` bool [V, V],
+    symmetric, from ``agreeing_pairs``), the one with the lowest view indices among equals: a
+    largest clique, by trying the sets largest first (at most 2^V of them; V is a handful)."""
+    V = len(agree)
+    best = np.zeros(V, bool)
+    for n in range(V, 1, -1):
+        for views in itertools.combinations(range(V), n):
+            if agree[np.ix_(views, views)][np.triu_indices(n, 1)].all():
+                best[list(views)] = True
+                return best
+    return best
 
 
 def _nearest_rotations(M: np.ndarray) -> np.ndarray:
@@ -217,10 +258,12 @@ class _Adjustment:
     active: np.ndarray
 
 
-def _start(R, t, f, centre, tracks) -> _Adjustment:
-    X, ok = triangulate(R, t, f, centre, tracks.uv, tracks.observed, max_error=np.inf,
-                        min_angle=0.0)
-    return _Adjustment(R, t, f, X, tracks.observed & ok[:, None])
+def _start(R, t, f, centre, tracks, views=None) -> _Adjustment:
+    """The adjustment of cameras ``R, t, f`` with every track seen by ``views`` (bool [V];
+    None: all) triangulated on them."""
+    observed = tracks.observed if views is None else tracks.observed & views[None]
+    X, ok = triangulate(R, t, f, centre, tracks.uv, observed, max_error=np.inf, min_angle=0.0)
+    return _Adjustment(R, t, f, X, observed & ok[:, None])
 
 
 def _round(a: _Adjustment, iterations: int, refine_focal: bool, last: bool, centre, tracks,
@@ -254,6 +297,49 @@ def _reconstruction(a: _Adjustment, tracks, scale_view: int) -> Reconstruction:
     ``REFINED_MIN_OBSERVATIONS`` observations)."""
     return Reconstruction(a.R, a.t, a.focal, a.active.sum(0) >= REFINED_MIN_OBSERVATIONS, a.X,
                           a.active.sum(1) >= 2, tracks.observed & ~a.active, (0, scale_view))
+
+
+def _salvaged(best: Reconstruction, witnesses: list[Reconstruction], tracks, image_size, centre,
+              max_error, loss_scale, pnp_error) -> Reconstruction | None:
+    """Where no start confirms the ``best`` one: the largest set of views on which a witness (an
+    other start's end) agrees with it pair by pair (``agreeing_views``), when it holds
+    ``MIN_CORE_SHARE`` of the views and three or more, is kept; its points are triangulated again
+    from those views alone, the other views posed against them by PnP RANSAC as the mapper
+    registers a view (their poses in ``best`` are what no witness confirmed), and the
+    refinement's rounds run again. None when there is no such set, or view 0 (the gauge) is not
+    posed."""
+    V = tracks.observed.shape[1]
+    core = np.zeros(V, bool)
+    for w in witnesses:
+        views = agreeing_views(agreeing_pairs(best.R, best.t, best.registered, w.R, w.t,
+                                              w.registered))
+        if views.sum() > core.sum():
+            core = views
+    if core.sum() < max(3, MIN_CORE_SHARE * V):
+        return None
+    R, t, f = best.R.copy(), best.t.copy(), best.focal
+    X, ok = triangulate(R, t, f, centre, tracks.uv, tracks.observed & core[None],
+                        max_error=max_error, min_angle=RETRIANGULATION_ANGLE)
+    posed = core.copy()
+    for v in np.flatnonzero(~core):
+        sees = ok & tracks.observed[:, v]
+        pose = pose_from_points(X[sees], tracks.uv[sees, v], f, image_size,
+                                max_error=pnp_error, min_inliers=PNP_MIN_INLIERS,
+                                method=SALVAGE_PNP)
+        if pose is not None:
+            R[v], t[v] = pose[0], pose[1]
+            posed[v] = True
+    if not posed[0]:
+        return None
+    # The scale gauge on a posed view (the one farthest from view 0).
+    C = -np.einsum("vji,vj->vi", R, t)
+    scale_view = int(np.argmax(np.where(posed, np.linalg.norm(C - C[0], axis=1), -1.0)))
+    a = _start(R, t, f, centre, tracks, posed)
+    last = len(REFINE_ROUNDS) - 1
+    for n, (iterations, refine_focal) in enumerate(REFINE_ROUNDS):
+        a = _round(a, iterations, refine_focal, n == last, centre, tracks, scale_view,
+                   max_error, loss_scale) if a else None
+    return _reconstruction(a, tracks, scale_view) if a is not None else None
 
 
 def refine_cameras(photos, world_from_cam, focal: float, depth_range: tuple[float, float], *,
@@ -308,28 +394,50 @@ def refine_cameras(photos, world_from_cam, focal: float, depth_range: tuple[floa
     rotations = {ab: (T[:3, :3], w) for ab, (T, w) in relative.items()}
     args = (centre, tracks, scale_view, opts.max_error * px, opts.loss_scale * px)
     last = len(REFINE_ROUNDS) - 1
-    ends = []                       # (its key after CHOOSE_AFTER rounds, the adjustment's end)
+    chosen = []             # per start: [its key after CHOOSE_AFTER rounds, its adjustment]
     for kind in STARTS:
         R = R0 if kind == "model" else average_rotations(rotations, R0)
         c = average_centres(relative, R, centres) if kind == "pairs" else centres
         a = _start(R.copy(), -np.einsum("vij,vj->vi", R, c), f, centre, tracks)
-        for n, (iterations, refine_focal) in enumerate(REFINE_ROUNDS):
+        for n, (iterations, refine_focal) in enumerate(REFINE_ROUNDS[:CHOOSE_AFTER]):
             a = _round(a, iterations, refine_focal, n == last, *args) if a else None
-            if n + 1 == CHOOSE_AFTER and a is not None:
-                rec = _reconstruction(a, tracks, scale_view)
-                key = (int(rec.registered.sum()), -reprojection_score(rec, tracks, centre, opts))
         if a is not None:
-            ends.append((key, _reconstruction(a, tracks, scale_view)))
-    if not ends:
+            rec = _reconstruction(a, tracks, scale_view)
+            chosen.append([(int(rec.registered.sum()),
+                            -reprojection_score(rec, tracks, centre, opts)), a])
+    ends: dict[int, Reconstruction | None] = {}
+
+    def end(i: int) -> Reconstruction | None:
+        """Start i adjusted to the end (its remaining rounds run once, when first asked for):
+        a start another one confirms early never needs the third's."""
+        if i not in ends:
+            a = chosen[i][1]
+            for n, (iterations, refine_focal) in enumerate(REFINE_ROUNDS):
+                if n >= CHOOSE_AFTER:
+                    a = _round(a, iterations, refine_focal, n == last, *args) if a else None
+            ends[i] = _reconstruction(a, tracks, scale_view) if a is not None else None
+        return ends[i]
+
+    # The best-ranked start (as the mapper ranks reconstructions) is kept where another start
+    # confirms it, agreeing on MIN_AGREEMENT of its pairs: a wrong minimum is rarely reached
+    # twice. Where none does, the views one confirms are salvaged; else the caller runs the solve.
+    ranked = sorted(range(len(chosen)), key=lambda i: chosen[i][0], reverse=True)
+    finished = (rec for rec in map(end, ranked) if rec is not None)       # lazily, best first
+    best = next(finished, None)
+    if best is None or best.registered.sum() < 2:
         return None
-    chosen = max(range(len(ends)), key=lambda i: ends[i][0])
-    best = ends[chosen][1]
-    if best.registered.sum() < 2:
-        return None
-    others = [rec for i, (_, rec) in enumerate(ends) if i != chosen]
-    if len(STARTS) > 1 and max((agreement(best.R, best.t, best.registered, o.R, o.t, o.registered)
-                                for o in others), default=0.0) < MIN_AGREEMENT:
-        return None
+    if len(STARTS) > 1:
+        witnesses = []
+        for rec in finished:
+            witnesses.append(rec)
+            if agreement(best.R, best.t, best.registered, rec.R, rec.t,
+                         rec.registered) >= MIN_AGREEMENT:
+                break
+        else:
+            best = _salvaged(best, witnesses, tracks, (H, W), centre, opts.max_error * px,
+                             opts.loss_scale * px, opts.pnp_error * px)
+            if best is None:
+                return None
     refined = best.registered                                      # canonical numbering
     cams = np.full((V, 4, 4), np.nan)
     cams[refined] = np.eye(4)
