@@ -1,8 +1,9 @@
 """Where ``cameras="refined"`` spends its time, and what a setting of it changes: per held-out
-(or ``--scenes validation``) scene at the model's 64x64, the RPA@15 of the cameras ``IrisRuntime.encode`` gives (all 28
-pairs), whether the refinement kept them or handed the scene to the solve, the bundle
-adjustment's iterations (all starts and rounds) and the seconds of the refinement and of the
-whole encode (one run, one thread: a ranking, not a timing; ``encode_cost.py`` times).
+(or ``--scenes validation``) scene at the model's 64x64, the RPA@15 of the cameras
+``IrisRuntime.encode`` gives (all 28 pairs), whether the refinement kept them or handed the
+scene to the solve, the bundle adjustment's iterations (all starts and rounds) and the seconds of
+the refinement and of the whole encode (one run, one thread: a ranking, not a timing;
+``encode_cost.py`` times).
 
     python benchmarks/refine_cost.py MODEL_DIR
     python benchmarks/refine_cost.py MODEL_DIR --set refine.REFINE_TOLERANCE=1e-6 --json out.json

@@ -58,7 +58,8 @@ def scene_signals(rt: IrisRuntime, photos, truth, solve: bool) -> dict:
         t0 = time.perf_counter()
         as_shipped = rt.encode(photos, cameras="refined")
         row = {"refined_seconds": time.perf_counter() - t0, "source": as_shipped.camera_source,
-               "agreement": list(seen), **({"core": core[0], "salvaged": salvaged[0]} if salvaged else {})}
+               "agreement": list(seen),
+               **({"core": core[0], "salvaged": salvaged[0]} if salvaged else {})}
         R._salvaged = shipped[3]
         R.MIN_AGREEMENT = 0.0
         chosen = rt.encode(photos, cameras="refined")
@@ -89,7 +90,11 @@ def main() -> None:
     ap.add_argument("out")
     ap.add_argument("data", nargs="+")
     ap.add_argument("--no-solve", action="store_true", help="no solve RPA")
+    ap.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
+                    help="a setting of iris_runtime.cameras (scripts/camera_study.py's --set)")
     args = ap.parse_args()
+    from camera_study import apply
+    apply(args.set)
     cv2.setNumThreads(1)
     rt = IrisRuntime(args.model_dir, threads=1)
     rows = []

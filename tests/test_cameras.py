@@ -853,8 +853,9 @@ def test_refine_cameras_falls_back_where_no_other_start_agrees(corner, monkeypat
 def test_refine_cameras_salvages_the_views_two_starts_agree_on(corner, monkeypatch, core_share):
     """Where no start confirms the best, the views another start agrees with it on are kept and
     the others posed against their points: with view 2 made to disagree and every start's pose
-    of it turned 30 degrees, the salvage still ends at the true cameras (view 2 re-posed by PnP, not kept);
-    with a core share above the 5 of 6 views that agree, the scene goes to the solve."""
+    of it turned 30 degrees, the salvage still ends at the true cameras (view 2 re-posed by PnP,
+    not kept); with a core share above the 5 of 6 views that agree, the scene goes to the solve.
+    """
     import iris_runtime.cameras.refine as refine
     photos, truth, _ = corner
     start = _perturbed(truth, np.random.default_rng(4), degrees=6.0)
