@@ -40,9 +40,10 @@ def build_parser() -> argparse.ArgumentParser:
                              "see export/fast_renderer.py and docs/PERFORMANCE.md")
     parser.add_argument("--cameras", choices=["model", "epipolar", "refined"], default=None,
                         help="the runtime's default cameras, recorded in iris.json (default: "
-                             "the ones the renderer was trained with); 'refined' (the camera "
-                             "head's refined by the photos) over a renderer trained with "
-                             "'epipolar'")
+                             "'refined' where the renderer was trained with 'epipolar' and the "
+                             "camera head distilled from the solve, else the ones the renderer "
+                             "was trained with); 'refined' (the camera head's refined by the "
+                             "photos) over a renderer trained with 'epipolar'")
     parser.add_argument("--force", action="store_true", help="replace an existing OUT_DIR")
     parser.add_argument("--quick", action="store_true",
                         help="smaller validation probes and timing runs (tests, smoke checks)")

@@ -64,10 +64,15 @@ def _publish(tmp: Path, out_dir: Path, force: bool) -> None:
         old.unlink()
 
 
-def _default_cameras(cameras: str | None, trained: str) -> str:
+def _default_cameras(cameras: str | None, trained: str, distilled: bool = False) -> str:
     """The manifest's "cameras": ``cameras`` when given (the trained ones, or "refined" over a
-    renderer trained with "epipolar"), else ``trained``; ``ExportArgumentError`` otherwise."""
-    if cameras is None or cameras == trained:
+    renderer trained with "epipolar"); else "refined" over a renderer trained with "epipolar"
+    whose camera head was ``distilled`` from the solve's cameras (``scripts/head_distill.py``: a
+    head trained to start the refinement, which is then as accurate as the solve in a fraction
+    of its time, docs/CAMERAS.md), else ``trained``; ``ExportArgumentError`` otherwise."""
+    if cameras is None:
+        return "refined" if distilled and trained == "epipolar" else trained
+    if cameras == trained:
         return trained
     if cameras == "refined" and trained == "epipolar":
         return cameras
@@ -90,9 +95,11 @@ def export_model(model_or_ckpt: IrisModel | str | os.PathLike, out_dir: str | os
     enforced). ``force`` replaces an existing ``out_dir``. ``progress`` prints one line per stage
     to stderr. ``quick`` shrinks the validation probes (tests); ``threads`` sets the intra-op
     threads of ONNX Runtime and torch during validation (see ``export.validate.validate``).
-    ``cameras``: the manifest's "cameras", the runtime's default (None: the ones the renderer
-    was trained with, ``trained_cameras``); "refined" (the camera head's refined by the photos)
-    only for a renderer trained with "epipolar", whose unit the refinement gives.
+    ``cameras``: the manifest's "cameras", the runtime's default (None: "refined" where the
+    renderer was trained with "epipolar" and the checkpoint's camera head distilled from the
+    solve, else the cameras the renderer was trained with, ``trained_cameras``); "refined" (the
+    camera head's refined by the photos) only for a renderer trained with "epipolar", whose unit
+    the refinement gives.
     ``renderer``: which renderer graph to write (``export.fast_renderer.RENDERER_KINDS``):
     "fast" (the default) or "fast-contrib" (``FastRendererGraph``: same I/O and values, laid
     out for ONNX Runtime's CPU kernels) or "reference" (``RendererGraph``, the model's
@@ -125,14 +132,15 @@ def export_model(model_or_ckpt: IrisModel | str | os.PathLike, out_dir: str | os
         raise ExportArgumentError(f"model_or_ckpt: expected an IrisModel or a checkpoint path, got "
                                   f"{type(model_or_ckpt).__name__}")
     if isinstance(model_or_ckpt, IrisModel):
-        model, source, trained = model_or_ckpt, {"checkpoint": None}, "model"
+        model, source, trained, distilled = model_or_ckpt, {"checkpoint": None}, "model", False
     else:
         ckpt = Path(model_or_ckpt)
         say(f"loading checkpoint {ckpt}")
         model = _load(ckpt)
         source = {"checkpoint": ckpt.name, "sha256": sha256_file(ckpt)}
-        trained = trained_cameras(read_checkpoint(ckpt))
-    cameras = _default_cameras(cameras, trained)
+        payload = read_checkpoint(ckpt)
+        trained, distilled = trained_cameras(payload), "distill" in payload
+    cameras = _default_cameras(cameras, trained, distilled)
     was_training = model.training
     model.eval()
 

@@ -21,7 +21,9 @@ adjustment of poses and focal, the scene's median depth put in the middle of the
 range); every output (renders, ``--view`` poses, orbit, camera files) then uses those cameras and
 that focal, and ``--locate`` poses the photo against them (PnP on the inputs' points). The
 resolution the cameras were solved at and how each view was posed are printed and written to
-``cameras.json``.
+``cameras.json``. ``--cameras refined`` refines the model's cameras on the photos into the
+solve's terms instead (``iris_runtime.cameras.refine``; the solve where that fails). Without
+``--cameras``, the manifest's default (the shipped model's: "refined").
 
 Written to OUT (created if needed; files of the same name are replaced):
 

@@ -281,9 +281,9 @@ class IrisRuntime:
 
     @property
     def default_cameras(self) -> str:
-        """``encode``'s cameras when none are asked for: the ones the renderer was trained with
-        (the manifest's "cameras": "epipolar" for a model trained by ``iris-train
-        --render-cameras epipolar``, else "model")."""
+        """``encode``'s cameras when none are asked for: the manifest's "cameras" ("epipolar" for
+        a model trained by ``iris-train --render-cameras epipolar``, "refined" where its camera
+        head was then distilled from the solve, as the shipped model's, else "model")."""
         return self.manifest.cameras
 
     def encode(self, images, cameras: str | None = None) -> Scene:

@@ -19,9 +19,10 @@ echo "== 1/2 export $MODEL -> $OUT/model (two ONNX graphs + iris.json, validated
 .venv/bin/iris-export "$MODEL" "$OUT/model" --force
 
 echo "== 2/2 render $SCENE with the torch-free runtime"
-# Re-render frames 1, 4 and 6 from their solved poses, plus a 24-frame orbit video. The cameras
-# are the ones the shipped model was trained with, the epipolar solve of the photos
-# (docs/CAMERAS.md; its manifest's default); IRIS_CAMERAS=model uses the camera head's.
+# Re-render frames 1, 4 and 6 from their poses, plus a 24-frame orbit video. The cameras are the
+# manifest's default: the camera head's refined on the photos into the terms of the solve the
+# renderer was trained with (docs/CAMERAS.md); IRIS_CAMERAS=epipolar runs the solve itself,
+# IRIS_CAMERAS=model takes the head's as they are.
 .venv/bin/iris-render "$OUT/model" "$SCENE"/frame_*.png -o "$OUT/render" \
   --view 1 --view 4 --view 6 --orbit 24 ${IRIS_CAMERAS:+--cameras "$IRIS_CAMERAS"}
 echo

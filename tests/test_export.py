@@ -530,8 +530,11 @@ def test_bad_arguments_are_refused(checkpoint, tmp_path, kwargs):
 def test_default_cameras_are_the_trained_ones_or_refined_over_solved_ones():
     """The manifest's default cameras: the ones the renderer was trained with, or "refined" (the
     camera head's refined by the photos, in the solve's unit) over a renderer trained on the
-    solve's cameras; nothing else."""
+    solve's cameras, by default where the head was distilled from the solve; nothing else."""
     assert pipeline._default_cameras(None, "epipolar") == "epipolar"
+    assert pipeline._default_cameras(None, "epipolar", distilled=True) == "refined"
+    assert pipeline._default_cameras(None, "model", distilled=True) == "model"
+    assert pipeline._default_cameras("epipolar", "epipolar", distilled=True) == "epipolar"
     assert pipeline._default_cameras("refined", "epipolar") == "refined"
     assert pipeline._default_cameras("model", "model") == "model"
     for cameras, trained in (("refined", "model"), ("model", "epipolar"), ("epipolar", "model")):
