@@ -26,6 +26,7 @@ intrinsics in pixels with pixel centres at (j + 0.5, i + 0.5).
 """
 from __future__ import annotations
 
+import contextlib
 import functools
 import os
 import threading
@@ -81,8 +82,8 @@ def _is_single_image(x) -> bool:
 class IrisRuntime:
     """An exported IRIS model, run with ONNX Runtime (see the module docstring).
 
-    ``threads``: intra-op threads of each ONNX Runtime session (None: ORT's default, one per
-    physical core). ``precision``: "float32" (default) or "int8" (the quantised renderer, when
+    ``threads``: intra-op threads of each ONNX Runtime session, and numpy's BLAS threads while
+    ``encode`` and ``locate`` find cameras (None: ORT's and the BLAS's defaults, one per core). ``precision``: "float32" (default) or "int8" (the quantised renderer, when
     the model was exported with ``--quantize int8``). ``cull``: skip samples, views and rays
     that see no reference view (exact, see ``iris_runtime.raymarch``; False only to check that).
     ``workers``: renderer calls in flight at once within one render (Python threads over blocks of
@@ -123,6 +124,7 @@ class IrisRuntime:
         self._sessions: dict[str, ort.InferenceSession] = {}
         self._lock = threading.Lock()
         self._empty_rgb: dict[str, np.ndarray] = {}       # per renderer graph
+        self._blas = None                                 # threadpoolctl, on the first solve
 
     # -- model facts ------------------------------------------------------------------------
     @property
@@ -279,6 +281,19 @@ class IrisRuntime:
                                  f"or inf for finite images in [0, 1] (broken weights?)")
         return maps, world_from_cam, focal
 
+    def _blas_threads(self):
+        """A context in which numpy's BLAS runs at most ``threads`` threads (the camera solve's
+        and refinement's matrix products): left to its default, one BLAS thread per core
+        contends with the rest of a busy machine, and a refinement on one thread beside one
+        busy core took 2.4 times as long (docs/PERFORMANCE.md, "Threads"). The limit is
+        process-wide while it holds (threadpoolctl); with ``threads`` None, nothing changes."""
+        if self.threads is None:
+            return contextlib.nullcontext()
+        if self._blas is None:
+            from threadpoolctl import ThreadpoolController
+            self._blas = ThreadpoolController()
+        return self._blas.limit(limits=self.threads, user_api="blas")
+
     @property
     def default_cameras(self) -> str:
         """``encode``'s cameras when none are asked for: the manifest's "cameras" ("epipolar" for
@@ -350,13 +365,16 @@ class IrisRuntime:
         if cameras == "model":
             return Scene(maps, poses64, focal64, model_K, (H, W), model_id, batch)
         from .cameras import canonical_start, refine_model_cameras, replace_model_cameras
-        if cameras == "refined":
-            start, start_focal = canonical_start(
-                photos, poses64, focal64,
-                lambda perm: self._run_encoder(batch[perm], np.ones(len(perm), bool))[1:])
-            cams = refine_model_cameras(photos, start, start_focal, (H, W), (self.near, self.far))
-        else:
-            cams = replace_model_cameras(photos, poses64, focal64, (H, W), (self.near, self.far))
+        with self._blas_threads():
+            if cameras == "refined":
+                start, start_focal = canonical_start(
+                    photos, poses64, focal64,
+                    lambda perm: self._run_encoder(batch[perm], np.ones(len(perm), bool))[1:])
+                cams = refine_model_cameras(photos, start, start_focal, (H, W),
+                                            (self.near, self.far))
+            else:
+                cams = replace_model_cameras(photos, poses64, focal64, (H, W),
+                                             (self.near, self.far))
         timings["cameras"] = timings.get("cameras", 0.0) + (time.perf_counter() - t2)
         return Scene(maps, cams.world_from_cam, cams.focal, cams.K, (H, W), model_id, batch,
                      camera_source=cams.source,
@@ -425,7 +443,8 @@ class IrisRuntime:
         located = np.zeros(len(photos), bool)
         solve = scene.camera_solve
         if solve is not None:
-            solved, located = solve.locate(photos)
+            with self._blas_threads():
+                solved, located = solve.locate(photos)
             poses = np.where(located[:, None, None], solved, poses)
         if not with_status:
             return poses[0] if single else poses

@@ -514,3 +514,40 @@ def test_teacher_store_packs_whole_blocks_and_serves_them_without_solving(corner
     monkeypatch.setattr(PP, "SOLVE_VERSION", PP.SOLVE_VERSION + 1)       # another solve
     with pytest.raises(pytest.fail.Exception, match="solved again"):
         PP.load_or_solve(scenes, 0, DEPTH_RANGE, store_dir=store)
+
+
+def test_camera_work_runs_the_blas_on_the_runtimes_threads(corner, model_dir, monkeypatch):
+    """``IrisRuntime(threads=1)`` finds cameras with numpy's BLAS on one thread (its default is
+    one per core, which a busy machine makes several times slower,
+    ``benchmarks/encode_threads.py``), and gives the BLAS its threads back afterwards; with
+    ``threads=None`` the BLAS keeps its own setting."""
+    from threadpoolctl import ThreadpoolController
+
+    import iris_runtime.cameras.replace as replace
+    from iris_runtime import IrisRuntime
+    photos, _ = corner
+    controller = ThreadpoolController()
+    blas = [lib for lib in controller.info() if lib["user_api"] == "blas"]
+    if not blas:
+        pytest.skip("numpy has no BLAS threadpoolctl can see")
+    before = [lib["num_threads"] for lib in blas]
+    seen = []
+    solve = replace.solve_cameras
+
+    def spy(*args, **kwargs):
+        seen.append([lib["num_threads"] for lib in ThreadpoolController().info()
+                     if lib["user_api"] == "blas"])
+        return solve(*args, **kwargs)
+
+    monkeypatch.setattr(replace, "solve_cameras", spy)
+    with controller.limit(limits=2, user_api="blas"):      # a BLAS with more than one thread
+        outside = [lib["num_threads"] for lib in ThreadpoolController().info()
+                   if lib["user_api"] == "blas"]
+        IrisRuntime(model_dir, threads=1).encode(list(photos), cameras="epipolar")
+        IrisRuntime(model_dir).encode(list(photos), cameras="epipolar")
+        after = [lib["num_threads"] for lib in ThreadpoolController().info()
+                 if lib["user_api"] == "blas"]
+    assert seen == [[1] * len(blas), outside]
+    assert after == outside
+    assert [lib["num_threads"] for lib in ThreadpoolController().info()
+            if lib["user_api"] == "blas"] == before
