@@ -83,8 +83,9 @@ class IrisRuntime:
     """An exported IRIS model, run with ONNX Runtime (see the module docstring).
 
     ``threads``: intra-op threads of each ONNX Runtime session, and numpy's BLAS threads while
-    ``encode`` and ``locate`` find cameras (None: ORT's and the BLAS's defaults, one per core). ``precision``: "float32" (default) or "int8" (the quantised renderer, when
-    the model was exported with ``--quantize int8``). ``cull``: skip samples, views and rays
+    ``encode`` and ``locate`` find cameras (None: ORT's and the BLAS's defaults, one per core).
+    ``precision``: "float32" (default) or "int8" (the quantised renderer, when the model was
+    exported with ``--quantize int8``). ``cull``: skip samples, views and rays
     that see no reference view (exact, see ``iris_runtime.raymarch``; False only to check that).
     ``workers``: renderer calls in flight at once within one render (Python threads over blocks of
     rays, exact: the same calls, only concurrent); with ``workers > 1`` each renderer session

@@ -132,8 +132,11 @@ def test_runtime_solves_the_cameras_on_the_photos_at_their_own_resolution(corner
     # The camera head's poses are kept beside the solve's (read-only, like every Scene array).
     np.testing.assert_array_equal(epi.encoder_world_from_cam, model.world_from_cam)
     assert not epi.encoder_world_from_cam.flags.writeable
-    # The same solve as solve_cameras of the photos, its K carried to the model's resolution.
-    s = solve_cameras(images, (rt.near, rt.far))
+    # The same solve as solve_cameras of the photos, its K carried to the model's resolution: bit
+    # for bit on the same BLAS threads (the runtime's one; two round differently).
+    from threadpoolctl import ThreadpoolController
+    with ThreadpoolController().limit(limits=1, user_api="blas"):
+        s = solve_cameras(images, (rt.near, rt.far))
     np.testing.assert_array_equal(epi.world_from_cam, s.world_from_cam)
     crop = plan_crop_resize(*SIZE, H, W)
     np.testing.assert_allclose(epi.K, crop.matrix @ s.K, rtol=1e-12)

@@ -309,8 +309,8 @@ def _salvaged(best: Reconstruction, witnesses: list[Reconstruction], tracks, ima
     ``MIN_CORE_SHARE`` of the views and ``MIN_CORE_VIEWS`` or more, is kept; its points are
     triangulated again from those views alone, the other views posed against them by PnP RANSAC
     as the mapper registers a view (their poses in ``best`` are what no witness confirmed), and
-    the refinement's rounds run again. None when there is no such set, or view 0 (the gauge) is not
-    posed."""
+    the refinement's rounds run again. None when there is no such set, or view 0 (the gauge) is
+    not posed."""
     V = tracks.observed.shape[1]
     core = np.zeros(V, bool)
     for w in witnesses:
@@ -397,7 +397,7 @@ def refine_cameras(photos, world_from_cam, focal: float, depth_range: tuple[floa
     rotations = {ab: (T[:3, :3], w) for ab, (T, w) in relative.items()}
     args = (centre, tracks, scale_view, opts.max_error * px, opts.loss_scale * px)
     last = len(REFINE_ROUNDS) - 1
-    chosen = []             # per start: [its key after CHOOSE_AFTER rounds, its adjustment]
+    started = []            # per start: (its key after CHOOSE_AFTER rounds, its adjustment then)
     for kind in STARTS:
         R = R0 if kind == "model" else average_rotations(rotations, R0)
         c = average_centres(relative, R, centres) if kind == "pairs" else centres
@@ -406,15 +406,15 @@ def refine_cameras(photos, world_from_cam, focal: float, depth_range: tuple[floa
             a = _round(a, iterations, refine_focal, n == last, *args) if a else None
         if a is not None:
             rec = _reconstruction(a, tracks, scale_view)
-            chosen.append([(int(rec.registered.sum()),
-                            -reprojection_score(rec, tracks, centre, opts)), a])
+            started.append(((int(rec.registered.sum()),
+                             -reprojection_score(rec, tracks, centre, opts)), a))
     ends: dict[int, Reconstruction | None] = {}
 
     def end(i: int) -> Reconstruction | None:
-        """Start i adjusted to the end (its remaining rounds run once, when first asked for):
-        a start another one confirms early never needs the third's."""
+        """Start i adjusted to the end, its remaining rounds run when first asked for: where the
+        second-ranked start confirms the best, the third's are never run."""
         if i not in ends:
-            a = chosen[i][1]
+            a = started[i][1]
             for n, (iterations, refine_focal) in enumerate(REFINE_ROUNDS):
                 if n >= CHOOSE_AFTER:
                     a = _round(a, iterations, refine_focal, n == last, *args) if a else None
@@ -424,7 +424,7 @@ def refine_cameras(photos, world_from_cam, focal: float, depth_range: tuple[floa
     # The best-ranked start (as the mapper ranks reconstructions) is kept where another start
     # confirms it, agreeing on MIN_AGREEMENT of its pairs: a wrong minimum is rarely reached
     # twice. Where none does, the views one confirms are salvaged; else the caller runs the solve.
-    ranked = sorted(range(len(chosen)), key=lambda i: chosen[i][0], reverse=True)
+    ranked = sorted(range(len(started)), key=lambda i: started[i][0], reverse=True)
     finished = (rec for rec in map(end, ranked) if rec is not None)       # lazily, best first
     best = next(finished, None)
     if best is None or best.registered.sum() < 2:
