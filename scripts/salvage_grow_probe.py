@@ -1,0 +1,124 @@
+"""A salvage that grows: the probe behind docs/CAMERAS.md's "Salvaging the views two starts agree
+on" (not shipped). Where no start confirms the chosen one, ``refine._salvaged`` poses every view
+outside the agreeing set at once against that set's points; this variant registers them one at a
+time as the mapper does (the view that sees the most points, PnP, ten iterations of adjustment,
+points triangulated again), then runs the refinement's rounds.
+
+    python scripts/salvage_grow_probe.py MODEL_DIR validation [--min-views 3] [--share 0]
+    python scripts/salvage_grow_probe.py MODEL_DIR scenes [--min-views 3] [--share 0] [--real DIR]
+
+``validation``: ``benchmarks/refine_cost.py``'s 24 validation scenes at 64x64 (RPA@15 and the
+scenes handed to the solve); ``scenes``: the scenes whose starts agree on three views
+(iris-eval's held-out scenes 8 and 10 at 64x64, held-out 10 and 15 at 256x256, `Castle-simu`),
+one row each (source, views posed by the salvage, RPA@15, seconds).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "scripts"))
+
+import iris_runtime.cameras.refine as R  # noqa: E402
+from iris_runtime.cameras.refine import (PNP_MIN_INLIERS, REFINE_ROUNDS,  # noqa: E402
+                                         RETRIANGULATION_ANGLE, _reconstruction, _round, _start,
+                                         agreeing_pairs, agreeing_views, pose_from_points,
+                                         triangulate)
+
+def grown(best, witnesses, tracks, image_size, centre, max_error, loss_scale, pnp_error):
+    """``refine._salvaged``'s signature and agreeing set; the other views registered one at a
+    time, each followed by ten iterations of adjustment with the focal held."""
+    V = tracks.observed.shape[1]
+    core = np.zeros(V, bool)
+    for w in witnesses:
+        views = agreeing_views(agreeing_pairs(best.R, best.t, best.registered, w.R, w.t,
+                                              w.registered))
+        if views.sum() > core.sum():
+            core = views
+    if core.sum() < max(R.MIN_CORE_VIEWS, R.MIN_CORE_SHARE * V):
+        return None
+    rot, t, f = best.R.copy(), best.t.copy(), best.focal
+    posed, failed = core.copy(), np.zeros(V, bool)
+
+    def scale_view():
+        C = -np.einsum("vji,vj->vi", rot, t)
+        return int(np.argmax(np.where(posed, np.linalg.norm(C - C[0], axis=1), -1.0)))
+
+    while True:
+        X, ok = triangulate(rot, t, f, centre, tracks.uv, tracks.observed & posed[None],
+                            max_error=max_error, min_angle=RETRIANGULATION_ANGLE)
+        seen = np.where(posed | failed, -1, (ok[:, None] & tracks.observed).sum(0))
+        v = int(np.argmax(seen))
+        if seen[v] < PNP_MIN_INLIERS:
+            break
+        sees = ok & tracks.observed[:, v]
+        pose = pose_from_points(X[sees], tracks.uv[sees, v], f, image_size, max_error=pnp_error,
+                                min_inliers=PNP_MIN_INLIERS, method=R.SALVAGE_PNP)
+        if pose is None:
+            failed[v] = True
+            continue
+        rot[v], t[v] = pose[0], pose[1]
+        posed[v] = True
+        if posed[0]:                                 # view 0 is the gauge the rounds hold fixed
+            a = _round(_start(rot, t, f, centre, tracks, posed), 10, False, True, centre, tracks,
+                       scale_view(), max_error, loss_scale)
+            if a is None:
+                return None
+            rot, t, f = a.R.copy(), a.t.copy(), a.focal
+    if not posed[0]:
+        return None
+    sv = scale_view()
+    a = _start(rot, t, f, centre, tracks, posed)
+    last = len(REFINE_ROUNDS) - 1
+    for n, (iterations, refine_focal) in enumerate(REFINE_ROUNDS):
+        a = _round(a, iterations, refine_focal, n == last, centre, tracks, sv, max_error,
+                   loss_scale) if a else None
+    return _reconstruction(a, tracks, sv) if a is not None else None
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("model_dir")
+    ap.add_argument("which", choices=("validation", "scenes"))
+    ap.add_argument("--min-views", type=int, default=R.MIN_CORE_VIEWS)
+    ap.add_argument("--share", type=float, default=R.MIN_CORE_SHARE)
+    ap.add_argument("--real", type=Path, default=REPO.parent / "real",
+                    help="the real sets (scripts/real_sets.py --out); its castle/ is used")
+    args = ap.parse_args()
+    R._salvaged = grown
+    R.MIN_CORE_VIEWS, R.MIN_CORE_SHARE = args.min_views, args.share
+    if args.which == "validation":
+        from benchmarks.refine_cost import measure
+        print(json.dumps(measure(args.model_dir, [], scenes="validation")["summary"]))
+        return
+    import cv2
+    from refine_signals import scene_signals
+
+    from iris_runtime import IrisRuntime
+    from iris_train.evaluate.scenes import load_scenes
+    cv2.setNumThreads(1)
+    rt = IrisRuntime(args.model_dir, threads=1)
+    for data, chosen in (("synthetic:heldout@64", (8, 10)), ("synthetic:heldout", (10, 15)),
+                         (str(args.real / "castle"), (0, 1))):
+        small = data.endswith("@64")
+        scenes, _ = load_scenes(data.removesuffix("@64"), rt.image_size, views=8)
+        for i, scene in enumerate(scenes):
+            if i not in chosen:
+                continue
+            photos = list(scene.images if small else (getattr(scene, "photos", None)
+                                                      or scene.images))
+            truth = getattr(scene, "world_from_cam", None)
+            truth = None if truth is None else np.linalg.inv(truth[0]) @ truth
+            r = scene_signals(rt, photos, truth, False)
+            print(json.dumps({"data": data, "scene": i, "source": r["source"],
+                              "salvaged": r.get("salvaged"), "rpa@15": r.get("refined_rpa@15"),
+                              "seconds": r["refined_seconds"]}), flush=True)
+
+
+if __name__ == "__main__":
+    main()
