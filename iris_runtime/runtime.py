@@ -285,8 +285,8 @@ class IrisRuntime:
     def _blas_threads(self):
         """A context in which numpy's BLAS runs at most ``threads`` threads (the camera solve's
         and refinement's matrix products): left to its default, one BLAS thread per core
-        contends with the rest of a busy machine, and a refinement on one thread beside one
-        busy core took 2.4 times as long (docs/PERFORMANCE.md, "Threads"). The limit is
+        contends with the rest of a busy machine, and an encode on one thread beside one busy
+        core took three times as long (docs/PERFORMANCE.md, "Threads"). The limit is
         process-wide while it holds (threadpoolctl); with ``threads`` None, nothing changes."""
         if self.threads is None:
             return contextlib.nullcontext()

@@ -183,7 +183,10 @@ def draw(sets, batch: int, rng: np.random.Generator, max_roll_deg: float = 0.0,
     n_views = int(rng.integers(4, 9))
     images, cams, focals, zoomed = [], [], [], []
     for _ in range(batch):
-        scenes, solutions = sets[int(rng.choice(len(sets), p=shares))]
+        # (Without shares, the draw the runs recorded in docs/TRAINING.md made: same seed, same
+        # scenes.)
+        k = rng.integers(len(sets)) if shares is None else rng.choice(len(sets), p=shares)
+        scenes, solutions = sets[int(k)]
         index, order, (T, f) = _draw_solved(scenes, solutions, rng, n_views)
         zoom = 1.0
         if max_rotation_deg > 0 and rng.random() < rotation_fraction:
@@ -233,9 +236,9 @@ def main(argv=None) -> int:
                     help="the correlation grid in token grids (0: the --init checkpoint's)")
     ap.add_argument("--classic", type=int, default=400)
     ap.add_argument("--capture", type=int, default=0)
-    ap.add_argument("--capture-share", type=float, default=0.5,
+    ap.add_argument("--capture-share", type=float, default=None,
                     help="with --classic and --capture: the share of the batch's scenes drawn "
-                         "from the capture-like ones")
+                         "from the capture-like ones (default: half, as each set is drawn alike)")
     ap.add_argument("--batch", type=int, default=8)
     ap.add_argument("--lr", type=float, default=3e-4, help="camera head (the encoder: x0.3)")
     ap.add_argument("--separate-encoder", action="store_true",
@@ -264,7 +267,7 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args(argv)
-    if not 0.0 < args.capture_share < 1.0:
+    if args.capture_share is not None and not 0.0 < args.capture_share < 1.0:
         ap.error(f"--capture-share: expected a share in (0, 1), got {args.capture_share}")
     torch.manual_seed(args.seed)
     torch.set_num_threads(args.threads)
@@ -275,8 +278,8 @@ def main(argv=None) -> int:
     from iris_train.train import solve_losses
     model, fresh, train_config = build(args)
     sets = training_sets(args.classic, args.capture)
-    shares = ([1 - args.capture_share, args.capture_share] if args.classic and args.capture
-              else None)
+    shares = ([1 - args.capture_share, args.capture_share]
+              if args.classic and args.capture and args.capture_share is not None else None)
     heldout = SyntheticScenes(HELDOUT_SEEDS[:args.heldout_scenes])
     capture_heldout = capture_heldout_scenes(args.heldout_scenes) if args.capture else None
     head = list(model.camera_head.parameters())
