@@ -28,21 +28,15 @@ sys.path.insert(0, str(REPO / "scripts"))
 import iris_runtime.cameras.refine as R  # noqa: E402
 from iris_runtime.cameras.refine import (PNP_MIN_INLIERS, REFINE_ROUNDS,  # noqa: E402
                                          RETRIANGULATION_ANGLE, _reconstruction, _round, _start,
-                                         agreeing_pairs, agreeing_views, pose_from_points,
-                                         triangulate)
+                                         pose_from_points, triangulate)
 
 def grown(best, witnesses, tracks, image_size, centre, max_error, loss_scale, pnp_error):
     """``refine._salvaged``'s signature and agreeing set; the other views registered one at a
     time, each followed by ten iterations of adjustment with the focal held."""
-    V = tracks.observed.shape[1]
-    core = np.zeros(V, bool)
-    for w in witnesses:
-        views = agreeing_views(agreeing_pairs(best.R, best.t, best.registered, w.R, w.t,
-                                              w.registered))
-        if views.sum() > core.sum():
-            core = views
-    if core.sum() < max(R.MIN_CORE_VIEWS, R.MIN_CORE_SHARE * V):
+    core = R.salvage_core(best, witnesses)
+    if core is None:
         return None
+    V = len(core)
     rot, t, f = best.R.copy(), best.t.copy(), best.focal
     posed, failed = core.copy(), np.zeros(V, bool)
 

@@ -40,10 +40,10 @@ from .triangulation import triangulate
 from .two_view import MAX_ERROR, essential_pose, pixel_scale
 
 __all__ = ["refine_cameras", "average_rotations", "average_centres", "agreement",
-           "agreeing_pairs", "agreeing_views", "STARTS", "REFINE_ROUNDS", "REFINE_TOLERANCE",
-           "MIN_AGREEMENT", "AGREEMENT_DEGREES", "MIN_CORE_SHARE", "MIN_CORE_VIEWS",
-           "RETRIANGULATION_ANGLE", "REFINED_MIN_OBSERVATIONS", "AVERAGING_ROUNDS",
-           "AVERAGING_SCALE"]
+           "agreeing_pairs", "agreeing_views", "salvage_core", "STARTS", "REFINE_ROUNDS",
+           "REFINE_TOLERANCE", "MIN_AGREEMENT", "AGREEMENT_DEGREES", "MIN_CORE_SHARE",
+           "MIN_CORE_VIEWS", "RETRIANGULATION_ANGLE", "REFINED_MIN_OBSERVATIONS",
+           "AVERAGING_ROUNDS", "AVERAGING_SCALE"]
 
 #: The cameras the adjustment starts from: the model's ("model"), the model's centres turned by
 #: the pairs' rotations (their essential matrices' rotations averaged, ``average_rotations``:
@@ -72,7 +72,7 @@ MAX_KEYPOINTS = 1024
 #: Photos under ``features.MIN_SIZE`` are enlarged to this longer side (the solve: to
 #: ``features.LOW_TEXTURE_SIZE``): 64x64 photos 3 times instead of 5, a third of the pixels SIFT
 #: reads. Chosen on the validation scenes at 64x64 among 2, 3 and 4 times (docs/CAMERAS.md,
-#: "What the refinement costs").
+#: "Salvaging the views two starts agree on").
 SMALL_SIZE = 192
 #: Rounds after which the best start is chosen; the others run the rest of their rounds only as
 #: long as none has confirmed it (``agreement``).
@@ -302,23 +302,29 @@ def _reconstruction(a: _Adjustment, tracks, scale_view: int) -> Reconstruction:
                           a.active.sum(1) >= 2, tracks.observed & ~a.active, (0, scale_view))
 
 
-def _salvaged(best: Reconstruction, witnesses: list[Reconstruction], tracks, image_size, centre,
-              max_error, loss_scale, pnp_error) -> Reconstruction | None:
-    """Where no start confirms the ``best`` one: the largest set of views on which a witness (an
-    other start's end) agrees with it pair by pair (``agreeing_views``), when it holds
-    ``MIN_CORE_SHARE`` of the views and ``MIN_CORE_VIEWS`` or more, is kept; its points are
-    triangulated again from those views alone, the other views posed against them by PnP RANSAC
-    as the mapper registers a view (their poses in ``best`` are what no witness confirmed), and
-    the refinement's rounds run again. None when there is no such set, or view 0 (the gauge) is
-    not posed."""
-    V = tracks.observed.shape[1]
+def salvage_core(best: Reconstruction, witnesses: list[Reconstruction]) -> np.ndarray | None:
+    """bool [V]: the largest set of views on which a witness (another start's end) agrees with
+    ``best`` pair by pair (``agreeing_views``), or None when it holds fewer than
+    ``MIN_CORE_SHARE`` of the views or ``MIN_CORE_VIEWS``."""
+    V = len(best.registered)
     core = np.zeros(V, bool)
     for w in witnesses:
         views = agreeing_views(agreeing_pairs(best.R, best.t, best.registered, w.R, w.t,
                                               w.registered))
         if views.sum() > core.sum():
             core = views
-    if core.sum() < max(MIN_CORE_VIEWS, MIN_CORE_SHARE * V):
+    return core if core.sum() >= max(MIN_CORE_VIEWS, MIN_CORE_SHARE * V) else None
+
+
+def _salvaged(best: Reconstruction, witnesses: list[Reconstruction], tracks, image_size, centre,
+              max_error, loss_scale, pnp_error) -> Reconstruction | None:
+    """Where no start confirms the ``best`` one: its views in ``salvage_core`` are kept, their
+    points triangulated again from those views alone, the other views posed against them by PnP
+    RANSAC as the mapper registers a view (their poses in ``best`` are what no witness
+    confirmed), and the refinement's rounds run again. None when there is no such set, or view
+    0 (the gauge) is not posed."""
+    core = salvage_core(best, witnesses)
+    if core is None:
         return None
     R, t, f = best.R.copy(), best.t.copy(), best.focal
     X, ok = triangulate(R, t, f, centre, tracks.uv, tracks.observed & core[None],
