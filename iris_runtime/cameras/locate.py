@@ -107,16 +107,17 @@ def _refine(obj, img, K, inliers, rvec, tvec, max_error):
 
 def pose_distinct_first(points: np.ndarray, uv: np.ndarray, distinct: np.ndarray, focal: float,
                         image_size: tuple[int, int], *, max_error: float,
-                        min_inliers: int = PNP_MIN_INLIERS):
+                        min_inliers: int = PNP_MIN_INLIERS, method: int = cv2.SOLVEPNP_SQPNP):
     """``pose_from_points`` of the correspondences whose keypoints are distinct (``distinct``
     bool [N]: no near twin in their photo, ``features.distinct_keypoints``), then refined on
     every correspondence it explains; ``pose_from_points`` of all of them when the distinct ones
     give no pose. On a repeated texture a keypoint matched one period off points at a pose one
     period off, and such correspondences agree with one another (docs/CAMERAS.md), so the
-    refined pose needs ``min_inliers`` of them, not a fraction: most may be shifted."""
+    refined pose needs ``min_inliers`` of them, not a fraction: most may be shifted.
+    ``method``: OpenCV's PnP in the RANSAC, as in ``pose_from_points``."""
     if distinct.sum() >= min_inliers:
         first = pose_from_points(points[distinct], uv[distinct], focal, image_size,
-                                 max_error=max_error, min_inliers=min_inliers)
+                                 max_error=max_error, min_inliers=min_inliers, method=method)
         if first is not None:
             K = intrinsics(focal, image_size)
             obj = np.ascontiguousarray(points, np.float64)
@@ -128,7 +129,7 @@ def pose_distinct_first(points: np.ndarray, uv: np.ndarray, distinct: np.ndarray
                 if inliers.sum() >= max(min_inliers, 6):
                     return R, t, inliers
     return pose_from_points(points, uv, focal, image_size, max_error=max_error,
-                            min_inliers=min_inliers)
+                            min_inliers=min_inliers, method=method)
 
 
 def correspondences(point_map: PointMap, features: Features) -> tuple[np.ndarray, np.ndarray]:

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 
 from .bundle import bundle_adjust, reprojection_errors
@@ -50,6 +51,7 @@ class MapperOptions:
     ba_iterations:      Levenberg-Marquardt iterations after each registration / at the end
     ba_points:          points adjusted after each registration (the most observed; the end
                         adjusts all)
+    pnp_method:         OpenCV's PnP in a registration's RANSAC (``locate.pose_from_points``)
     """
     init_min_inliers: int = 30
     planar_min_angle: float = 0.5
@@ -68,6 +70,15 @@ class MapperOptions:
     ba_points: int = 400
     final_ba_points: int = 1500
     final_ba_iterations: int = 50
+    pnp_method: int = cv2.SOLVEPNP_SQPNP
+
+    def in_pixels(self, px: float) -> MapperOptions:
+        """These options with their pixel thresholds for photos ``px`` times ``REFERENCE_SIZE``
+        (``two_view.pixel_scale``)."""
+        return MapperOptions(**{**self.__dict__, "two_view_error": self.two_view_error * px,
+                                "pnp_error": self.pnp_error * px,
+                                "max_error": self.max_error * px,
+                                "loss_scale": self.loss_scale * px})
 
 
 @dataclass
@@ -198,7 +209,7 @@ def _register(rec: Reconstruction, tracks: Tracks, v: int, image_size, opts, dis
              else distinct[v][tracks.keypoint[sees, v]])
     pose = pose_distinct_first(rec.points[sees], tracks.uv[sees, v], first, rec.focal,
                                image_size, max_error=opts.pnp_error,
-                               min_inliers=opts.pnp_min_inliers)
+                               min_inliers=opts.pnp_min_inliers, method=opts.pnp_method)
     if pose is None:
         return False
     R, t, inliers = pose

@@ -184,10 +184,7 @@ def solve_cameras(photos, depth_range: tuple[float, float], *, focal: float | No
     features, k = scene_features([photos[v] for v in perm])   # in the photos enlarged k times
     H, W = size[0] * k, size[1] * k
     px = pixel_scale((H, W))
-    opts = options or MapperOptions()
-    opts = MapperOptions(**{**opts.__dict__, "two_view_error": opts.two_view_error * px,
-                            "pnp_error": opts.pnp_error * px,
-                            "max_error": opts.max_error * px, "loss_scale": opts.loss_scale * px})
+    opts = (options or MapperOptions()).in_pixels(px)
     focals = ((k * float(focal),) if focal is not None
               else tuple(prior * max(H, W) for prior in FOCAL_PRIORS))
     f0 = focals[0]

@@ -121,11 +121,20 @@ def relative_pose(p: np.ndarray, q: np.ndarray, focal: float, image_size: tuple[
     good = good.ravel().astype(bool)
     if not good.any():
         return T, 0.0
+    return T, median_triangulation_angle(p[good], q[good], T, K)
+
+
+def median_triangulation_angle(p: np.ndarray, q: np.ndarray, cam2_from_cam1: np.ndarray,
+                               K: np.ndarray) -> float:
+    """The median angle (degrees) between the two rays of the matched pixels ``p -> q [N, 2]``
+    that triangulate in front of both cameras (``cam2_from_cam1 [4, 4]``, intrinsics ``K``);
+    0 when none does."""
+    R = cam2_from_cam1[:3, :3]
     Kinv = np.linalg.inv(K)
-    r1 = np.c_[p[good], np.ones(good.sum())] @ Kinv.T
-    r2 = np.c_[q[good], np.ones(good.sum())] @ Kinv.T @ R            # in camera 1
-    ang, front = triangulation_angles(r1, np.zeros(3), r2, -R.T @ T[:3, 3])
-    return T, float(np.degrees(np.median(ang[front]))) if front.any() else 0.0
+    r1 = np.c_[p, np.ones(len(p))] @ Kinv.T
+    r2 = np.c_[q, np.ones(len(q))] @ Kinv.T @ R                      # in camera 1
+    ang, front = triangulation_angles(r1, np.zeros(3), r2, -R.T @ cam2_from_cam1[:3, 3])
+    return float(np.degrees(np.median(ang[front]))) if front.any() else 0.0
 
 
 def essential_pose(p: np.ndarray, q: np.ndarray, focal: float, image_size: tuple[int, int],
