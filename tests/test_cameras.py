@@ -164,6 +164,28 @@ def test_two_view_geometry_of_exact_matches():
     assert g.triangulation_angle > 1.0
 
 
+def test_median_triangulation_angle_against_the_geometry():
+    """The median over three points of the angle between their rays from the two centres
+    (computed here from the points themselves) is the middle one's; rays that meet behind the
+    cameras do not count."""
+    from iris_runtime.cameras.two_view import intrinsics, median_triangulation_angle
+    K = intrinsics(FOCAL, SIZE)
+    T = np.eye(4)
+    T[0, 3] = -1.0                              # camera 2 one unit along +x: cam2 = cam1 - x
+    X = np.array([[0.5, 0.2, 2.0], [0.5, -0.1, 4.0], [0.5, 0.3, 8.0]])
+
+    def pixels(Y):
+        return FOCAL * Y[:, :2] / Y[:, 2:] + K[:2, 2]
+
+    p, q = pixels(X), pixels(X + T[:3, 3])
+    got = median_triangulation_angle(p, q, T, K)
+    a, b = X[1], X[1] - [1.0, 0.0, 0.0]                 # from centre 1 (origin) and centre 2
+    expected = np.degrees(np.arccos(a @ b / np.linalg.norm(a) / np.linalg.norm(b)))
+    assert got == pytest.approx(expected, rel=1e-9)
+    # A match whose rays meet behind the cameras (swapped sides) is left out: no point counts.
+    assert median_triangulation_angle(q[:1], p[:1], T, K) == 0.0
+
+
 def test_twin_distance_matches_a_float64_reference():
     rng = np.random.default_rng(11)
     uv = rng.uniform(0, 100, (300, 2))
@@ -881,6 +903,88 @@ def test_refine_cameras_salvages_the_views_two_starts_agree_on(corner, monkeypat
         return
     assert out.status == ("solved",) * 6
     assert _pair_errors(out.world_from_cam, truth).max() < 2.0
+
+
+@pytest.mark.parametrize("witness", ["confirms", "salvages", "off"])
+def test_refine_cameras_asks_a_mapping_where_no_start_agrees_on_enough_views(corner, monkeypatch,
+                                                                             witness):
+    """Where no start confirms the best and none agrees with it on enough views to salvage, the
+    incremental mapper's own reconstruction of the refinement's pairs (``_witness``) is asked.
+    It owes nothing to the starts: on the corner it poses all six views at the true cameras.
+    A start it confirms is kept; where it confirms none, the views it agrees with the best on
+    are salvaged; with ``WITNESS_TRIALS = 0`` there is no witness and the caller runs the solve.
+    """
+    import iris_runtime.cameras.refine as refine
+    photos, truth, _ = corner
+    start = _perturbed(truth, np.random.default_rng(4), degrees=6.0)
+    agreement, mapping, core = refine.agreement, refine._witness, refine.salvage_core
+    salvage = refine._salvaged
+    mapped, salvages = [], []
+
+    def counted(best, witnesses, *args):
+        salvages.append(witnesses)
+        return salvage(best, witnesses, *args)
+
+    def recorded(*args):
+        mapped.append(mapping(*args))
+        return mapped[-1]
+
+    def only_the_witness(R_a, t_a, posed_a, R_b, t_b, posed_b):
+        asked = witness == "confirms" and mapped and any(R is mapped[-1].R for R in (R_a, R_b))
+        return agreement(R_a, t_a, posed_a, R_b, t_b, posed_b) if asked else 0.0
+
+    def no_start_core(best, witnesses):
+        return core(best, witnesses) if mapped and witnesses == [mapped[-1]] else None
+
+    monkeypatch.setattr(refine, "_witness", recorded)
+    monkeypatch.setattr(refine, "_salvaged", counted)
+    monkeypatch.setattr(refine, "agreement", only_the_witness)
+    monkeypatch.setattr(refine, "salvage_core", no_start_core)
+    monkeypatch.setattr(refine, "WITNESS_TRIALS", 0 if witness == "off" else 2)
+    out = refine.refine_cameras(list(photos), start, FOCAL, DEPTH_RANGE)
+    if witness == "off":
+        assert out is None and not mapped
+        return
+    assert len(mapped) == 1 and mapped[0].registered.all()
+    # The starts' salvage, then (where the witness confirms no start) the witness's.
+    assert len(salvages) == (1 if witness == "confirms" else 2)
+    # The witness in the photos' order (the refinement works in canonical_order).
+    from iris_runtime.cameras.features import canonical_order
+    perm = canonical_order(list(photos))
+    cam_from_world = np.tile(np.eye(4), (6, 1, 1))
+    cam_from_world[perm, :3, :3], cam_from_world[perm, :3, 3] = mapped[0].R, mapped[0].t
+    assert _pair_errors(np.linalg.inv(cam_from_world), truth).max() < 2.0
+    assert out.status == ("solved",) * 6
+    assert _pair_errors(out.world_from_cam, truth).max() < 2.0
+
+
+def test_the_witness_confirms_a_start_only_on_the_views_both_pose(monkeypatch):
+    """``_witnessed`` takes a start the witness agrees with both ways: a start at the true
+    cameras that leaves view 1 unposed is not confirmed by a witness that poses all five views
+    (on one real set that start left a view with the head's camera), the same start posing every
+    view is; with no start confirmed it salvages ``best`` (here: nothing to salvage, None)."""
+    import iris_runtime.cameras.refine as refine
+    from iris_runtime.cameras.mapper import Reconstruction
+    truth = np_scenes.cameras(5, 70.0)
+    cam = np.linalg.inv(truth)
+
+    def rec(registered, turned=()):
+        R = cam[:, :3, :3].copy()
+        for v in turned:
+            R[v] = _rotation_about([0.3, 1.0, 0.1], np.radians(20.0)) @ R[v]
+        return Reconstruction(R, cam[:, :3, 3].copy(), FOCAL, np.array(registered), np.zeros((0, 3)),
+                              np.zeros(0, bool), np.zeros((0, 5), bool), (0, 1))
+
+    monkeypatch.setattr(refine, "_salvaged", lambda best, witnesses, *args: None)
+    witness = rec([True] * 5)
+    best = rec([True] * 5, turned=(2, 3))                 # wrong on two views: 4 of 10 pairs
+    partial = rec([True, False, True, True, True])        # right, but view 1 unposed
+    assert refine.agreement(partial.R, partial.t, partial.registered, witness.R, witness.t,
+                            witness.registered) == 1.0  # one way it agrees on every pair
+    assert refine._witnessed(best, [partial], witness, ()) is None
+    full = rec([True] * 5)
+    assert refine._witnessed(best, [partial, full], witness, ()) is full
+    assert refine._witnessed(best, [full], None, ()) is None
 
 
 def test_agreeing_views_is_the_largest_set_that_agrees_pair_by_pair():

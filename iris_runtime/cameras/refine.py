@@ -17,8 +17,11 @@ starts: where the head and the pairs are both far off, the adjustment ends in a 
 starts, so the chosen start is kept only where another start's cameras agree with it
 (``agreement``; "Telling a wrong refinement"). Where none does, the views on which one does
 (``agreeing_views``) are kept if they are half the views or more, and the others are posed
-against their points as the mapper registers a view (``_salvaged``); otherwise the caller is
-told to run the solve ("Salvaging the views two starts agree on").
+against their points as the mapper registers a view (``_salvaged``; "Salvaging the views two
+starts agree on"). Where no start agrees on that many, a quick incremental mapping on the
+refinement's own pairs (``_witness``) is the other witness: a start it confirms is kept, or the
+views it agrees with the best start on are salvaged; otherwise the caller is told to run the
+solve ("A mapping as the witness").
 """
 from __future__ import annotations
 
@@ -32,18 +35,19 @@ from ..errors import InputError
 from .bundle import bundle_adjust, reprojection_errors
 from .features import canonical_order, match_features, scene_features
 from .locate import PNP_MIN_INLIERS, pose_from_points
-from .mapper import MapperOptions, Reconstruction, reprojection_score
+from .mapper import MapperOptions, Reconstruction, incremental_mapping, reprojection_score
 from .solve import (LOCATE_MIN_INLIERS, CameraSolve, check_depth_range, check_photos,
                     finish_solve)
 from .tracks import build_tracks
 from .triangulation import triangulate
-from .two_view import MAX_ERROR, essential_pose, pixel_scale
+from .two_view import (MAX_ERROR, TwoViewGeometry, essential_pose, intrinsics,
+                       median_triangulation_angle, pixel_scale)
 
 __all__ = ["refine_cameras", "average_rotations", "average_centres", "agreement",
            "agreeing_pairs", "agreeing_views", "salvage_core", "STARTS", "REFINE_ROUNDS",
            "REFINE_TOLERANCE", "MIN_AGREEMENT", "AGREEMENT_DEGREES", "MIN_CORE_SHARE",
-           "MIN_CORE_VIEWS", "RETRIANGULATION_ANGLE", "REFINED_MIN_OBSERVATIONS",
-           "AVERAGING_ROUNDS", "AVERAGING_SCALE"]
+           "MIN_CORE_VIEWS", "WITNESS_TRIALS", "RETRIANGULATION_ANGLE",
+           "REFINED_MIN_OBSERVATIONS", "AVERAGING_ROUNDS", "AVERAGING_SCALE"]
 
 #: The cameras the adjustment starts from: the model's ("model"), the model's centres turned by
 #: the pairs' rotations (their essential matrices' rotations averaged, ``average_rotations``:
@@ -101,9 +105,18 @@ AGREEMENT_DEGREES = 5.0
 #: the views two starts agree on").
 MIN_CORE_SHARE = 0.5
 MIN_CORE_VIEWS = 4
-#: OpenCV's PnP in the RANSAC that poses the views a salvage did not keep: AP3P on four-point
-#: samples, not the mapper's SQPnP, which takes several times as long on a view with few inliers
-#: (docs/CAMERAS.md, "Salvaging the views two starts agree on").
+#: Where no start agrees with the best on ``MIN_CORE_VIEWS``, the incremental mapper runs on the
+#: refinement's pairs and tracks at the best start's focal, trying this many starting pairs
+#: (``_witness``; 0: no witness, the caller runs the solve). Its reconstruction owes nothing to
+#: the starts' cameras: a start it confirms (``MIN_AGREEMENT``) is kept, or the views it agrees
+#: with the best start on are salvaged (``MIN_CORE_SHARE``, ``MIN_CORE_VIEWS``). Two: one
+#: starting pair left the hardest held-out scene with half its views (docs/CAMERAS.md, "A
+#: mapping as the witness").
+WITNESS_TRIALS = 2
+#: OpenCV's PnP in the RANSAC that poses the views a salvage did not keep, and in the witness's
+#: registrations: AP3P on four-point samples, not the solve's SQPnP, which takes several times
+#: as long on a view with few inliers (docs/CAMERAS.md, "Salvaging the views two starts agree
+#: on", "A mapping as the witness").
 SALVAGE_PNP = cv2.SOLVEPNP_AP3P
 #: Rigid-pose tolerance of the model's cameras: |R^T R - I| and the last row.
 _RIGID_TOLERANCE = 1e-3
@@ -351,6 +364,45 @@ def _salvaged(best: Reconstruction, witnesses: list[Reconstruction], tracks, ima
     return _reconstruction(a, tracks, scale_view) if a is not None else None
 
 
+def _witness(features, tracks, inliers: dict, relative: dict, focal: float, image_size,
+             opts: MapperOptions) -> Reconstruction | None:
+    """The incremental mapper's reconstruction of the refinement's tracks (``incremental_mapping``
+    at ``focal``, ``WITNESS_TRIALS`` starting pairs, PnP by ``SALVAGE_PNP``), started from its
+    pairs' essential matrices (``inliers {(a, b): int64 [M, 2]}``, ``relative {(a, b):
+    (cam_b_from_cam_a [4, 4], weight)}``): the solve's method on data already at hand, without its
+    focal priors, homographies and second pass. None when no pair starts one. ``opts`` in
+    pixels of ``image_size``."""
+    K = intrinsics(focal, image_size)
+    geometries = {}
+    for (a, b), m in inliers.items():
+        T = relative[a, b][0]
+        angle = median_triangulation_angle(features[a].uv[m[:, 0]], features[b].uv[m[:, 1]], T,
+                                           K)
+        # No homography: every pair counts as "general", scored by its inliers and angle.
+        geometries[a, b] = TwoViewGeometry("general", m, 0, T, angle)
+    opts = MapperOptions(**{**opts.__dict__, "init_trials": WITNESS_TRIALS, "min_trials": 1,
+                            "pnp_method": SALVAGE_PNP})
+    return incremental_mapping(features, tracks, geometries, (focal,), image_size, opts)
+
+
+def _witnessed(best: Reconstruction, ends: list[Reconstruction], mapped: Reconstruction | None,
+               salvage: tuple) -> Reconstruction | None:
+    """The first of ``best`` and the other starts' ``ends`` that the witness mapping ``mapped``
+    confirms (``agreement`` on ``MIN_AGREEMENT`` of the pairs either of them poses); else
+    ``best`` salvaged on the views ``mapped`` agrees with it on (``_salvaged``, ``salvage`` its
+    remaining arguments); None when there is no witness or neither holds."""
+    if mapped is None:
+        return None
+    for rec in (best, *ends):
+        # Both ways: a start that leaves a view unposed is not confirmed by a witness that
+        # poses it, nor a start by a witness that poses fewer of its views.
+        if min(agreement(rec.R, rec.t, rec.registered, mapped.R, mapped.t, mapped.registered),
+               agreement(mapped.R, mapped.t, mapped.registered, rec.R, rec.t,
+                         rec.registered)) >= MIN_AGREEMENT:
+            return rec
+    return _salvaged(best, [mapped], *salvage)
+
+
 def refine_cameras(photos, world_from_cam, focal: float, depth_range: tuple[float, float], *,
                    options: MapperOptions | None = None) -> CameraSolve | None:
     """The cameras of ``photos`` (V uint8 photos of one size, RGB [H, W, 3] or grey [H, W]),
@@ -361,9 +413,11 @@ def refine_cameras(photos, world_from_cam, focal: float, depth_range: tuple[floa
     constrain the cameras (fewer than two views refined, a start without a baseline, an
     adjustment that left the focal non-positive) or where no other start's cameras agree with
     the chosen ones on ``MIN_AGREEMENT`` of the pairs (a wrong minimum, or a scene the photos
-    leave ambiguous).
-    ``options``: ``max_error`` and ``loss_scale`` are used (pixels at
-    ``two_view.REFERENCE_SIZE``)."""
+    leave ambiguous) and neither another start nor the witness mapping (``_witness``) agrees with
+    it on ``MIN_CORE_VIEWS`` views or more.
+    ``options``: the mapper's thresholds (pixels at ``two_view.REFERENCE_SIZE``): the
+    adjustment uses ``max_error`` and ``loss_scale``, the salvage ``pnp_error``, the witness
+    mapping all of them."""
     photos = check_photos(photos)
     near, far = check_depth_range(depth_range)
     V = len(photos)
@@ -429,7 +483,8 @@ def refine_cameras(photos, world_from_cam, focal: float, depth_range: tuple[floa
 
     # The best-ranked start (as the mapper ranks reconstructions) is kept where another start
     # confirms it, agreeing on MIN_AGREEMENT of its pairs: a wrong minimum is rarely reached
-    # twice. Where none does, the views one confirms are salvaged; else the caller runs the solve.
+    # twice. Where none does, the views one confirms are salvaged; where none confirms enough,
+    # the witness mapping is asked; else the caller runs the solve.
     ranked = sorted(range(len(started)), key=lambda i: started[i][0], reverse=True)
     finished = (rec for rec in map(end, ranked) if rec is not None)       # lazily, best first
     best = next(finished, None)
@@ -443,9 +498,13 @@ def refine_cameras(photos, world_from_cam, focal: float, depth_range: tuple[floa
                          rec.registered) >= MIN_AGREEMENT:
                 break
         else:
-            best = _salvaged(best, witnesses, tracks, (H, W), centre, opts.max_error * px,
-                             opts.loss_scale * px, opts.pnp_error * px)
-            if best is None:
+            salvage = (tracks, (H, W), centre, opts.max_error * px, opts.loss_scale * px,
+                       opts.pnp_error * px)
+            best = _salvaged(best, witnesses, *salvage) or (
+                WITNESS_TRIALS and _witnessed(best, witnesses, _witness(
+                    features, tracks, inliers, relative, best.focal, (H, W),
+                    opts.in_pixels(px)), salvage))
+            if not best:
                 return None
     refined = best.registered                                      # canonical numbering
     cams = np.full((V, 4, 4), np.nan)
