@@ -11,8 +11,9 @@ with ``cameras="refined"`` through the runtime's public entry point: as shipped,
 values ``refine.agreement`` returns to the check (the best-ranked start's cameras against each
 other start's, until one reaches ``MIN_AGREEMENT``), where none does, the salvage (``"core"``:
 the views of the largest set another start agrees with it on; ``"salvaged"``: the views it
-posed, 0 where the set was too small and the scene went to the solve), the source and the
-seconds; then with ``MIN_AGREEMENT = 0`` (the chosen
+posed, 0 where the set was too small), where that failed too, what the witness mapping did
+(``"witness"``: "confirmed a start", "salvaged N views", "none" or "no mapping"), the source and
+the seconds; then with ``MIN_AGREEMENT = 0`` (the chosen
 start's cameras, whatever the check says) and with ``STARTS`` one start at a time (each start's
 own end; a start that leaves view 0 unposed is handed to the solve by the runtime and has no
 RPA of its own). Where the set has true cameras: RPA@15 of each, of the cameras as shipped and
@@ -35,9 +36,18 @@ from refine_probe import rpa15 as rpa
 
 def scene_signals(rt: IrisRuntime, photos, truth, solve: bool) -> dict:
     shipped = R.MIN_AGREEMENT, R.STARTS, R.agreement, R._salvaged, R.agreeing_views
+    witnessed_as_shipped = R._witnessed
     seen: list[float] = []
     salvaged: list[int] = []
     core = [0]
+    witness: list[str] = []
+
+    def witnessed(best, ends, mapped, salvage):
+        rec = witnessed_as_shipped(best, ends, mapped, salvage)
+        witness.append("no mapping" if mapped is None else "none" if rec is None
+                       else "confirmed a start" if any(rec is e for e in (best, *ends))
+                       else f"salvaged {int(rec.registered.sum())} views")
+        return rec
 
     def views(*args):
         out = shipped[4](*args)
@@ -54,13 +64,15 @@ def scene_signals(rt: IrisRuntime, photos, truth, solve: bool) -> dict:
         return rec
 
     R.agreement, R._salvaged, R.agreeing_views = recorded, salvage, views
+    R._witnessed = witnessed
     try:
         t0 = time.perf_counter()
         as_shipped = rt.encode(photos, cameras="refined")
         row = {"refined_seconds": time.perf_counter() - t0, "source": as_shipped.camera_source,
                "agreement": list(seen),
-               **({"core": core[0], "salvaged": salvaged[0]} if salvaged else {})}
-        R._salvaged = shipped[3]
+               **({"core": core[0], "salvaged": salvaged[0]} if salvaged else {}),
+               **({"witness": witness[0]} if witness else {})}
+        R._salvaged, R._witnessed = shipped[3], witnessed_as_shipped
         R.MIN_AGREEMENT = 0.0
         chosen = rt.encode(photos, cameras="refined")
         ends = {}
@@ -69,6 +81,7 @@ def scene_signals(rt: IrisRuntime, photos, truth, solve: bool) -> dict:
             ends[kind] = rt.encode(photos, cameras="refined")
     finally:
         R.MIN_AGREEMENT, R.STARTS, R.agreement, R._salvaged, R.agreeing_views = shipped
+        R._witnessed = witnessed_as_shipped
     if truth is not None:
         row["refined_rpa@15"] = rpa(as_shipped.world_from_cam, truth)
         if chosen.camera_source == "refined":
