@@ -972,12 +972,12 @@ def test_the_witness_confirms_a_start_only_on_the_views_both_pose(monkeypatch):
         R = cam[:, :3, :3].copy()
         for v in turned:
             R[v] = _rotation_about([0.3, 1.0, 0.1], np.radians(20.0)) @ R[v]
-        return Reconstruction(R, cam[:, :3, 3].copy(), FOCAL, np.array(registered), np.zeros((0, 3)),
-                              np.zeros(0, bool), np.zeros((0, 5), bool), (0, 1))
+        return Reconstruction(R, cam[:, :3, 3].copy(), FOCAL, np.array(registered),
+                              np.zeros((0, 3)), np.zeros(0, bool), np.zeros((0, 5), bool), (0, 1))
 
     monkeypatch.setattr(refine, "_salvaged", lambda best, witnesses, *args: None)
     witness = rec([True] * 5)
-    best = rec([True] * 5, turned=(2, 3))                 # wrong on two views: 4 of 10 pairs
+    best = rec([True] * 5, turned=(2, 3))                 # right on the pairs of 0, 1 and 4 only
     partial = rec([True, False, True, True, True])        # right, but view 1 unposed
     assert refine.agreement(partial.R, partial.t, partial.registered, witness.R, witness.t,
                             witness.registered) == 1.0  # one way it agrees on every pair
