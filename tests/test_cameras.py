@@ -958,6 +958,29 @@ def test_refine_cameras_asks_a_mapping_where_no_start_agrees_on_enough_views(cor
     assert _pair_errors(out.world_from_cam, truth).max() < 2.0
 
 
+def test_refine_cameras_ranks_its_starts_in_the_photos_pixels(corner, monkeypatch):
+    """The starts are ranked as the mapper ranks reconstructions (``reprojection_score``), with
+    its truncation in the photos' pixels as the solve has it: 3 px at 320 px, 4.8 px on photos
+    of 512 px (the corner enlarged twice), not the reference size's 3."""
+    import iris_runtime.cameras.refine as refine
+    from iris_runtime.cameras import MapperOptions
+    from iris_runtime.cameras.two_view import pixel_scale
+    photos, truth, _ = corner
+    large = [np.repeat(np.repeat(p, 2, axis=0), 2, axis=1) for p in photos]
+    score, seen = refine.reprojection_score, []
+
+    def recorded(rec, tracks, centre, opts):
+        seen.append(opts.max_error)
+        return score(rec, tracks, centre, opts)
+
+    monkeypatch.setattr(refine, "reprojection_score", recorded)
+    start = _perturbed(truth, np.random.default_rng(4), degrees=6.0)
+    out = refine.refine_cameras(large, start, 2 * FOCAL, DEPTH_RANGE)
+    assert out is not None and _pair_errors(out.world_from_cam, truth).max() < 2.0
+    expected = MapperOptions().max_error * pixel_scale(large[0].shape[:2])
+    assert expected == pytest.approx(4.8) and seen == [expected] * len(seen) and seen
+
+
 def test_the_witness_confirms_a_start_only_on_the_views_both_pose(monkeypatch):
     """``_witnessed`` takes a start the witness agrees with both ways: a start at the true
     cameras that leaves view 1 unposed is not confirmed by a witness that poses all five views

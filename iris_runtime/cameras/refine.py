@@ -417,13 +417,13 @@ def refine_cameras(photos, world_from_cam, focal: float, depth_range: tuple[floa
     leave ambiguous) and neither another start nor the witness mapping (``_witness``) agrees with
     it on ``MIN_CORE_VIEWS`` views or more.
     ``options``: the mapper's thresholds (pixels at ``two_view.REFERENCE_SIZE``): the
-    adjustment uses ``max_error`` and ``loss_scale``, the salvage ``pnp_error``, the witness
-    mapping all of them."""
+    adjustment uses ``max_error`` and ``loss_scale``, the ranking of the starts ``max_error``,
+    the salvage ``pnp_error``, the witness mapping all of them."""
     photos = check_photos(photos)
     near, far = check_depth_range(depth_range)
     V = len(photos)
     start, focal = _check_start(world_from_cam, focal, V)
-    opts = options or MapperOptions()
+    options = options or MapperOptions()
     # As the solve: the photos in canonical_order, so that their order only decides the root.
     perm = canonical_order(photos)
     # ... and the start in the frame of canonical view 0 (the adjustment's gauge), so that the
@@ -440,6 +440,7 @@ def refine_cameras(photos, world_from_cam, focal: float, depth_range: tuple[floa
         features = [f.subset(np.arange(min(len(f), MAX_KEYPOINTS))) for f in features]
     H, W = features[0].image_size
     px = pixel_scale((H, W))
+    opts = options.in_pixels(px)        # the thresholds in these photos' pixels, as the solve's
     f = focal * k
     centre = np.array([W / 2.0, H / 2.0])
 
@@ -456,7 +457,7 @@ def refine_cameras(photos, world_from_cam, focal: float, depth_range: tuple[floa
     cam_from_world = np.linalg.inv(start)
     R0, centres = cam_from_world[:, :3, :3], start[:, :3, 3]
     rotations = {ab: (T[:3, :3], w) for ab, (T, w) in relative.items()}
-    args = (centre, tracks, scale_view, opts.max_error * px, opts.loss_scale * px)
+    args = (centre, tracks, scale_view, opts.max_error, opts.loss_scale)
     last = len(REFINE_ROUNDS) - 1
     started = []            # per start: (its key after CHOOSE_AFTER rounds, its adjustment then)
     for kind in STARTS:
@@ -499,11 +500,10 @@ def refine_cameras(photos, world_from_cam, focal: float, depth_range: tuple[floa
                          rec.registered) >= MIN_AGREEMENT:
                 break
         else:
-            salvage = (tracks, (H, W), centre, opts.max_error * px, opts.loss_scale * px,
-                       opts.pnp_error * px)
+            salvage = (tracks, (H, W), centre, opts.max_error, opts.loss_scale, opts.pnp_error)
             best = _salvaged(best, witnesses, *salvage) or (
                 _witnessed(best, witnesses, _witness(features, tracks, inliers, relative,
-                                                     best.focal, (H, W), opts.in_pixels(px)),
+                                                     best.focal, (H, W), opts),
                            salvage) if WITNESS_TRIALS else None)
             if best is None:
                 return None
