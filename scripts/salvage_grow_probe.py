@@ -30,6 +30,7 @@ from iris_runtime.cameras.refine import (PNP_MIN_INLIERS, REFINE_ROUNDS,  # noqa
                                          RETRIANGULATION_ANGLE, _reconstruction, _round, _start,
                                          pose_from_points, triangulate)
 
+
 def grown(best, witnesses, tracks, image_size, centre, max_error, loss_scale, pnp_error):
     """``refine._salvaged``'s signature and agreeing set; the other views registered one at a
     time, each followed by ten iterations of adjustment with the focal held."""
@@ -74,6 +75,7 @@ def grown(best, witnesses, tracks, image_size, centre, max_error, loss_scale, pn
         a = _round(a, iterations, refine_focal, n == last, centre, tracks, sv, max_error,
                    loss_scale) if a else None
     return _reconstruction(a, tracks, sv) if a is not None else None
+
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])

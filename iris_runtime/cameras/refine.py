@@ -115,9 +115,10 @@ MIN_CORE_VIEWS = 4
 #: (docs/CAMERAS.md, "A mapping as the witness").
 WITNESS_TRIALS = 2
 #: OpenCV's PnP in the RANSAC that poses the views a salvage did not keep, and in the witness's
-#: registrations: AP3P on four-point samples, not the solve's SQPnP, which takes several times
-#: as long on a view with few inliers (docs/CAMERAS.md, "Salvaging the views two starts agree
-#: on", "A mapping as the witness").
+#: registrations: AP3P on four-point samples, not the solve's SQPnP. Views with few inliers run
+#: all of the RANSAC's iterations, and there SQPnP made the one salvaged held-out scene and the
+#: witness's hardest scene slower, to the same cameras (docs/CAMERAS.md, "Salvaging the views
+#: two starts agree on", "A mapping as the witness").
 SALVAGE_PNP = cv2.SOLVEPNP_AP3P
 #: Rigid-pose tolerance of the model's cameras: |R^T R - I| and the last row.
 _RIGID_TOLERANCE = 1e-3
@@ -501,12 +502,13 @@ def refine_cameras(photos, world_from_cam, focal: float, depth_range: tuple[floa
                 break
         else:
             salvage = (tracks, (H, W), centre, opts.max_error, opts.loss_scale, opts.pnp_error)
-            best = _salvaged(best, witnesses, *salvage) or (
-                _witnessed(best, witnesses, _witness(features, tracks, inliers, relative,
-                                                     best.focal, (H, W), opts),
-                           salvage) if WITNESS_TRIALS else None)
-            if best is None:
+            kept = _salvaged(best, witnesses, *salvage)
+            if kept is None and WITNESS_TRIALS:
+                mapped = _witness(features, tracks, inliers, relative, best.focal, (H, W), opts)
+                kept = _witnessed(best, witnesses, mapped, salvage)
+            if kept is None:
                 return None
+            best = kept
     refined = best.registered                                      # canonical numbering
     cams = np.full((V, 4, 4), np.nan)
     cams[refined] = np.eye(4)
