@@ -14,7 +14,8 @@ import pytest
 
 from iris_runtime.cameras import (DEPTH_TARGET, canonical_order, locate_photos, locate_views,
                                   solve_cameras)
-from iris_runtime.cameras.bundle import _inverse_factor, bundle_adjust, reprojection_errors
+from iris_runtime.cameras.bundle import (_exp_so3, _inverse_factor, bundle_adjust,
+                                         fast_bundle_adjust, reprojection_errors)
 from iris_runtime.cameras.features import (DISTINCT_DISTANCE, LOW_TEXTURE_SIZE, MIN_KEYPOINTS,
                                            MIRROR, TWIN_MIN_PIXELS, Features, distinct_keypoints,
                                            extract_features, match_features, scene_features,
@@ -344,7 +345,13 @@ def test_triangulation_recovers_points_and_applies_its_checks():
     assert not ok.any()
 
 
-def test_bundle_adjustment_recovers_cameras_focal_and_points_despite_outliers():
+#: The solve's adjustment and the refinement's: every contract test runs on both.
+ADJUSTMENTS = pytest.mark.parametrize("adjust", [bundle_adjust, fast_bundle_adjust],
+                                      ids=["bundle_adjust", "fast_bundle_adjust"])
+
+
+@ADJUSTMENTS
+def test_bundle_adjustment_recovers_cameras_focal_and_points_despite_outliers(adjust):
     rng = np.random.default_rng(4)
     T = _forward_cameras(rng, 5, spread=0.6, max_angle=0.2)
     cfw = np.linalg.inv(T)
@@ -361,8 +368,8 @@ def test_bundle_adjustment_recovers_cameras_focal_and_points_despite_outliers():
     t0[1, scale_axis] = cfw[1, scale_axis, 3]                  # the scale the solve holds
     X0 = X + 0.05 * rng.normal(size=X.shape)
     centre = np.array([SIZE[1] / 2, SIZE[0] / 2])
-    res = bundle_adjust(R0, t0, 1.15 * FOCAL, centre, X0, uv_obs, active, fixed_view=0,
-                        scale_view=1, refine_focal=True, loss_scale=1.0, max_iterations=100)
+    res = adjust(R0, t0, 1.15 * FOCAL, centre, X0, uv_obs, active, fixed_view=0,
+                 scale_view=1, refine_focal=True, loss_scale=1.0, max_iterations=100)
     # (the Cauchy loss lets the 20-pixel outliers pull a little: 1e-4 of the focal)
     assert res.focal == pytest.approx(FOCAL, rel=1e-3)
     for k in range(5):
@@ -373,12 +380,13 @@ def test_bundle_adjustment_recovers_cameras_focal_and_points_despite_outliers():
     err, _ = reprojection_errors(res.R, res.t, res.focal, centre, res.points, uv)
     assert np.median(err[active]) < 0.01
     # A fixed focal stays where it is.
-    fixed = bundle_adjust(R0, t0, 1.15 * FOCAL, centre, X0, uv_obs, active, fixed_view=0,
-                          scale_view=1, refine_focal=False, max_iterations=5)
+    fixed = adjust(R0, t0, 1.15 * FOCAL, centre, X0, uv_obs, active, fixed_view=0,
+                   scale_view=1, refine_focal=False, max_iterations=5)
     assert fixed.focal == 1.15 * FOCAL
 
 
-def test_bundle_adjustment_tolerance_ends_it_at_the_first_small_step():
+@ADJUSTMENTS
+def test_bundle_adjustment_tolerance_ends_it_at_the_first_small_step(adjust):
     """``tolerance``: the adjustment stops at the first step that lowers the cost by less than
     that share of it. A loose one runs fewer iterations and, on a well-posed problem whose
     Gauss-Newton steps shrink fast, ends within about that share of the tight one's cost, at
@@ -395,8 +403,8 @@ def test_bundle_adjustment_tolerance_ends_it_at_the_first_small_step():
     X0 = X + 0.05 * rng.normal(size=X.shape)
     centre = np.array([SIZE[1] / 2, SIZE[0] / 2])
     kw = dict(fixed_view=0, scale_view=1, refine_focal=False, max_iterations=100)
-    tight = bundle_adjust(R0, t0, FOCAL, centre, X0, uv, active, tolerance=1e-9, **kw)
-    loose = bundle_adjust(R0, t0, FOCAL, centre, X0, uv, active, tolerance=1e-2, **kw)
+    tight = adjust(R0, t0, FOCAL, centre, X0, uv, active, tolerance=1e-9, **kw)
+    loose = adjust(R0, t0, FOCAL, centre, X0, uv, active, tolerance=1e-2, **kw)
     assert loose.iterations < tight.iterations < 100
     assert tight.cost <= loose.cost <= (1 + 1e-2) * tight.cost
     for k in range(5):
@@ -425,10 +433,14 @@ def test_point_block_inverse_matches_lapack_on_stiff_blocks():
     assert np.abs(identity - np.eye(3)).max() < 1e-5
 
 
-def test_bundle_adjustment_ends_where_scipy_least_squares_cannot_lower_the_cost():
+@ADJUSTMENTS
+def test_bundle_adjustment_ends_where_scipy_least_squares_cannot_lower_the_cost(adjust):
     """Noisy observations (the optimum is not the truth) with outliers: from the adjusted
     cameras, points and focal, SciPy's least_squares on the same Cauchy cost and gauge finds
-    nothing lower, so the Schur-complement steps reach a minimum of the right cost."""
+    nothing lower, so the Schur-complement steps reach a minimum of the right cost. The
+    refinement's adjustment gets a tighter tolerance: under Nielsen's damping, which falls at
+    most 3 times a step, its last steps are shorter, and at the default tolerance it stops 1.2e-7
+    of the cost above the minimum."""
     import cv2
     from scipy.optimize import least_squares
     rng = np.random.default_rng(14)
@@ -443,8 +455,9 @@ def test_bundle_adjustment_ends_where_scipy_least_squares_cannot_lower_the_cost(
     centre = np.array([SIZE[1] / 2, SIZE[0] / 2])
     t0 = cfw[:, :3, 3] + np.r_[[[0, 0, 0]], 0.02 * rng.normal(size=(V - 1, 3))]
     axis = int(np.argmax(np.abs(t0[1])))
-    res = bundle_adjust(cfw[:, :3, :3], t0, 1.05 * FOCAL, centre, X, uv, active, fixed_view=0,
-                        scale_view=1, refine_focal=True, loss_scale=2.0, max_iterations=200)
+    res = adjust(cfw[:, :3, :3], t0, 1.05 * FOCAL, centre, X, uv, active, fixed_view=0,
+                 scale_view=1, refine_focal=True, loss_scale=2.0, max_iterations=200,
+                 **({"tolerance": 1e-8} if adjust is fast_bundle_adjust else {}))
 
     free_t = np.ones((V, 3), bool)
     free_t[0] = False
@@ -472,6 +485,54 @@ def test_bundle_adjustment_ends_where_scipy_least_squares_cannot_lower_the_cost(
     R, t, f, _ = unpack(ref.x)
     assert f == pytest.approx(res.focal, rel=1e-5)
     np.testing.assert_allclose(t, res.t, atol=1e-5)
+
+
+def test_fast_bundle_adjustment_ends_at_the_solves_minimum_in_fewer_steps():
+    """The refinement's adjustment against the solve's on noisy observations with outliers and
+    a start several degrees off: the same minimum (cost, cameras, focal, points) in no more
+    accepted steps; with nothing observed, the start back unchanged."""
+    rng = np.random.default_rng(21)
+    V, P = 6, 250
+    T = _forward_cameras(rng, V, spread=0.6, max_angle=0.25)
+    cfw = np.linalg.inv(T)
+    X = _cloud(rng, P)
+    uv = np.stack([_project(Tk, X)[0] for Tk in T], 1) + rng.normal(0, 0.5, (P, V, 2))
+    uv[rng.random((P, V)) < 0.03] += 30.0
+    active = rng.random((P, V)) < 0.7
+    active[:, :2] = True
+    R0 = np.stack([_rotation(rng, 0.06) @ R for R in cfw[:, :3, :3]])
+    R0[0] = cfw[0, :3, :3]
+    t0 = cfw[:, :3, 3] + np.r_[[[0, 0, 0]], 0.05 * rng.normal(size=(V - 1, 3))]
+    X0 = X + 0.1 * rng.normal(size=X.shape)
+    centre = np.array([SIZE[1] / 2, SIZE[0] / 2])
+    kw = dict(fixed_view=0, scale_view=1, refine_focal=True, loss_scale=1.0,
+              max_iterations=200, tolerance=1e-10)
+    ref = bundle_adjust(R0, t0, 1.1 * FOCAL, centre, X0, uv, active, **kw)
+    fast = fast_bundle_adjust(R0, t0, 1.1 * FOCAL, centre, X0, uv, active, **kw)
+    assert fast.cost == pytest.approx(ref.cost, rel=1e-6)
+    assert fast.iterations <= ref.iterations
+    for k in range(V):
+        assert _angle_deg(fast.R[k], ref.R[k]) < 1e-4
+    np.testing.assert_allclose(fast.t, ref.t, atol=1e-5)
+    assert fast.focal == pytest.approx(ref.focal, rel=1e-6)
+    np.testing.assert_allclose(fast.points, ref.points, atol=1e-4)
+    none = fast_bundle_adjust(R0, t0, FOCAL, centre, X0, uv, np.zeros_like(active), **kw)
+    assert none.iterations == 0 and none.cost == 0.0
+    np.testing.assert_array_equal(none.R, R0)
+
+
+def test_exp_so3_matches_opencv_rodrigues_from_zero_to_pi():
+    import cv2
+    rng = np.random.default_rng(5)
+    axes = rng.normal(size=(40, 3))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    angles = np.r_[0.0, 1e-12, 1e-8, 1e-4, rng.uniform(0, np.pi, 35), np.pi]
+    w = axes * angles[:, None]
+    ours = _exp_so3(w)
+    ref = np.stack([cv2.Rodrigues(x)[0] for x in w])
+    np.testing.assert_allclose(ours, ref, atol=1e-12)
+    np.testing.assert_allclose(ours @ ours.transpose(0, 2, 1),
+                               np.broadcast_to(np.eye(3), ours.shape), atol=1e-12)
 
 
 def test_pose_from_points_is_exact_and_refuses_too_few_inliers():
@@ -956,6 +1017,41 @@ def test_refine_cameras_asks_a_mapping_where_no_start_agrees_on_enough_views(cor
     assert _pair_errors(np.linalg.inv(cam_from_world), truth).max() < 2.0
     assert out.status == ("solved",) * 6
     assert _pair_errors(out.world_from_cam, truth).max() < 2.0
+
+
+def test_only_the_refinement_runs_the_fast_adjustment(corner, monkeypatch):
+    """The solve adjusts with ``bundle_adjust`` alone (the teacher store holds its results); the
+    refinement's rounds and its witness mapping with ``fast_bundle_adjust`` alone."""
+    import iris_runtime.cameras.bundle as bundle
+    import iris_runtime.cameras.mapper as mapper
+    import iris_runtime.cameras.refine as refine
+    photos, truth, _ = corner
+    calls = {"bundle_adjust": 0, "fast_bundle_adjust": 0}
+
+    def counting(name):
+        adjust = getattr(bundle, name)
+
+        def counted(*args, **kw):
+            calls[name] += 1
+            return adjust(*args, **kw)
+        return counted
+
+    for module in (mapper, refine):
+        for name in calls:
+            if hasattr(module, name):
+                monkeypatch.setattr(module, name, counting(name))
+    solve_cameras(list(photos), DEPTH_RANGE)
+    assert calls["bundle_adjust"] > 0 and calls["fast_bundle_adjust"] == 0
+    calls.update(bundle_adjust=0)
+    # No start agrees and none salvages: the rounds, then the witness, run.
+    witnessed = []
+    mapping = refine._witness
+    monkeypatch.setattr(refine, "agreement", lambda *args: 0.0)
+    monkeypatch.setattr(refine, "salvage_core", lambda *args: None)
+    monkeypatch.setattr(refine, "_witness", lambda *args: witnessed.append(1) or mapping(*args))
+    refine.refine_cameras(list(photos), _perturbed(truth, np.random.default_rng(4), 6.0), FOCAL,
+                          DEPTH_RANGE)
+    assert witnessed and calls["fast_bundle_adjust"] > 0 and calls["bundle_adjust"] == 0
 
 
 def test_refine_cameras_ranks_its_starts_in_the_photos_pixels(corner, monkeypatch):

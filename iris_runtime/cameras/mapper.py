@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from .bundle import bundle_adjust, reprojection_errors
+from .bundle import bundle_adjust, fast_bundle_adjust, reprojection_errors
 from .locate import PNP_ERROR, PNP_MIN_INLIERS, pose_distinct_first
 from .tracks import Tracks
 from .triangulation import camera_centres, max_ray_angles, triangulate
@@ -52,6 +52,9 @@ class MapperOptions:
     ba_points:          points adjusted after each registration (the most observed; the end
                         adjusts all)
     pnp_method:         OpenCV's PnP in a registration's RANSAC (``locate.pose_from_points``)
+    fast_adjustment:    adjust with ``bundle.fast_bundle_adjust`` (the refinement's witness)
+                        instead of ``bundle.bundle_adjust`` (the solve: the teacher store holds
+                        its results)
     """
     init_min_inliers: int = 30
     planar_min_angle: float = 0.5
@@ -71,6 +74,7 @@ class MapperOptions:
     final_ba_points: int = 1500
     final_ba_iterations: int = 50
     pnp_method: int = cv2.SOLVEPNP_SQPNP
+    fast_adjustment: bool = False
 
     def in_pixels(self, px: float) -> MapperOptions:
         """These options with their pixel thresholds for photos ``px`` times ``REFERENCE_SIZE``
@@ -157,10 +161,10 @@ def _adjust(rec: Reconstruction, tracks: Tracks, centre, opts: MapperOptions, it
     i, j = rec.first
     refine = int(rec.registered.sum()) >= opts.min_focal_views if refine_focal is None \
         else refine_focal
-    res = bundle_adjust(rec.R, rec.t, rec.focal, centre, rec.points[adjusted],
-                        tracks.uv[adjusted], active[adjusted], fixed_view=i, scale_view=j,
-                        refine_focal=refine, loss_scale=opts.loss_scale,
-                        max_iterations=iterations)
+    adjust = fast_bundle_adjust if opts.fast_adjustment else bundle_adjust
+    res = adjust(rec.R, rec.t, rec.focal, centre, rec.points[adjusted], tracks.uv[adjusted],
+                 active[adjusted], fixed_view=i, scale_view=j, refine_focal=refine,
+                 loss_scale=opts.loss_scale, max_iterations=iterations)
     rec.R, rec.t, rec.focal = res.R, res.t, res.focal
     rec.points[adjusted] = res.points
     rest = keep & ~adjusted

@@ -7,11 +7,12 @@ bundle adjustment instead: SIFT matches of every pair (``features``), kept where
 essential matrix at the model's focal explains them (``two_view.essential_pose``, which also
 gives the pair's relative pose), tracks (``tracks``), then ``STARTS``: the model's cameras and
 two built from the pairs' relative poses (``average_rotations``, ``average_centres``). Each
-gets a first round of bundle adjustment (``bundle``) with the focal held (a pose error of
-several degrees moves the focal as much as a wrong focal does), after which the best is chosen,
-and a second with the focal free. Like the solve it runs in ``canonical_order`` and its result
-is in the solve's terms (``solve.CameraSolve``: its unit, root and point map), so it replaces a
-model's cameras as the solve does (``replace.refine_model_cameras``). Its accuracy rests on its
+gets a first round of bundle adjustment (``bundle.fast_bundle_adjust``) with the focal held (a
+pose error of several degrees moves the focal as much as a wrong focal does), after which the
+best is chosen, and a second with the focal free. Like the solve it runs in ``canonical_order``
+and its result is in the solve's terms (``solve.CameraSolve``: its unit, root and point map), so
+it replaces a model's cameras as the solve does (``replace.refine_model_cameras``). Its accuracy
+rests on its
 starts: where the head and the pairs are both far off, the adjustment ends in a wrong minimum
 (docs/CAMERAS.md, "Refining the model's cameras"). A wrong minimum is rarely reached from two
 starts, so the chosen start is kept only where another start's cameras agree with it
@@ -32,7 +33,7 @@ import cv2
 import numpy as np
 
 from ..errors import InputError
-from .bundle import bundle_adjust, reprojection_errors
+from .bundle import fast_bundle_adjust, reprojection_errors
 from .features import canonical_order, match_features, scene_features
 from .locate import PNP_MIN_INLIERS, pose_from_points
 from .mapper import MapperOptions, Reconstruction, incremental_mapping, reprojection_score
@@ -290,10 +291,10 @@ def _round(a: _Adjustment, iterations: int, refine_focal: bool, last: bool, cent
     beyond ``max_error`` or behind a camera, and (unless ``last``) triangulate the points left
     with fewer than two again; None when the focal left the positive numbers."""
     keep = a.active.sum(1) >= 2
-    res = bundle_adjust(a.R, a.t, a.focal, centre, a.X[keep], tracks.uv[keep], a.active[keep],
-                        fixed_view=0, scale_view=scale_view, refine_focal=refine_focal,
-                        loss_scale=loss_scale, max_iterations=iterations,
-                        tolerance=REFINE_TOLERANCE)
+    res = fast_bundle_adjust(a.R, a.t, a.focal, centre, a.X[keep], tracks.uv[keep],
+                             a.active[keep], fixed_view=0, scale_view=scale_view,
+                             refine_focal=refine_focal, loss_scale=loss_scale,
+                             max_iterations=iterations, tolerance=REFINE_TOLERANCE)
     if not (np.isfinite(res.focal) and res.focal > 0):
         return None
     X = a.X.copy()
@@ -369,7 +370,8 @@ def _salvaged(best: Reconstruction, witnesses: list[Reconstruction], tracks, ima
 def _witness(features, tracks, inliers: dict, relative: dict, focal: float, image_size,
              opts: MapperOptions) -> Reconstruction | None:
     """The incremental mapper's reconstruction of the refinement's tracks (``incremental_mapping``
-    at ``focal``, ``WITNESS_TRIALS`` starting pairs, PnP by ``SALVAGE_PNP``), started from its
+    at ``focal``, ``WITNESS_TRIALS`` starting pairs, PnP by ``SALVAGE_PNP``, the refinement's
+    ``fast_bundle_adjust``), started from its
     pairs' essential matrices (``inliers {(a, b): int64 [M, 2]}``, ``relative {(a, b):
     (cam_b_from_cam_a [4, 4], weight)}``): the solve's method on data already at hand, without its
     focal priors, homographies and second pass. None when no pair starts one. ``opts`` in
@@ -383,7 +385,7 @@ def _witness(features, tracks, inliers: dict, relative: dict, focal: float, imag
         # No homography: every pair counts as "general", scored by its inliers and angle.
         geometries[a, b] = TwoViewGeometry("general", m, 0, T, angle)
     opts = MapperOptions(**{**opts.__dict__, "init_trials": WITNESS_TRIALS, "min_trials": 1,
-                            "pnp_method": SALVAGE_PNP})
+                            "pnp_method": SALVAGE_PNP, "fast_adjustment": True})
     return incremental_mapping(features, tracks, geometries, (focal,), image_size, opts)
 
 
