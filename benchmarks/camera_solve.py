@@ -115,6 +115,13 @@ def validation_64_scenes():
     return _synthetic("validation-64", VALIDATION_SEEDS[:24], size=MODEL_SIZE)
 
 
+def validation_more_64_scenes():
+    """Validation scenes 24-47 at 64x64: a second sample where a choice that moves the first's
+    RPA by a few pairs either way is checked."""
+    from iris_train.data import VALIDATION_SEEDS
+    return _synthetic("validation-64", VALIDATION_SEEDS[24:48], size=MODEL_SIZE)
+
+
 def validation_more_scenes():
     """Validation scenes 24-47: a second sample where a choice is checked before held-out."""
     from iris_train.data import VALIDATION_SEEDS

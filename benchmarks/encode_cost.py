@@ -7,10 +7,13 @@ the quickstart's 64x64 sample) on one thread, with the encoder's cameras, with t
     python benchmarks/encode_cost.py MODEL_DIR --runs 7 --json benchmarks/results/encode_cost.json
     python benchmarks/encode_cost.py MODEL_DIR --set min_trials=2      # a solve setting changed
     python benchmarks/encode_cost.py MODEL_DIR --heldout --cameras model,epipolar,refined --runs 3
+    python benchmarks/encode_cost.py MODEL_DIR --heldout --eval-heldout --cameras refined --runs 3
 
 ``--heldout`` adds the 16 held-out synthetic scenes at the model's 64x64 (rendered at 256x256
 and area-averaged, as the quickstart's sample is; the [train] extra) and, for every set with true
 cameras, the RPA@15 of each mode's cameras over all pairs: error against run time.
+``--eval-heldout`` adds the same scenes as ``iris-eval`` brings them to 64x64 (its loader's
+resize: other pixels, so other keypoints, and other paths through the refinement).
 
 ``--set`` takes ``scripts/camera_study.py``'s settings (a constant of a module of
 ``iris_runtime.cameras``, or a field of ``MapperOptions``).
@@ -35,9 +38,11 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 
-def photo_sets(heldout: bool = False) -> dict:
+def photo_sets(heldout: bool = False, eval_heldout: bool = False,
+               image_size=(64, 64)) -> dict:
     """{name: (8 uint8 RGB photos, their true world_from_cam [8, 4, 4] or None)}: of 240x320,
-    the quickstart's 64x64 sample and, with ``heldout``, the held-out scenes at 64x64."""
+    the quickstart's 64x64 sample and, with ``heldout`` / ``eval_heldout``, the held-out scenes
+    at 64x64 (as the sample is made / as iris-eval loads them at ``image_size``)."""
     import numpy as np
     from PIL import Image
     out = {}
@@ -49,6 +54,13 @@ def photo_sets(heldout: bool = False) -> dict:
         from benchmarks.camera_solve import heldout_64_scenes
         for scene in heldout_64_scenes():
             out[scene.name.split(" (")[0]] = (scene.photos, scene.world_from_cam)
+    if eval_heldout:
+        from iris_train.data import HELDOUT_SEEDS
+        from iris_train.evaluate.scenes import load_scenes
+        scenes, _ = load_scenes("synthetic:heldout", image_size, views=8)
+        for seed, scene in zip(HELDOUT_SEEDS, scenes):
+            truth = np.linalg.inv(scene.world_from_cam[0]) @ scene.world_from_cam
+            out[f"eval-heldout-64 {seed}"] = (list(scene.images), truth)
     from benchmarks.camera_solve import CASTLE, CASTLE_SUBSETS, castle_scenes
     if CASTLE.is_dir():
         for scene in castle_scenes():
@@ -65,7 +77,7 @@ def photo_sets(heldout: bool = False) -> dict:
 
 def measure(model_dir: str, runs: int, settings: list[str] = (),
             modes: tuple[str, ...] = ("model", "epipolar", "refined"),
-            heldout: bool = False) -> dict:
+            heldout: bool = False, eval_heldout: bool = False) -> dict:
     import cv2
 
     import iris_runtime.cameras.replace as replace
@@ -81,7 +93,7 @@ def measure(model_dir: str, runs: int, settings: list[str] = (),
     rt = IrisRuntime(model_dir, threads=1)
     out = {"threads": 1, "runs": runs, "settings": list(settings),
            "load_before": list(os.getloadavg()), "sets": {}}
-    for name, (photos, truth) in photo_sets(heldout).items():
+    for name, (photos, truth) in photo_sets(heldout, eval_heldout, rt.image_size).items():
         res = {}
         for cameras in modes:
             rt.encode(photos, cameras=cameras)                       # warm-up
@@ -108,16 +120,20 @@ def measure(model_dir: str, runs: int, settings: list[str] = (),
                   + (f" RPA@15 {res[cameras]['rpa@15']:.3f}" if truth is not None else ""),
                   flush=True)
         out["sets"][name] = res
-    held = {k: v for k, v in out["sets"].items() if k.startswith("heldout-64")}
-    if held:
-        out["heldout_64"] = {}
+    for prefix in ("heldout-64", "eval-heldout-64"):
+        held = {k: v for k, v in out["sets"].items() if k.startswith(prefix + " ")}
+        if not held:
+            continue
+        key = prefix.replace("-", "_")
+        out[key] = {}
         for m in modes:
             seconds = [v[m]["median_s"] for v in held.values()]
-            r = out["heldout_64"][m] = {
+            r = out[key][m] = {
                 "median_s": statistics.median(seconds), "max_s": max(seconds),
+                "slowest": max(held, key=lambda k: held[k][m]["median_s"]),
                 "rpa@15": float(np.mean([v[m]["rpa@15"] for v in held.values()]))}
-            print(f"held-out 64x64, {len(held)} scenes, cameras={m:9s}: median "
-                  f"{r['median_s']:.3f} s, max {r['max_s']:.3f} s, RPA@15 {r['rpa@15']:.3f}",
+            print(f"{prefix}, {len(held)} scenes, cameras={m:9s}: median {r['median_s']:.3f} s,"
+                  f" max {r['max_s']:.3f} s ({r['slowest']}), RPA@15 {r['rpa@15']:.3f}",
                   flush=True)
     out["load_after"] = list(os.getloadavg())
     return out
@@ -134,9 +150,11 @@ def main(argv=None) -> int:
                     help="comma-separated camera modes of encode (default: all three)")
     ap.add_argument("--heldout", action="store_true",
                     help="add the 16 held-out scenes at 64x64, with RPA@15 against true cameras")
+    ap.add_argument("--eval-heldout", action="store_true",
+                    help="add the 16 held-out scenes as iris-eval loads them at 64x64")
     args = ap.parse_args(argv)
     res = measure(args.model_dir, args.runs, args.set, tuple(args.cameras.split(",")),
-                  args.heldout)
+                  args.heldout, args.eval_heldout)
     print(f"load average before / after: {res['load_before']} / {res['load_after']}")
     if args.json is not None:
         from iris_runtime.fileio import atomic_write_bytes

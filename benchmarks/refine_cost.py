@@ -1,6 +1,6 @@
 """Where ``cameras="refined"`` spends its time, and what a setting of it changes: per held-out
-(or ``--scenes validation``) scene at the model's 64x64, the RPA@15 of the cameras
-``IrisRuntime.encode`` gives (all 28 pairs), whether the refinement kept them or handed the
+(or ``--scenes validation``, ``validation-more``) scene at the model's 64x64, the RPA@15 of the
+cameras ``IrisRuntime.encode`` gives (all 28 pairs), whether the refinement kept them or handed the
 scene to the solve, the bundle adjustment's iterations (all starts and rounds) and the seconds of
 the refinement and of the whole encode (one run, one thread: a ranking, not a timing;
 ``encode_cost.py`` times).
@@ -8,6 +8,7 @@ the refinement and of the whole encode (one run, one thread: a ranking, not a ti
     python benchmarks/refine_cost.py MODEL_DIR
     python benchmarks/refine_cost.py MODEL_DIR --set refine.REFINE_TOLERANCE=1e-6 --json out.json
     python benchmarks/refine_cost.py MODEL_DIR --profile      # + the refinement's time by step
+    python benchmarks/refine_cost.py MODEL_DIR --adjustment solve   # the solve's adjustment
 
 ``--profile`` runs the scenes under cProfile and adds the share of the refinement's time in each
 of its steps (SIFT, matching, essential matrices, tracks, bundle adjustment, triangulation).
@@ -33,7 +34,8 @@ sys.path.insert(0, str(REPO))
 #: The refinement's steps, by the function that does each (``iris_runtime.cameras``).
 STEPS = {"scene_features": "SIFT", "match_features": "matching",
          "essential_pose": "essential matrices", "build_tracks": "tracks",
-         "bundle_adjust": "bundle adjustment", "triangulate": "triangulation"}
+         "fast_bundle_adjust": "bundle adjustment", "bundle_adjust": "bundle adjustment",
+         "triangulate": "triangulation"}
 
 
 def step_shares(profile) -> dict:
@@ -55,7 +57,7 @@ def step_shares(profile) -> dict:
 
 
 def measure(model_dir: str, settings: list[str], profile: bool = False,
-            scenes: str = "heldout") -> dict:
+            scenes: str = "heldout", adjustment: str = "fast") -> dict:
     import cProfile
 
     import cv2
@@ -63,13 +65,18 @@ def measure(model_dir: str, settings: list[str], profile: bool = False,
 
     import iris_runtime.cameras.refine as refine
     import iris_runtime.cameras.replace as replace
-    from benchmarks.camera_solve import heldout_64_scenes, pair_errors, validation_64_scenes
+    from benchmarks.camera_solve import (heldout_64_scenes, pair_errors, validation_64_scenes,
+                                         validation_more_64_scenes)
     from iris_runtime import IrisRuntime
     from scripts.camera_study import apply
     cv2.setNumThreads(1)
     apply(list(settings))
     counts = {"iterations": 0, "refine_s": 0.0}
-    bundle_adjust, refine_cameras = refine.bundle_adjust, replace.refine_cameras
+    if adjustment == "solve":     # the solve's adjustment in the refinement's and the witness's
+        import iris_runtime.cameras.mapper as mapper
+        from iris_runtime.cameras.bundle import bundle_adjust as solve_adjustment
+        refine.fast_bundle_adjust = mapper.fast_bundle_adjust = solve_adjustment
+    bundle_adjust, refine_cameras = refine.fast_bundle_adjust, replace.refine_cameras
 
     def counted(*args, **kw):
         res = bundle_adjust(*args, **kw)
@@ -83,11 +90,13 @@ def measure(model_dir: str, settings: list[str], profile: bool = False,
         finally:
             counts["refine_s"] += time.perf_counter() - t0
 
-    refine.bundle_adjust, replace.refine_cameras = counted, timed
+    refine.fast_bundle_adjust, replace.refine_cameras = counted, timed
     rt = IrisRuntime(model_dir, threads=1)
     rows = []
     profiler = cProfile.Profile() if profile else None
-    for scene in (heldout_64_scenes() if scenes == "heldout" else validation_64_scenes()):
+    sets = {"heldout": heldout_64_scenes, "validation": validation_64_scenes,
+            "validation-more": validation_more_64_scenes}
+    for scene in sets[scenes]():
         counts.update(iterations=0, refine_s=0.0)
         t0 = time.perf_counter()
         if profiler is not None:
@@ -110,7 +119,8 @@ def measure(model_dir: str, settings: list[str], profile: bool = False,
     if profiler is not None:
         summary["refine_time_by_step"] = step_shares(profiler)
     print(json.dumps(summary))
-    return {"settings": list(settings), "set": scenes, "load_before": list(os.getloadavg()),
+    return {"settings": list(settings), "set": scenes, "adjustment": adjustment,
+            "load_before": list(os.getloadavg()),
             "scenes": rows,
             "summary": summary}
 
@@ -120,13 +130,17 @@ def main(argv=None) -> int:
     ap.add_argument("model_dir")
     ap.add_argument("--set", action="append", default=[], metavar="NAME=VALUE")
     ap.add_argument("--json", type=Path, default=None)
-    ap.add_argument("--scenes", choices=("heldout", "validation"), default="heldout",
-                    help="the 16 held-out scenes, or the first 24 validation scenes (where a "
-                         "setting is chosen), at 64x64")
+    ap.add_argument("--scenes", choices=("heldout", "validation", "validation-more"),
+                    default="heldout",
+                    help="the 16 held-out scenes, the first 24 validation scenes (where a "
+                         "setting is chosen) or validation scenes 24-47, at 64x64")
+    ap.add_argument("--adjustment", choices=("fast", "solve"), default="fast",
+                    help="the refinement's bundle adjustment (bundle.fast_bundle_adjust, as "
+                         "shipped) or the solve's (bundle.bundle_adjust) in its place")
     ap.add_argument("--profile", action="store_true",
                     help="also the share of the refinement's time in each of its steps")
     args = ap.parse_args(argv)
-    res = measure(args.model_dir, args.set, args.profile, args.scenes)
+    res = measure(args.model_dir, args.set, args.profile, args.scenes, args.adjustment)
     if args.json is not None:
         from iris_runtime.fileio import atomic_write_bytes
         atomic_write_bytes(args.json, json.dumps(res, indent=1).encode())
