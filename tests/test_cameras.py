@@ -521,6 +521,41 @@ def test_fast_bundle_adjustment_ends_at_the_solves_minimum_in_fewer_steps():
     np.testing.assert_array_equal(none.R, R0)
 
 
+@ADJUSTMENTS
+def test_bundle_adjustment_stays_finite_on_stiff_problems(adjust):
+    """Stiff and extreme problems: points from 1 to 1e5 depths away (a far point's block is
+    nearly singular along its ray), a view that sees a single point, a baseline of 1e-6 and
+    a start whose points lie behind a camera. The result is finite, the gauge holds and the cost
+    does not rise."""
+    rng = np.random.default_rng(8)
+    V, P = 4, 200
+    T = _forward_cameras(rng, V, spread=0.5, max_angle=0.1)
+    cfw = np.linalg.inv(T)
+    X = _cloud(rng, P)
+    X[:60, 2] = 10.0 ** rng.uniform(2, 5, 60)                    # far points
+    X[:60, :2] *= X[:60, 2:] / 3.0                                # still in view
+    uv = np.stack([_project(Tk, X)[0] for Tk in T], 1) + rng.normal(0, 0.3, (P, V, 2))
+    active = np.ones((P, V), bool)
+    active[1:, 3] = False                                         # view 3 sees one point
+    centre = np.array([SIZE[1] / 2, SIZE[0] / 2])
+    t0 = cfw[:, :3, 3].copy()
+    tiny = t0.copy()
+    tiny[1] = t0[0] + 1e-6 * (t0[1] - t0[0]) / np.linalg.norm(t0[1] - t0[0])
+    behind = X.copy()
+    behind[:5, 2] *= -1.0
+    for t_start, X_start in ((t0, X), (tiny, X), (t0, behind)):
+        res = adjust(cfw[:, :3, :3], t_start, FOCAL, centre, X_start, uv, active, fixed_view=0,
+                     scale_view=1, refine_focal=True, loss_scale=1.0, max_iterations=30)
+        assert np.isfinite(res.R).all() and np.isfinite(res.t).all() and np.isfinite(res.focal)
+        assert np.isfinite(res.points).all() and res.focal > 0
+        np.testing.assert_array_equal(res.R[0], cfw[0, :3, :3])
+        axis = int(np.argmax(np.abs(t_start[1])))
+        assert res.t[1, axis] == t_start[1, axis]
+        start = adjust(cfw[:, :3, :3], t_start, FOCAL, centre, X_start, uv, active, fixed_view=0,
+                       scale_view=1, max_iterations=0)
+        assert res.cost <= start.cost
+
+
 def test_exp_so3_matches_opencv_rodrigues_from_zero_to_pi():
     import cv2
     rng = np.random.default_rng(5)
