@@ -110,6 +110,19 @@ def heldout_64_scenes():
     return _synthetic("heldout-64", HELDOUT_SEEDS, size=MODEL_SIZE)
 
 
+def eval_heldout_64_scenes():
+    """The held-out scenes as ``iris-eval`` brings them to the model's 64x64 (its loader's resize:
+    other pixels than ``heldout_64_scenes``', so other keypoints and other paths through the
+    refinement)."""
+    from iris_train.data import HELDOUT_SEEDS
+    from iris_train.evaluate.scenes import load_scenes
+    scenes, _ = load_scenes("synthetic:heldout", MODEL_SIZE, views=8)
+    for seed, scene in zip(HELDOUT_SEEDS, scenes):
+        yield Scene(f"eval-heldout-64 {seed}", list(scene.images),
+                    np.linalg.inv(scene.world_from_cam[0]) @ scene.world_from_cam,
+                    float(scene.K[0, 0]) / MODEL_SIZE[1])
+
+
 def validation_64_scenes():
     from iris_train.data import VALIDATION_SEEDS
     return _synthetic("validation-64", VALIDATION_SEEDS[:24], size=MODEL_SIZE)

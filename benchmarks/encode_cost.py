@@ -38,11 +38,10 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 
-def photo_sets(heldout: bool = False, eval_heldout: bool = False,
-               image_size=(64, 64)) -> dict:
+def photo_sets(heldout: bool = False, eval_heldout: bool = False) -> dict:
     """{name: (8 uint8 RGB photos, their true world_from_cam [8, 4, 4] or None)}: of 240x320,
     the quickstart's 64x64 sample and, with ``heldout`` / ``eval_heldout``, the held-out scenes
-    at 64x64 (as the sample is made / as iris-eval loads them at ``image_size``)."""
+    at 64x64 (as the sample is made / as iris-eval loads them)."""
     import numpy as np
     from PIL import Image
     out = {}
@@ -55,12 +54,9 @@ def photo_sets(heldout: bool = False, eval_heldout: bool = False,
         for scene in heldout_64_scenes():
             out[scene.name.split(" (")[0]] = (scene.photos, scene.world_from_cam)
     if eval_heldout:
-        from iris_train.data import HELDOUT_SEEDS
-        from iris_train.evaluate.scenes import load_scenes
-        scenes, _ = load_scenes("synthetic:heldout", image_size, views=8)
-        for seed, scene in zip(HELDOUT_SEEDS, scenes):
-            truth = np.linalg.inv(scene.world_from_cam[0]) @ scene.world_from_cam
-            out[f"eval-heldout-64 {seed}"] = (list(scene.images), truth)
+        from benchmarks.camera_solve import eval_heldout_64_scenes
+        for scene in eval_heldout_64_scenes():
+            out[scene.name] = (scene.photos, scene.world_from_cam)
     from benchmarks.camera_solve import CASTLE, CASTLE_SUBSETS, castle_scenes
     if CASTLE.is_dir():
         for scene in castle_scenes():
@@ -93,7 +89,7 @@ def measure(model_dir: str, runs: int, settings: list[str] = (),
     rt = IrisRuntime(model_dir, threads=1)
     out = {"threads": 1, "runs": runs, "settings": list(settings),
            "load_before": list(os.getloadavg()), "sets": {}}
-    for name, (photos, truth) in photo_sets(heldout, eval_heldout, rt.image_size).items():
+    for name, (photos, truth) in photo_sets(heldout, eval_heldout).items():
         res = {}
         for cameras in modes:
             rt.encode(photos, cameras=cameras)                       # warm-up

@@ -10,8 +10,9 @@ the refinement and of the whole encode (one run, one thread: a ranking, not a ti
     python benchmarks/refine_cost.py MODEL_DIR --profile      # + the refinement's time by step
     python benchmarks/refine_cost.py MODEL_DIR --adjustment solve   # the solve's adjustment
 
-``--profile`` runs the scenes under cProfile and adds the share of the refinement's time in each
-of its steps (SIFT, matching, essential matrices, tracks, bundle adjustment, triangulation).
+``--profile`` runs the scenes under cProfile and adds each scene's seconds in each of the
+refinement's steps (SIFT, matching, essential matrices, tracks, bundle adjustment,
+triangulation, the witness mapping) and their shares over the set.
 
 ``--set`` takes ``scripts/camera_study.py``'s settings (a scalar or flat-tuple constant of a
 module of ``iris_runtime.cameras``). Needs the [train] extra (the held-out scenes).
@@ -31,17 +32,18 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 
-#: The refinement's steps, by the function that does each (``iris_runtime.cameras``).
+#: The refinement's steps, by the function that does each (``iris_runtime.cameras``). The
+#: witness mapping's own adjustments and registrations count under "witness mapping" only.
 STEPS = {"scene_features": "SIFT", "match_features": "matching",
          "essential_pose": "essential matrices", "build_tracks": "tracks",
          "fast_bundle_adjust": "bundle adjustment", "bundle_adjust": "bundle adjustment",
-         "triangulate": "triangulation"}
+         "triangulate": "triangulation", "_witness": "witness mapping"}
 
 
-def step_shares(profile) -> dict:
-    """{step: share of ``refine_cameras``' cumulative time} from a ``cProfile.Profile``."""
+def step_seconds(profile) -> tuple[dict, float]:
+    """({step: seconds}, the seconds of ``refine_cameras``) from a ``cProfile.Profile``."""
     import pstats
-    total, shares = 0.0, {}
+    total, steps = 0.0, {}
     for (path, _, name), (_, _, _, cumulative, callers) in pstats.Stats(profile).stats.items():
         if "iris_runtime" not in path:
             continue
@@ -51,9 +53,8 @@ def step_shares(profile) -> dict:
             # Only the calls made inside the refinement (the solve calls some of them too).
             inside = sum(c[3] for (_, _, caller), c in callers.items()
                          if caller in ("refine_cameras", "_round", "_start", "counted"))
-            shares[STEPS[name]] = shares.get(STEPS[name], 0.0) + inside
-    return {k: v / total for k, v in sorted(shares.items(), key=lambda kv: -kv[1])} if total \
-        else {}
+            steps[STEPS[name]] = steps.get(STEPS[name], 0.0) + inside
+    return dict(sorted(steps.items(), key=lambda kv: -kv[1])), total
 
 
 def measure(model_dir: str, settings: list[str], profile: bool = False,
@@ -65,8 +66,8 @@ def measure(model_dir: str, settings: list[str], profile: bool = False,
 
     import iris_runtime.cameras.refine as refine
     import iris_runtime.cameras.replace as replace
-    from benchmarks.camera_solve import (heldout_64_scenes, pair_errors, validation_64_scenes,
-                                         validation_more_64_scenes)
+    from benchmarks.camera_solve import (eval_heldout_64_scenes, heldout_64_scenes, pair_errors,
+                                         validation_64_scenes, validation_more_64_scenes)
     from iris_runtime import IrisRuntime
     from scripts.camera_study import apply
     cv2.setNumThreads(1)
@@ -93,11 +94,12 @@ def measure(model_dir: str, settings: list[str], profile: bool = False,
     refine.fast_bundle_adjust, replace.refine_cameras = counted, timed
     rt = IrisRuntime(model_dir, threads=1)
     rows = []
-    profiler = cProfile.Profile() if profile else None
     sets = {"heldout": heldout_64_scenes, "validation": validation_64_scenes,
-            "validation-more": validation_more_64_scenes}
+            "validation-more": validation_more_64_scenes, "eval-heldout": eval_heldout_64_scenes}
+    by_step, profiled = {}, 0.0
     for scene in sets[scenes]():
         counts.update(iterations=0, refine_s=0.0)
+        profiler = cProfile.Profile() if profile else None
         t0 = time.perf_counter()
         if profiler is not None:
             profiler.enable()
@@ -109,6 +111,12 @@ def measure(model_dir: str, settings: list[str], profile: bool = False,
         rows.append({"scene": scene.name.split(" (")[0], "rpa@15": rpa,
                      "source": encoded.camera_source, "encode_s": seconds, **counts})
         r = rows[-1]
+        if profiler is not None:     # seconds under cProfile: a ranking of the steps
+            steps, total = step_seconds(profiler)
+            r["refine_steps_s"] = steps
+            profiled += total
+            for k, v in steps.items():
+                by_step[k] = by_step.get(k, 0.0) + v
         print(f"{r['scene']:20s} RPA@15 {rpa:.3f} {r['source']:9s} BA iterations "
               f"{r['iterations']:4d} refine {r['refine_s']:.2f} s encode {seconds:.2f} s",
               flush=True)
@@ -116,8 +124,9 @@ def measure(model_dir: str, settings: list[str], profile: bool = False,
                "handed_to_solve": [r["scene"] for r in rows if r["source"] != "refined"],
                "mean_iterations": float(np.mean([r["iterations"] for r in rows])),
                "median_refine_s": statistics.median(r["refine_s"] for r in rows)}
-    if profiler is not None:
-        summary["refine_time_by_step"] = step_shares(profiler)
+    if profile and profiled:
+        summary["refine_time_by_step"] = {k: v / profiled for k, v in sorted(
+            by_step.items(), key=lambda kv: -kv[1])}
     print(json.dumps(summary))
     return {"settings": list(settings), "set": scenes, "adjustment": adjustment,
             "load_before": list(os.getloadavg()),
@@ -130,10 +139,11 @@ def main(argv=None) -> int:
     ap.add_argument("model_dir")
     ap.add_argument("--set", action="append", default=[], metavar="NAME=VALUE")
     ap.add_argument("--json", type=Path, default=None)
-    ap.add_argument("--scenes", choices=("heldout", "validation", "validation-more"),
-                    default="heldout",
+    ap.add_argument("--scenes", default="heldout",
+                    choices=("heldout", "validation", "validation-more", "eval-heldout"),
                     help="the 16 held-out scenes, the first 24 validation scenes (where a "
-                         "setting is chosen) or validation scenes 24-47, at 64x64")
+                         "setting is chosen), validation scenes 24-47, or the held-out scenes "
+                         "as iris-eval resizes them, at 64x64")
     ap.add_argument("--adjustment", choices=("fast", "solve"), default="fast",
                     help="the refinement's bundle adjustment (bundle.fast_bundle_adjust, as "
                          "shipped) or the solve's (bundle.bundle_adjust) in its place")
