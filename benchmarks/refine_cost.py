@@ -77,10 +77,10 @@ def measure(model_dir: str, settings: list[str], profile: bool = False,
         import iris_runtime.cameras.mapper as mapper
         from iris_runtime.cameras.bundle import bundle_adjust as solve_adjustment
         refine.fast_bundle_adjust = mapper.fast_bundle_adjust = solve_adjustment
-    bundle_adjust, refine_cameras = refine.fast_bundle_adjust, replace.refine_cameras
+    adjust, refine_cameras = refine.fast_bundle_adjust, replace.refine_cameras
 
     def counted(*args, **kw):
-        res = bundle_adjust(*args, **kw)
+        res = adjust(*args, **kw)
         counts["iterations"] += res.iterations
         return res
 

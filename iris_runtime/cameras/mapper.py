@@ -11,7 +11,7 @@ by view index), so given views in a fixed order the result is fixed.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -79,10 +79,9 @@ class MapperOptions:
     def in_pixels(self, px: float) -> MapperOptions:
         """These options with their pixel thresholds for photos ``px`` times ``REFERENCE_SIZE``
         (``two_view.pixel_scale``)."""
-        return MapperOptions(**{**self.__dict__, "two_view_error": self.two_view_error * px,
-                                "pnp_error": self.pnp_error * px,
-                                "max_error": self.max_error * px,
-                                "loss_scale": self.loss_scale * px})
+        return replace(self, two_view_error=self.two_view_error * px,
+                       pnp_error=self.pnp_error * px, max_error=self.max_error * px,
+                       loss_scale=self.loss_scale * px)
 
 
 @dataclass
@@ -280,13 +279,13 @@ def incremental_mapping(features, tracks: Tracks,
     H, W = image_size
     centre = np.array([W / 2.0, H / 2.0])
     starts = _init_pairs(geometries, opts) or _init_pairs(
-        geometries, MapperOptions(**{**opts.__dict__, "init_min_inliers": MIN_INLIERS}))
+        geometries, replace(opts, init_min_inliers=MIN_INLIERS))
     if not starts:
         # Every pair sees a plane (a poster, a facade, a table top) or barely moves: start from
         # the pair that moves most, and keep points seen under narrower angles, which many
         # matches on a plane still place.
         starts = _init_pairs(geometries, opts, planar=True)
-        opts = MapperOptions(**{**opts.__dict__, "min_angle": opts.planar_point_angle})
+        opts = replace(opts, min_angle=opts.planar_point_angle)
     # A view with fewer track observations than a registration needs can never be registered:
     # a reconstruction holding every other view is as complete as this data allows.
     possible = tracks.observed.sum(0) >= opts.pnp_min_inliers

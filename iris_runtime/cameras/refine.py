@@ -26,6 +26,7 @@ solve ("A mapping as the witness").
 """
 from __future__ import annotations
 
+import dataclasses
 import itertools
 from dataclasses import dataclass
 
@@ -371,11 +372,10 @@ def _witness(features, tracks, inliers: dict, relative: dict, focal: float, imag
              opts: MapperOptions) -> Reconstruction | None:
     """The incremental mapper's reconstruction of the refinement's tracks (``incremental_mapping``
     at ``focal``, ``WITNESS_TRIALS`` starting pairs, PnP by ``SALVAGE_PNP``, the refinement's
-    ``fast_bundle_adjust``), started from its
-    pairs' essential matrices (``inliers {(a, b): int64 [M, 2]}``, ``relative {(a, b):
-    (cam_b_from_cam_a [4, 4], weight)}``): the solve's method on data already at hand, without its
-    focal priors, homographies and second pass. None when no pair starts one. ``opts`` in
-    pixels of ``image_size``."""
+    ``fast_bundle_adjust``), started from its pairs' essential matrices (``inliers {(a, b):
+    int64 [M, 2]}``, ``relative {(a, b): (cam_b_from_cam_a [4, 4], weight)}``): the solve's
+    method on data already at hand, without its focal priors, homographies and second pass.
+    None when no pair starts one. ``opts`` in pixels of ``image_size``."""
     K = intrinsics(focal, image_size)
     geometries = {}
     for (a, b), m in inliers.items():
@@ -384,8 +384,8 @@ def _witness(features, tracks, inliers: dict, relative: dict, focal: float, imag
                                            K)
         # No homography: every pair counts as "general", scored by its inliers and angle.
         geometries[a, b] = TwoViewGeometry("general", m, 0, T, angle)
-    opts = MapperOptions(**{**opts.__dict__, "init_trials": WITNESS_TRIALS, "min_trials": 1,
-                            "pnp_method": SALVAGE_PNP, "fast_adjustment": True})
+    opts = dataclasses.replace(opts, init_trials=WITNESS_TRIALS, min_trials=1,
+                               pnp_method=SALVAGE_PNP, fast_adjustment=True)
     return incremental_mapping(features, tracks, geometries, (focal,), image_size, opts)
 
 
