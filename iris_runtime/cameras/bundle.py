@@ -135,19 +135,25 @@ def _inverse_factor(A):
     (several times slower here); Cholesky is backward stable, so a far point's block, whose
     depth is barely observed, is inverted as accurately as LAPACK does it (cofactors are not:
     they lose the square of the condition)."""
-    a, b, c = A[:, 0, 0], A[:, 0, 1], A[:, 0, 2]
-    d, e, g = A[:, 1, 1], A[:, 1, 2], A[:, 2, 2]
+    Q = np.zeros_like(A)
+    _write_inverse_factor(Q.transpose(1, 2, 0), A.transpose(1, 2, 0))
+    return Q
+
+
+def _write_inverse_factor(Q, A):
+    """``_inverse_factor`` with the 3x3 axes first: ``Q [3, 3, ...]`` (zero above the diagonal)
+    written from ``A [3, 3, ...]``."""
+    a, b, c = A[0, 0], A[0, 1], A[0, 2]
+    d, e, g = A[1, 1], A[1, 2], A[2, 2]
     l00 = np.sqrt(a)
     l10, l20 = b / l00, c / l00
     l11 = np.sqrt(d - l10 * l10)
     l21 = (e - l20 * l10) / l11
     l22 = np.sqrt(g - l20 * l20 - l21 * l21)
-    Q = np.zeros_like(A)
-    Q[:, 0, 0], Q[:, 1, 1], Q[:, 2, 2] = 1.0 / l00, 1.0 / l11, 1.0 / l22
-    Q[:, 1, 0] = -l10 * Q[:, 0, 0] * Q[:, 1, 1]
-    Q[:, 2, 1] = -l21 * Q[:, 1, 1] * Q[:, 2, 2]
-    Q[:, 2, 0] = -(l20 * Q[:, 0, 0] + l21 * Q[:, 1, 0]) * Q[:, 2, 2]
-    return Q
+    Q[0, 0], Q[1, 1], Q[2, 2] = 1.0 / l00, 1.0 / l11, 1.0 / l22
+    Q[1, 0] = -l10 * Q[0, 0] * Q[1, 1]
+    Q[2, 1] = -l21 * Q[1, 1] * Q[2, 2]
+    Q[2, 0] = -(l20 * Q[0, 0] + l21 * Q[1, 0]) * Q[2, 2]
 
 
 def bundle_adjust(R, t, focal, centre, points, uv, active, *, fixed_view: int, scale_view: int,
@@ -263,10 +269,14 @@ def fast_bundle_adjust(R, t, focal, centre, points, uv, active, *, fixed_view: i
       a rejected one it grows 2, 4, 8... times. ``bundle_adjust`` divides it by 10 after every
       accepted step and multiplies it by 10 after every rejected one, and each rejected step
       costs a Schur complement and a cost for nothing.
-    - Each observation's camera Jacobian in closed form, the cameras' coordinates of the observed
-      points from one [P, 3] x [3, 3V] product, the step's rotations in one vectorised
-      Rodrigues formula, the Schur complement's sum over points as one product of a [3P, 7V]
-      matrix with itself, reduced to the free parameters by a [7V, n_free] selection matrix.
+    - Less numpy a step. Per-observation arrays are laid out with the observations last
+      (``J [2, 11, n]``: each entry of the Jacobian, and the residual as its 11th column, one
+      contiguous row), so that every product of two entries is one operation on whole rows,
+      into buffers allocated once. The per-view sums are two matrix products per view, the
+      per-point sums one ``reduceat``. The Schur complement's sum over points is one product
+      ``M^T M`` of ``M [3P, n_free]`` (``Q_p W_p^T`` per point, ``V_p^-1 = Q_p^T Q_p``), written
+      straight into the free parameters' columns, and both solves against the point blocks go
+      through ``M`` and ``Q``. The residuals of an accepted step are the next step's.
 
     It ends where ``bundle_adjust`` ends on a well-posed problem (tests/test_cameras.py); on the
     refinement's problems it takes other steps, so it can end in another local minimum where
@@ -274,17 +284,19 @@ def fast_bundle_adjust(R, t, focal, centre, points, uv, active, *, fixed_view: i
     R, t, X = np.array(R, np.float64), np.array(t, np.float64), np.array(points, np.float64)
     f = float(focal)
     uv, active = np.asarray(uv, np.float64), np.asarray(active, bool)
-    centre, s2 = np.asarray(centre, np.float64), float(loss_scale) ** 2
+    centre, s2 = np.asarray(centre, np.float64)[:, None], float(loss_scale) ** 2
     V, P = R.shape[0], X.shape[0]
     p, v = np.nonzero(active)                          # the observations, sorted by point
     n = len(p)
     if n == 0:
         return BundleResult(R, t, f, X, 0.0, 0)
-    uv = uv[p, v]
+    uv = uv[p, v].T                                                    # [2, n]
     starts = np.flatnonzero(np.r_[True, p[1:] != p[:-1]])
-    in_view = (np.arange(V)[:, None] == v[None]).astype(np.float64)     # [V, n]
-    # Where each observation's R_v X_p lies in X @ R.reshape(3V, 3).T, [P, 3V] flattened.
-    coords = (p * 3 * V + 3 * v)[:, None] + np.arange(3)
+    seen = p[starts]                                                   # the observed points
+    by_view = np.argsort(v, kind="stable")
+    view_ends = np.searchsorted(v[by_view], np.arange(V + 1))
+    # Where each observation's R_v X_p lies in (R.reshape(3V, 3) @ X.T).ravel(): [3, n].
+    coords = (3 * v + np.arange(3)[:, None]) * P + p
 
     # The free entries of the per-view (rotation, translation, focal) as in bundle_adjust, and
     # T [7V, n_free]: per-view entries from the parameters (the focal shared by every view).
@@ -293,94 +305,114 @@ def fast_bundle_adjust(R, t, focal, centre, points, uv, active, *, fixed_view: i
     free[fixed_view] = False
     free[scale_view, 3 + int(np.argmax(np.abs(t[scale_view])))] = False
     n_pose = int(free.sum())
-    T = np.zeros((7 * V, n_pose + int(refine_focal)))
+    n_free = n_pose + int(refine_focal)
+    T = np.zeros((7 * V, n_free))
     T[np.flatnonzero(free.ravel()), np.arange(n_pose)] = 1.0
     if refine_focal:
         T[6::7, n_pose] = 1.0
-    # M [3P, 7V]: Q_p W_p^T per point (V_p^-1 = Q_p^T Q_p), zero where a view does not see the
-    # point, written through the flat index of each observation's [3, 7] block.
-    M = np.zeros((3 * P, 7 * V))
-    blocks = ((p[:, None, None] * 3 + np.arange(3)[:, None]) * 7 * V
-              + (v * 7)[:, None, None] + np.arange(7)).ravel()
+    # M's entries: G [3, 7, n] (Q_p W_o^T of each observation o of point p) at row 3 p + i and
+    # the column of its view's free pose entry j (fixed entries dropped); the focal's column
+    # sums the point's observations.
+    column = -np.ones((V, 7), np.int64)
+    column[free] = np.arange(n_pose)
+    column = np.broadcast_to(column[v, :6].T, (3, 6, n))
+    kept = column >= 0
+    into_M = ((3 * p + np.arange(3)[:, None, None]) * n_free + column)[kept]
+    from_G = np.arange(3 * 7 * n).reshape(3, 7, n)[:, :6][kept]
+    focal_rows = 3 * seen + np.arange(3)[:, None]                      # [3, P_seen]
+    M = np.zeros((3 * P, n_free))
+    J, J_by_view = np.empty((2, 11, n)), np.empty((2, 11, n))
+    Wo, Pw, G = np.empty((7, 3, n)), np.empty((3, 4, n)), np.empty((3, 7, n))
+    Wo_k, Pw_k, R_v = np.empty((7, 3, n)), np.empty((3, 4, n)), np.empty((3, 3, n))
+    H, U = np.empty((V, 11, 11)), np.zeros((V, 7, V, 7))
+    Vp, gp, Q = np.zeros((3, 3, P)), np.zeros((3, P)), np.zeros((3, 3, P))
 
-    def per_view(x):
-        return (in_view @ x.reshape(n, -1)).reshape((V,) + x.shape[1:])
+    def residuals(R, t, f, X):
+        """The cost and (camera coordinates Y [3, n] = a + t_v with a = R_v X_p, 1 / depth
+        [n], residuals [2, n]): the cost infinite with a point behind its camera."""
+        a = (R.reshape(3 * V, 3) @ X.T).ravel()[coords]
+        Y = a + t[v].T
+        ahead = Y[2] > 1e-12
+        iz = 1.0 / np.where(ahead, Y[2], 1e-12)
+        r = f * Y[:2] * iz + centre - uv
+        cost = float(0.5 * s2 * np.log1p((r * r).sum(0) / s2).sum()) \
+            if ahead.all() and f > 0 else np.inf                                  # Cauchy
+        return cost, (Y, a, iz, r)
 
-    def per_point(x):
-        out = np.zeros((P,) + x.shape[1:])
-        out[p[starts]] = np.add.reduceat(x, starts, axis=0)
-        return out
-
-    def observed(R, t, X):
-        """Y [n, 3]: each observed point in its camera, and a = R_v X_p (Y = a + t_v)."""
-        a = (X @ R.reshape(3 * V, 3).T).ravel()[coords]
-        return a + t[v], a
-
-    def cost_of(R, t, f, X) -> float:
-        Y, _ = observed(R, t, X)
-        if (Y[:, 2] <= 0).any() or not f > 0:
-            return np.inf
-        r = f * Y[:, :2] / Y[:, 2:] + centre - uv
-        return float(0.5 * s2 * np.log1p((r * r).sum(1) / s2).sum())             # Cauchy
-
-    cost = cost_of(R, t, f, X)
+    cost, state = residuals(R, t, f, X)
     lam, nu, it = 1e-3, 2.0, 0
     for it in range(1, max_iterations + 1):
-        Y, a = observed(R, t, X)
-        iz = 1.0 / np.where(Y[:, 2] > 1e-12, Y[:, 2], 1e-12)
-        r = f * Y[:, :2] * iz[:, None] + centre - uv
-        w = 1.0 / (1.0 + (r * r).sum(1) / s2)                            # Cauchy IRLS weights
+        Y, a, iz, r = state
         # d(pixel)/dY = [[fz, 0, gx], [0, fz, gy]]; the rotation's columns are its product with
-        # d(exp(w) a)/dw = -[a]_x, the point's with R_v.
+        # d(exp(w) a)/dw = -[a]_x, the point's with R_v. Rows scaled by the square roots of
+        # the Cauchy IRLS weights.
         fz = f * iz
-        gx, gy = -Y[:, 0] * fz * iz, -Y[:, 1] * fz * iz
-        Jc = np.zeros((n, 2, 7))
-        Jc[:, 0, 0], Jc[:, 0, 1], Jc[:, 0, 2] = gx * a[:, 1], fz * a[:, 2] - gx * a[:, 0], \
-            -fz * a[:, 1]
-        Jc[:, 1, 0], Jc[:, 1, 1], Jc[:, 1, 2] = gy * a[:, 1] - fz * a[:, 2], -gy * a[:, 0], \
-            fz * a[:, 0]
-        Jc[:, 0, 3], Jc[:, 0, 5], Jc[:, 1, 4], Jc[:, 1, 5] = fz, gx, fz, gy
-        Jc[:, :, 6] = Y[:, :2] * iz[:, None]
-        Rv = R[v]
-        Jp = np.stack([fz[:, None] * Rv[:, 0] + gx[:, None] * Rv[:, 2],
-                       fz[:, None] * Rv[:, 1] + gy[:, None] * Rv[:, 2]], axis=1)    # [n, 2, 3]
-        JcT_w = Jc.transpose(0, 2, 1) * w[:, None, None]
-        JpT_w = Jp.transpose(0, 2, 1) * w[:, None, None]
-        U = np.zeros((V, 7, V, 7))
-        U[np.arange(V), :, np.arange(V)] = per_view(JcT_w @ Jc)
+        gx, gy = -Y[0] * fz * iz, -Y[1] * fz * iz
+        np.take(R.transpose(1, 2, 0), v, axis=2, out=R_v)
+        J[0, 0], J[0, 1], J[0, 2] = gx * a[1], fz * a[2] - gx * a[0], -fz * a[1]
+        J[1, 0], J[1, 1], J[1, 2] = gy * a[1] - fz * a[2], -gy * a[0], fz * a[0]
+        J[0, 3], J[0, 4], J[0, 5] = fz, 0.0, gx
+        J[1, 3], J[1, 4], J[1, 5] = 0.0, fz, gy
+        J[:, 6] = Y[:2] * iz
+        J[0, 7:10] = fz * R_v[0] + gx * R_v[2]
+        J[1, 7:10] = fz * R_v[1] + gy * R_v[2]
+        J[:, 10] = r
+        J *= 1.0 / np.sqrt(1.0 + (r * r).sum(0) / s2)
+        # Per view: [J r]^T [J r] over its observations holds U_v [7, 7] and g_v [7].
+        np.take(J, by_view, axis=2, out=J_by_view)
+        for k in range(V):
+            B = J_by_view[:, :, view_ends[k]:view_ends[k + 1]]
+            np.matmul(B[0], B[0].T, out=H[k])
+            H[k] += B[1] @ B[1].T
+        U[np.arange(V), :, np.arange(V)] = H[:, :7, :7]
         Ur = T.T @ U.reshape(7 * V, 7 * V) @ T
-        gr = T.T @ per_view((JcT_w @ r[:, :, None])[:, :, 0]).ravel()
-        Vp = per_point(JpT_w @ Jp)                                            # [P, 3, 3]
-        gp = per_point((JpT_w @ r[:, :, None])[:, :, 0])                      # [P, 3]
-        Wo = JcT_w @ Jp                                                       # [n, 7, 3]
-        WoT = Wo.transpose(0, 2, 1)
-        diag_U, diag_V = np.diag(Ur), np.diagonal(Vp, axis1=1, axis2=2)
+        gr = T.T @ H[:, :7, 10].ravel()
+        # Per observation W_o [7, 3]; per point V_p [3, 3] and g_p [3].
+        np.multiply(J[0, :7, None], J[0, None, 7:10], out=Wo)
+        Wo += np.multiply(J[1, :7, None], J[1, None, 7:10], out=Wo_k)
+        np.multiply(J[0, 7:10, None], J[0, None, 7:11], out=Pw)
+        Pw += np.multiply(J[1, 7:10, None], J[1, None, 7:11], out=Pw_k)
+        per_point = np.add.reduceat(Pw, starts, axis=2)                # [3, 4, P_seen]
+        Vp[:, :, seen], gp[:, seen] = per_point[:, :3], per_point[:, 3]
+        diag_U = np.diag(Ur)
+        diag_V = np.stack([Vp[0, 0], Vp[1, 1], Vp[2, 2]])              # [3, P]
+        damped = Vp.copy()
         done = False
         while True:
-            Q = _inverse_factor(Vp + lam * diag_V[:, :, None] * np.eye(3) + 1e-9 * np.eye(3))
-            M.reshape(-1)[blocks] = (Q[p] @ WoT).ravel()
-            S = Ur + lam * np.diag(diag_U) - T.T @ (M.T @ M) @ T
-            Vinv = Q.transpose(0, 2, 1) @ Q                                   # [P, 3, 3]
-            y = (Vinv @ gp[:, :, None])[:, :, 0]
-            rhs = gr - T.T @ per_view((Wo @ y[p][:, :, None])[:, :, 0]).ravel()
+            for i in range(3):
+                damped[i, i] = Vp[i, i] + (lam * diag_V[i] + 1e-9)
+            _write_inverse_factor(Q, damped)
+            Q_p = Q[:, :, p]                                            # [3, 3, n]
+            np.multiply(Q_p[:, 0, None], Wo[None, :, 0], out=G)         # G = Q_p W_o^T
+            G[1:] += Q_p[1:, 1, None] * Wo[None, :, 1]
+            G[2] += Q_p[2, 2] * Wo[:, 2]
+            M.reshape(-1)[into_M] = G.reshape(-1)[from_G]
+            if refine_focal:
+                M[focal_rows, n_pose] = np.add.reduceat(G[:, 6], starts, axis=1)
+            S = Ur + lam * np.diag(diag_U) - M.T @ M
+            Qg = np.stack([Q[0, 0] * gp[0], Q[1, 0] * gp[0] + Q[1, 1] * gp[1],
+                           Q[2, 0] * gp[0] + Q[2, 1] * gp[1] + Q[2, 2] * gp[2]])  # [3, P]
+            rhs = gr - Qg.T.ravel() @ M                                 # g - W V^-1 g_p
             try:
-                dc = -np.linalg.solve(S + 1e-12 * np.eye(len(S)), rhs)
+                dc = -np.linalg.solve(S + 1e-12 * np.eye(n_free), rhs)
             except np.linalg.LinAlgError:
-                dc = np.full(len(S), np.nan)
+                dc = np.full(n_free, np.nan)
             new = np.inf
             if np.all(np.isfinite(dc)):
-                d7 = (T @ dc).reshape(V, 7)                       # 0 where fixed
-                WTd = per_point((WoT @ d7[v][:, :, None])[:, :, 0])
-                dp = -(Vinv @ (gp + WTd)[:, :, None])[:, :, 0]
-                R2, t2, f2, X2 = _exp_so3(d7[:, :3]) @ R, t + d7[:, 3:6], f + d7[0, 6], X + dp
-                new = cost_of(R2, t2, f2, X2)
+                d7 = (T @ dc).reshape(V, 7)                             # 0 where fixed
+                q = Qg + (M @ dc).reshape(P, 3).T                       # Q (g_p + W^T dc)
+                dp = -np.stack([Q[0, 0] * q[0] + Q[1, 0] * q[1] + Q[2, 0] * q[2],
+                                Q[1, 1] * q[1] + Q[2, 1] * q[2], Q[2, 2] * q[2]])
+                R2, t2, f2 = _exp_so3(d7[:, :3]) @ R, t + d7[:, 3:6], f + d7[0, 6]
+                X2 = X + dp.T
+                new, state2 = residuals(R2, t2, f2, X2)
             if new < cost:
                 # The fall the damped linear model predicts: (dx^T (lam D dx - g)) / 2.
                 predicted = 0.5 * (lam * (diag_U @ dc**2 + (diag_V * dp**2).sum())
                                    - gr @ dc - (gp * dp).sum())
                 rho = (cost - new) / predicted if predicted > 0 else 1.0
                 done = (cost - new) < tolerance * cost
-                R, t, f, X, cost = R2, t2, f2, X2, new
+                R, t, f, X, cost, state = R2, t2, f2, X2, new, state2
                 fall = max(1.0 / MAX_DAMPING_FALL, 1.0 - (2.0 * rho - 1.0) ** 3)
                 lam, nu = max(lam * fall, 1e-10), 2.0
                 break

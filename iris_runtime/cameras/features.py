@@ -88,7 +88,8 @@ def contrast_threshold(image_size: tuple[int, int]) -> float:
     return SMALL_CONTRAST_THRESHOLD if max(image_size) < MIN_SIZE else CONTRAST_THRESHOLD
 
 
-def scene_features(photos, small_size: int = LOW_TEXTURE_SIZE) -> tuple[list[Features], int]:
+def scene_features(photos, small_size: int = LOW_TEXTURE_SIZE,
+                   max_features: int | None = None) -> tuple[list[Features], int]:
     """SIFT features of the photos of one scene (uint8, one size) and the whole factor ``k`` of
     the enlarged photos they were found in (``Features.uv`` in their pixels): ``enlargement``,
     raised to reach ``LOW_TEXTURE_SIZE`` when the photos' median keypoint count is below
@@ -96,8 +97,9 @@ def scene_features(photos, small_size: int = LOW_TEXTURE_SIZE) -> tuple[list[Fea
     (under ``MIN_SIZE``) are enlarged that far at once: nearly all of them are low-texture at
     ``MIN_SIZE``, and one SIFT pass is spared (docs/CAMERAS.md, "Small photos"); their keypoints
     are found at ``contrast_threshold``. ``small_size``: the longer side photos under ``MIN_SIZE``
-    are enlarged to at least (``refine`` takes a smaller one). The factor depends on the set of
-    photos, not on their order."""
+    are enlarged to at least (``refine`` takes a smaller one). ``max_features``: keypoints kept
+    per photo (default ``MAX_FEATURES``); below it, the strongest of what it would keep, the
+    others never described. The factor depends on the set of photos, not on their order."""
     size = np.asarray(photos[0]).shape[:2]
     k = enlargement(size)
     small = k > 1
@@ -105,12 +107,16 @@ def scene_features(photos, small_size: int = LOW_TEXTURE_SIZE) -> tuple[list[Fea
         k = -(-small_size // max(size))
     k_low = max(k, -(-LOW_TEXTURE_SIZE // max(size)))
     threshold = contrast_threshold(size)
-    feats = [extract_features(enlarge(np.asarray(p), k), contrast_threshold=threshold)
-             for p in photos]
+    # Enough keypoints found to tell whether the photos reach MIN_KEYPOINTS.
+    n = max(max_features, MIN_KEYPOINTS) if max_features else None
+    feats = [extract_features(enlarge(np.asarray(p), k), max_features=n,
+                              contrast_threshold=threshold) for p in photos]
     if not small and k_low > k and np.median([len(f) for f in feats]) < MIN_KEYPOINTS:
         k = k_low
-        feats = [extract_features(enlarge(np.asarray(p), k), contrast_threshold=threshold)
-                 for p in photos]
+        feats = [extract_features(enlarge(np.asarray(p), k), max_features=n,
+                                  contrast_threshold=threshold) for p in photos]
+    if max_features:
+        feats = [f.subset(np.arange(min(len(f), max_features))) for f in feats]
     return feats, k
 
 

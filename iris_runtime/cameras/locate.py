@@ -22,7 +22,8 @@ from .triangulation import triangulate
 from .two_view import (CONFIDENCE, MAX_ERROR, fundamental_matrix, intrinsics, pixel_scale,
                        sampson_distances)
 
-__all__ = ["PointMap", "pose_from_points", "pose_distinct_first", "locate_photos",
+__all__ = ["PointMap", "pose_from_points", "pose_distinct_first", "confident_iterations",
+           "locate_photos",
            "point_map_from_cameras", "locate_views", "PNP_ERROR", "PNP_MIN_INLIERS",
            "PNP_MIN_INLIER_RATIO", "PNP_ITERATIONS", "MIN_TRIANGULATION_ANGLE"]
 
@@ -57,24 +58,43 @@ class PointMap:
         return PointMap(X, self.view, self.point, self.descriptors, self.enlargement)
 
 
+def confident_iterations(N: int, min_inliers: int, method: int) -> int:
+    """The RANSAC iterations after which a pose that ``min_inliers`` of ``N`` correspondences
+    support, were there one, would have been drawn from an all-inlier sample with probability
+    ``two_view.CONFIDENCE``: log(1 - CONFIDENCE) / log(1 - (min_inliers / N)^s), s the points
+    of OpenCV's sample (4 for P3P and AP3P, else 5), rounded up (at most ``PNP_ITERATIONS``).
+    OpenCV's adaptive stop never runs longer once its best pose has that many inliers, so a
+    search capped here ends as the uncapped one does whenever it finds such a pose by then;
+    where it has not, it gives up with the confidence the adaptive stop has in its result."""
+    s = 4 if method in (cv2.SOLVEPNP_P3P, cv2.SOLVEPNP_AP3P) else 5
+    drawn = (min(min_inliers, N) / N) ** s
+    if drawn >= 1.0:
+        return 1
+    needed = np.log(1.0 - CONFIDENCE) / np.log1p(-drawn)
+    return int(min(PNP_ITERATIONS, np.ceil(needed)))
+
+
 def pose_from_points(points: np.ndarray, uv: np.ndarray, focal: float,
                      image_size: tuple[int, int], *, max_error: float,
                      min_inliers: int = PNP_MIN_INLIERS,
                      min_inlier_ratio: float = PNP_MIN_INLIER_RATIO,
-                     method: int = cv2.SOLVEPNP_SQPNP):
+                     method: int = cv2.SOLVEPNP_SQPNP, confident_stop: bool = False):
     """cam_from_world ``(R [3, 3], t [3], inliers bool [N])`` of a photo whose pixels ``uv [N, 2]``
     see ``points [N, 3]``, or None when fewer than ``min_inliers`` (or ``min_inlier_ratio`` of
     them) reproject within ``max_error`` pixels. ``method``: OpenCV's PnP in the RANSAC (the
-    pose is then refined on the inliers either way). Deterministic (OpenCV's RNG seeded
-    with 0)."""
+    pose is then refined on the inliers either way). ``confident_stop``: the RANSAC runs at most
+    ``confident_iterations`` (else ``PNP_ITERATIONS``): a view with few correspondences and no
+    pose gives up sooner. Deterministic (OpenCV's RNG seeded with 0)."""
     N = len(points)
     if N < max(min_inliers, 6):
         return None
     K = intrinsics(focal, image_size)
     obj, img = np.ascontiguousarray(points, np.float64), np.ascontiguousarray(uv, np.float64)
+    iterations = confident_iterations(N, min_inliers, method) if confident_stop \
+        else PNP_ITERATIONS
     cv2.setRNGSeed(0)
     try:
-        ok, rvec, tvec, inl = cv2.solvePnPRansac(obj, img, K, None, iterationsCount=PNP_ITERATIONS,
+        ok, rvec, tvec, inl = cv2.solvePnPRansac(obj, img, K, None, iterationsCount=iterations,
                                                  reprojectionError=max_error,
                                                  confidence=CONFIDENCE, flags=method)
     except cv2.error:
@@ -107,17 +127,19 @@ def _refine(obj, img, K, inliers, rvec, tvec, max_error):
 
 def pose_distinct_first(points: np.ndarray, uv: np.ndarray, distinct: np.ndarray, focal: float,
                         image_size: tuple[int, int], *, max_error: float,
-                        min_inliers: int = PNP_MIN_INLIERS, method: int = cv2.SOLVEPNP_SQPNP):
+                        min_inliers: int = PNP_MIN_INLIERS, method: int = cv2.SOLVEPNP_SQPNP,
+                        confident_stop: bool = False):
     """``pose_from_points`` of the correspondences whose keypoints are distinct (``distinct``
     bool [N]: no near twin in their photo, ``features.distinct_keypoints``), then refined on
     every correspondence it explains; ``pose_from_points`` of all of them when the distinct ones
     give no pose. On a repeated texture a keypoint matched one period off points at a pose one
     period off, and such correspondences agree with one another (docs/CAMERAS.md), so the
     refined pose needs ``min_inliers`` of them, not a fraction: most may be shifted.
-    ``method``: OpenCV's PnP in the RANSAC, as in ``pose_from_points``."""
+    ``method``, ``confident_stop``: the RANSAC's, as in ``pose_from_points``."""
     if distinct.sum() >= min_inliers:
         first = pose_from_points(points[distinct], uv[distinct], focal, image_size,
-                                 max_error=max_error, min_inliers=min_inliers, method=method)
+                                 max_error=max_error, min_inliers=min_inliers, method=method,
+                                 confident_stop=confident_stop)
         if first is not None:
             K = intrinsics(focal, image_size)
             obj = np.ascontiguousarray(points, np.float64)
@@ -129,7 +151,8 @@ def pose_distinct_first(points: np.ndarray, uv: np.ndarray, distinct: np.ndarray
                 if inliers.sum() >= max(min_inliers, 6):
                     return R, t, inliers
     return pose_from_points(points, uv, focal, image_size, max_error=max_error,
-                            min_inliers=min_inliers, method=method)
+                            min_inliers=min_inliers, method=method,
+                            confident_stop=confident_stop)
 
 
 def correspondences(point_map: PointMap, features: Features) -> tuple[np.ndarray, np.ndarray]:

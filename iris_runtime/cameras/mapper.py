@@ -52,9 +52,14 @@ class MapperOptions:
     ba_points:          points adjusted after each registration (the most observed; the end
                         adjusts all)
     pnp_method:         OpenCV's PnP in a registration's RANSAC (``locate.pose_from_points``)
+    pnp_confident_stop: ... and whether it gives up once a pose would have been found with its
+                        confidence (``locate.confident_iterations``; the refinement's witness)
     fast_adjustment:    adjust with ``bundle.fast_bundle_adjust`` (the refinement's witness)
                         instead of ``bundle.bundle_adjust`` (the solve: the teacher store holds
                         its results)
+    finish_min_views:   a starting pair's reconstruction that registers fewer views is kept as
+                        it stands, without the final adjustments (the refinement's witness: a
+                        mapping of so few views can confirm nothing, ``refine._witness``)
     """
     init_min_inliers: int = 30
     planar_min_angle: float = 0.5
@@ -74,7 +79,9 @@ class MapperOptions:
     final_ba_points: int = 1500
     final_ba_iterations: int = 50
     pnp_method: int = cv2.SOLVEPNP_SQPNP
+    pnp_confident_stop: bool = False
     fast_adjustment: bool = False
+    finish_min_views: int = 0
 
     def in_pixels(self, px: float) -> MapperOptions:
         """These options with their pixel thresholds for photos ``px`` times ``REFERENCE_SIZE``
@@ -212,7 +219,8 @@ def _register(rec: Reconstruction, tracks: Tracks, v: int, image_size, opts, dis
              else distinct[v][tracks.keypoint[sees, v]])
     pose = pose_distinct_first(rec.points[sees], tracks.uv[sees, v], first, rec.focal,
                                image_size, max_error=opts.pnp_error,
-                               min_inliers=opts.pnp_min_inliers, method=opts.pnp_method)
+                               min_inliers=opts.pnp_min_inliers, method=opts.pnp_method,
+                               confident_stop=opts.pnp_confident_stop)
     if pose is None:
         return False
     R, t, inliers = pose
@@ -238,6 +246,8 @@ def _grow(rec: Reconstruction, tracks: Tracks, centre, image_size, opts: MapperO
             continue
         _triangulate_missing(rec, tracks, centre, opts)
         _adjust(rec, tracks, centre, opts, opts.ba_iterations, max_points=opts.ba_points)
+    if rec.registered.sum() < opts.finish_min_views:
+        return rec
     for _ in range(2):
         _triangulate_missing(rec, tracks, centre, opts)
         _adjust(rec, tracks, centre, opts, opts.final_ba_iterations, refine_focal=True,

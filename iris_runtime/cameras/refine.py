@@ -72,8 +72,9 @@ REFINE_ROUNDS = ((20, False), (50, True))
 #: are a third of their iterations for 0.003 of RPA@15 (docs/CAMERAS.md, "What the refinement
 #: costs").
 REFINE_TOLERANCE = 1e-4
-#: Keypoints matched per photo (the strongest of the solve's ``features.MAX_FEATURES``): the
-#: matching's cost grows with their square and a start needs fewer than a mapper; 0: all.
+#: Keypoints matched per photo (the strongest of the solve's ``features.MAX_FEATURES``; SIFT
+#: describes no others): the matching's cost grows with their square and a start needs fewer
+#: than a mapper; 0: the solve's.
 MAX_KEYPOINTS = 1024
 #: Photos under ``features.MIN_SIZE`` are enlarged to this longer side (the solve: to
 #: ``features.LOW_TEXTURE_SIZE``): 64x64 photos 3 times instead of 5, a third of the pixels SIFT
@@ -351,7 +352,7 @@ def _salvaged(best: Reconstruction, witnesses: list[Reconstruction], tracks, ima
         sees = ok & tracks.observed[:, v]
         pose = pose_from_points(X[sees], tracks.uv[sees, v], f, image_size,
                                 max_error=pnp_error, min_inliers=PNP_MIN_INLIERS,
-                                method=SALVAGE_PNP)
+                                method=SALVAGE_PNP, confident_stop=True)
         if pose is not None:
             R[v], t[v] = pose[0], pose[1]
             posed[v] = True
@@ -369,13 +370,15 @@ def _salvaged(best: Reconstruction, witnesses: list[Reconstruction], tracks, ima
 
 
 def _witness(features, tracks, inliers: dict, relative: dict, focal: float, image_size,
-             opts: MapperOptions) -> Reconstruction | None:
+             opts: MapperOptions, useful_views: int) -> Reconstruction | None:
     """The incremental mapper's reconstruction of the refinement's tracks (``incremental_mapping``
     at ``focal``, ``WITNESS_TRIALS`` starting pairs, PnP by ``SALVAGE_PNP``, the refinement's
     ``fast_bundle_adjust``), started from its pairs' essential matrices (``inliers {(a, b):
     int64 [M, 2]}``, ``relative {(a, b): (cam_b_from_cam_a [4, 4], weight)}``): the solve's
     method on data already at hand, without its focal priors, homographies and second pass.
-    None when no pair starts one. ``opts`` in pixels of ``image_size``."""
+    A starting pair's mapping that registers fewer than ``useful_views`` views is not finished
+    (``MapperOptions.finish_min_views``): the caller can use none such. None when no pair
+    starts one. ``opts`` in pixels of ``image_size``."""
     K = intrinsics(focal, image_size)
     geometries = {}
     for (a, b), m in inliers.items():
@@ -385,7 +388,8 @@ def _witness(features, tracks, inliers: dict, relative: dict, focal: float, imag
         # No homography: every pair counts as "general", scored by its inliers and angle.
         geometries[a, b] = TwoViewGeometry("general", m, 0, T, angle)
     opts = dataclasses.replace(opts, init_trials=WITNESS_TRIALS, min_trials=1,
-                               pnp_method=SALVAGE_PNP, fast_adjustment=True)
+                               pnp_method=SALVAGE_PNP, pnp_confident_stop=True,
+                               fast_adjustment=True, finish_min_views=useful_views)
     return incremental_mapping(features, tracks, geometries, (focal,), image_size, opts)
 
 
@@ -438,9 +442,8 @@ def refine_cameras(photos, world_from_cam, focal: float, depth_range: tuple[floa
     scale_view = int(np.argmax(baseline))
     if V < 2 or not baseline[scale_view] > 1e-9 * max(1.0, np.abs(start[:, :3, 3]).max()):
         return None
-    features, k = scene_features([photos[v] for v in perm], small_size=SMALL_SIZE)
-    if MAX_KEYPOINTS:
-        features = [f.subset(np.arange(min(len(f), MAX_KEYPOINTS))) for f in features]
+    features, k = scene_features([photos[v] for v in perm], small_size=SMALL_SIZE,
+                                 max_features=MAX_KEYPOINTS or None)
     H, W = features[0].image_size
     px = pixel_scale((H, W))
     opts = options.in_pixels(px)        # the thresholds in these photos' pixels, as the solve's
@@ -506,7 +509,11 @@ def refine_cameras(photos, world_from_cam, focal: float, depth_range: tuple[floa
             salvage = (tracks, (H, W), centre, opts.max_error, opts.loss_scale, opts.pnp_error)
             kept = _salvaged(best, witnesses, *salvage)
             if kept is None and WITNESS_TRIALS:
-                mapped = _witness(features, tracks, inliers, relative, best.focal, (H, W), opts)
+                # A mapping of fewer views than MIN_CORE_VIEWS salvages nothing, and confirms
+                # (on MIN_AGREEMENT of the pairs) no start that poses more views than it does.
+                useful = min(MIN_CORE_VIEWS, *(int(r.registered.sum()) for r in [best, *witnesses]))
+                mapped = _witness(features, tracks, inliers, relative, best.focal, (H, W), opts,
+                                  useful)
                 kept = _witnessed(best, witnesses, mapped, salvage)
             if kept is None:
                 return None
