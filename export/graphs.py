@@ -138,7 +138,22 @@ class RendererGraph(nn.Module):
                                          colours, need_weights=True, sampler=self.sampler)
 
 
-WRAPPERS = {"encoder": EncoderGraph, "renderer": RendererGraph}
+class EncoderCamerasGraph(nn.Module):
+    """The camera half of ``EncoderGraph``, for ONNX export only (``io_spec.ENCODER_CAMERAS``):
+    ``images``, ``is_reference`` -> ``world_from_cam``, ``focal`` through the camera head's own
+    encoder alone (``IrisModel.camera_stages``; models with ``cfg.camera_encoder``)."""
+
+    def __init__(self, model: IrisModel):
+        super().__init__()
+        self.model = model
+
+    def forward(self, images: torch.Tensor, is_reference: torch.Tensor):
+        world_from_cam, focal = self.model.camera_stages(images[None], is_reference)
+        return world_from_cam[0], focal[0]
+
+
+WRAPPERS = {"encoder": EncoderGraph, "renderer": RendererGraph,
+            "encoder_cameras": EncoderCamerasGraph}
 
 
 def fixed_dims(cfg: ModelConfig) -> dict[str, int]:
@@ -156,7 +171,7 @@ def example_inputs(cfg: ModelConfig, graph: str, generator: torch.Generator | No
     g = generator if generator is not None else torch.Generator().manual_seed(0)
     V, R, S = 3, 6, 5
     H, W, h, w, C = (fixed_dims(cfg)[k] for k in ("H", "W", "h", "w", "C'"))
-    if graph == "encoder":      # two references and a query: the mask's both kinds of rows
+    if graph in ("encoder", "encoder_cameras"):   # two references and a query: both kinds of rows
         return (torch.rand(V, 3, H, W, generator=g), torch.arange(V) < V - 1)
     if graph == "renderer_views":        # P = 9 groups of G = 11 pairs, K = 7 slots per point
         P, Gp, K = 9, 11, 7
@@ -254,8 +269,8 @@ def _check_self_contained(proto: onnx.ModelProto, name: str) -> None:
 
 def export_graph(model: IrisModel, graph: str, path: str | Path, opset: int = DEFAULT_OPSET,
                  wrapper: nn.Module | None = None) -> GraphFile:
-    """Export ``graph`` ("encoder", "renderer" or "renderer_views") of ``model`` to one
-    self-contained file ``path``.
+    """Export ``graph`` ("encoder", "renderer", "renderer_views" or "encoder_cameras") of ``model``
+    to one self-contained file ``path``.
 
     ``wrapper``: the module to export instead of ``WRAPPERS[graph](model)``, with the same I/O
     (e.g. ``export.fast_renderer.FastRendererGraph``); its ``custom_translation_table``
@@ -373,7 +388,7 @@ def toposort_with_subgraphs(graph) -> None:
     graph.node.extend(nodes[k] for k in order)
 
 
-__all__ = ["EncoderGraph", "RendererGraph", "WRAPPERS", "DEFAULT_OPSET", "MIN_OPSET", "EXPORTER",
+__all__ = ["EncoderGraph", "EncoderCamerasGraph", "RendererGraph", "WRAPPERS", "DEFAULT_OPSET", "MIN_OPSET", "EXPORTER",
            "fixed_dims", "example_inputs", "export_graph", "quantize_int8", "check_opset",
            "set_min_ir_version", "toposort_with_subgraphs", "GraphFile", "SAMPLERS",
            "resolve_sampler"]

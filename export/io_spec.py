@@ -6,9 +6,9 @@ torch-free ``iris_runtime.io_spec``, and re-exported here (the same objects: a c
 """
 from __future__ import annotations
 
-from iris_runtime.io_spec import (ENCODER, EXPLICIT_RGB_AXES, EXPLICIT_RGB_INPUTS, GRAPHS,
-                                  IO_SPEC_VERSION, OPTIONAL_GRAPHS, RENDERER, RENDERER_VIEWS,
-                                  spec_for)
+from iris_runtime.io_spec import (ENCODER, ENCODER_CAMERAS, EXPLICIT_RGB_AXES, EXPLICIT_RGB_INPUTS,
+                                  GRAPHS, IO_SPEC_VERSION, OPTIONAL_GRAPHS, RENDERER,
+                                  RENDERER_VIEWS, spec_for)
 
 #: ONNX opset of the graphs unless ``--opset`` says otherwise: 20 has ``Gelu`` and the current
 #: ``GridSample``; onnxruntime >= 1.17 runs it.
@@ -26,5 +26,5 @@ def base_graph(name: str) -> str:
 
 
 __all__ = ["base_graph", "IO_SPEC_VERSION", "DEFAULT_OPSET", "MIN_OPSET", "ENCODER", "RENDERER",
-           "RENDERER_VIEWS", "EXPLICIT_RGB_INPUTS", "EXPLICIT_RGB_AXES", "GRAPHS", "OPTIONAL_GRAPHS",
-           "spec_for"]
+           "RENDERER_VIEWS", "ENCODER_CAMERAS", "EXPLICIT_RGB_INPUTS", "EXPLICIT_RGB_AXES",
+           "GRAPHS", "OPTIONAL_GRAPHS", "spec_for"]

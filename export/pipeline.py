@@ -88,7 +88,9 @@ def export_model(model_or_ckpt: IrisModel | str | os.PathLike, out_dir: str | os
                  renderer: str = "fast", cameras: str | None = None) -> Path:
     """Export ``model_or_ckpt`` to ``out_dir/{encoder.onnx, renderer.onnx, iris.json}`` (and, for
     the "fast" renderer graphs, ``renderer_views.onnx``: the renderer on per-point pre-selected
-    views, ``io_spec.RENDERER_VIEWS``, which ``top_k_by="point"`` renders with).
+    views, ``io_spec.RENDERER_VIEWS``, which ``top_k_by="point"`` renders with; for a model whose
+    camera head has an encoder of its own, ``encoder_cameras.onnx``: its cameras alone,
+    ``io_spec.ENCODER_CAMERAS``, which the runtime runs where it needs no field maps).
 
     ``model_or_ckpt``: an ``IrisModel`` or a checkpoint path. ``opset``: ONNX opset (>= 18).
     ``quantize="int8"`` adds ``renderer.int8.onnx`` (dynamic int8; its error is recorded, not
@@ -166,6 +168,12 @@ def export_model(model_or_ckpt: IrisModel | str | os.PathLike, out_dir: str | os
                                       model, contrib=renderer == "fast-contrib"))
             say(f"exported renderer_views: {result.nodes} nodes in {result.seconds:.1f} s")
             files["renderer_views"], entries["renderer_views"] = result.path, result
+        if model.camera_encoder is not None:     # cameras without the field's encoder
+            spec = io_spec.spec_for("encoder_cameras")
+            say("exporting encoder_cameras (the camera head on its own encoder)")
+            result = export_graph(model, "encoder_cameras", tmp / spec["file"], opset)
+            say(f"exported encoder_cameras: {result.nodes} nodes in {result.seconds:.1f} s")
+            files["encoder_cameras"], entries["encoder_cameras"] = result.path, result
         if quantize == "int8":
             result = quantize_int8(files["renderer"], tmp / INT8_FILE)
             say(f"quantised renderer to int8: {result.nodes} nodes, "

@@ -65,7 +65,7 @@ from iris_train.model import IrisModel, Scene
 from . import io_spec
 from .errors import ValidationError
 from .fast_renderer import SelectedViewsRendererGraph
-from .graphs import EncoderGraph, RendererGraph, fixed_dims
+from .graphs import EncoderCamerasGraph, EncoderGraph, RendererGraph, fixed_dims
 
 PROBE_SEED = 0
 VIEW_COUNTS = (1, 3, 8)
@@ -433,7 +433,7 @@ def time_graph(sess: ort.InferenceSession, torch_fn: Callable, inputs: dict[str,
 def validate(model: IrisModel, files: dict[str, str | Path], *, quick: bool = False,
              threads: int | None = None, progress: Callable[[str], None] | None = None) -> dict:
     """Validate ``files`` (``{"encoder": path, "renderer": path[, "renderer_int8": path]
-    [, "renderer_views": path]}``)
+    [, "renderer_views": path][, "encoder_cameras": path]}``)
     exported from ``model``; return the report for the manifest, or raise ``ValidationError``.
 
     ``threads``: intra-op threads of ONNX Runtime and torch while validating (default: each
@@ -462,6 +462,9 @@ def _validate(model, files, *, quick, threads, progress) -> dict:
               "renderer": random_renderer_inputs(model, 4, 64 if quick else 1024, cfg.samples,
                                                  torch.Generator().manual_seed(PROBE_SEED))}
     torch_fns = {"encoder": EncoderGraph(model).eval(), "renderer": RendererGraph(model).eval()}
+    if "encoder_cameras" in files:
+        timing["encoder_cameras"] = timing["encoder"]
+        torch_fns["encoder_cameras"] = EncoderCamerasGraph(model).eval()
     if "renderer_views" in files:
         timing["renderer_views"] = selected_view_inputs(
             timing["renderer"], 2, torch.Generator().manual_seed(PROBE_SEED))[0]
@@ -476,20 +479,22 @@ def _validate(model, files, *, quick, threads, progress) -> dict:
         check_graph_file(files[graph], graph)
         sess = session(files[graph], graph, threads)
         check_io(sess, spec, dims, graph)
-        if base not in probes:
-            probes[base] = (encoder_probes(model) if base == "encoder" else
-                            (renderer_views_probes if base == "renderer_views"
+        # The camera graph answers the encoder's probes (its outputs are a subset).
+        kind = "encoder" if base == "encoder_cameras" else base
+        if kind not in probes:
+            probes[kind] = (encoder_probes(model) if kind == "encoder" else
+                            (renderer_views_probes if kind == "renderer_views"
                              else renderer_probes)(model, n_rays=n_rays))
         enforce = graph == base
-        entry = summarise(graph, run_probes(sess, probes[base]), spec["tolerance"], enforce)
-        if base == "encoder":
-            entry["isolation"] = _check_isolation(graph, isolation_errors(sess, probes[base]),
+        entry = summarise(graph, run_probes(sess, probes[kind]), spec["tolerance"], enforce)
+        if kind == "encoder":
+            entry["isolation"] = _check_isolation(graph, isolation_errors(sess, probes[kind]),
                                                   spec["isolation_tolerance"], enforce)
         known = report[base]["time"]["torch_median_s"] if base in report else None
         entry["time"] = time_graph(sess, torch_fns[base], timing[base], runs, known)
         report[graph] = entry
         errors = ", ".join(f"{o} {e:.2g}" for o, e in entry["max_abs_error"].items())
-        say(f"validated {graph}: {len(probes[base])} probes, max abs error {errors}"
+        say(f"validated {graph}: {len(probes[kind])} probes, max abs error {errors}"
             f"{'' if enforce else ' (recorded, not enforced)'}; onnxruntime "
             f"{entry['time']['onnxruntime_median_s'] * 1e3:.1f} ms vs torch "
             f"{entry['time']['torch_median_s'] * 1e3:.1f} ms ({time.perf_counter() - start:.1f} s)")

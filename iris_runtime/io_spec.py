@@ -134,9 +134,25 @@ RENDERER_VIEWS = {
     "tolerance": RENDERER["tolerance"],
 }
 
+#: The camera half of the encoder (optional: iris-export writes it for a model whose camera head
+#: reads an encoder of its own, ``config.camera_encoder``): ``ENCODER``'s inputs and its cameras,
+#: without the field maps, whose encoder it does not run. The runtime runs it where it needs
+#: cameras only: the refinement's start in the photos' canonical order, and ``locate``.
+ENCODER_CAMERAS = {
+    "file": "encoder_cameras.onnx",
+    "inputs": ENCODER["inputs"],
+    "outputs": {WORLD_FROM_CAM: ENCODER["outputs"][WORLD_FROM_CAM],
+                FOCAL: ENCODER["outputs"][FOCAL]},
+    "dynamic_axes": {IMAGES: {0: "V"}, IS_REFERENCE: {0: "V"}, WORLD_FROM_CAM: {0: "V"}},
+    "tolerance": {WORLD_FROM_CAM: ENCODER["tolerance"][WORLD_FROM_CAM],
+                  FOCAL: ENCODER["tolerance"][FOCAL]},
+    "isolation_tolerance": ENCODER["isolation_tolerance"],
+}
+
+
 GRAPHS = {"encoder": ENCODER, "renderer": RENDERER}
 #: Graphs a model may have besides ``GRAPHS`` (read and checked when the manifest lists them).
-OPTIONAL_GRAPHS = {"renderer_views": RENDERER_VIEWS}
+OPTIONAL_GRAPHS = {"renderer_views": RENDERER_VIEWS, "encoder_cameras": ENCODER_CAMERAS}
 
 
 def spec_for(graph: str, explicit_rgb: bool = False) -> dict:
@@ -146,7 +162,7 @@ def spec_for(graph: str, explicit_rgb: bool = False) -> dict:
     last input; the other entries (``tolerance`` included) are the same objects as ``RENDERER``'s,
     so a change to ``RENDERER["tolerance"]`` applies to both."""
     spec = {**GRAPHS, **OPTIONAL_GRAPHS}[graph]
-    if graph == "encoder" or not explicit_rgb:
+    if graph in ("encoder", "encoder_cameras") or not explicit_rgb:
         return spec
     if graph == "renderer_views":            # colours per kept pair, like grid and cues
         shape, axes = ["P", "G", 3], {0: "P", 1: "G"}
@@ -165,7 +181,7 @@ def required_dtypes(graph: str, explicit_rgb: bool = False) -> dict[str, dict[st
 
 
 __all__ = ["MANIFEST_NAME", "FORMAT_NAME", "FORMAT_VERSION", "IO_SPEC_VERSION", "IO_SPEC_BOOL_MASK",
-           "ENCODER", "RENDERER", "RENDERER_VIEWS", "EXPLICIT_RGB_INPUTS", "EXPLICIT_RGB_AXES",
-           "GRAPHS", "OPTIONAL_GRAPHS", "spec_for", "required_dtypes",
+           "ENCODER", "RENDERER", "RENDERER_VIEWS", "ENCODER_CAMERAS", "EXPLICIT_RGB_INPUTS",
+           "EXPLICIT_RGB_AXES", "GRAPHS", "OPTIONAL_GRAPHS", "spec_for", "required_dtypes",
            "IMAGES", "IS_REFERENCE", "FIELD_MAPS", "WORLD_FROM_CAM", "FOCAL", "GRID", "CUES", "MASK",
            "POSITIONS", "DIRECTIONS", "COLOURS", "GROUPS", "PAIRS", "RGB", "WEIGHTS"]

@@ -193,7 +193,7 @@ class IrisRuntime:
         data = read_graph_bytes(entry)
         opts = ort.SessionOptions()
         opts.intra_op_num_threads = self.threads or 0
-        if self.workers > 1 and name != "encoder":
+        if self.workers > 1 and name not in ("encoder", "encoder_cameras"):
             total = self.threads or len(os.sched_getaffinity(0))
             opts.intra_op_num_threads = max(1, total // self.workers)
         opts.inter_op_num_threads = 1
@@ -281,6 +281,26 @@ class IrisRuntime:
             raise ModelFileError(f"{self.manifest.graphs['encoder'].path}: the encoder returned NaN "
                                  f"or inf for finite images in [0, 1] (broken weights?)")
         return maps, world_from_cam, focal
+
+    def _run_cameras(self, batch: np.ndarray, is_reference: np.ndarray):
+        """``_run_encoder``'s cameras alone: world_from_cam float32 [V, 4, 4], focal float32 [2],
+        checked. From the model's "encoder_cameras" graph where it has one (the camera head on its
+        own encoder: the field's encoder is not run), else from the encoder graph."""
+        if "encoder_cameras" not in self.manifest.graphs:
+            return self._run_encoder(batch, is_reference)[1:]
+        world_from_cam, focal = self._session("encoder_cameras").run(
+            [WORLD_FROM_CAM, FOCAL],
+            {IMAGES: batch, IS_REFERENCE: np.ascontiguousarray(is_reference, dtype=bool)})
+        path = self.manifest.graphs["encoder_cameras"].path
+        V = batch.shape[0]
+        if world_from_cam.shape != (V, 4, 4) or focal.shape != (2,):
+            raise ModelFileError(f"{path}: encoder_cameras returned world_from_cam "
+                                 f"{world_from_cam.shape}, focal {focal.shape} for {V} views; "
+                                 f"expected [V, 4, 4], [2]")
+        if not (np.all(np.isfinite(world_from_cam)) and np.all(np.isfinite(focal))):
+            raise ModelFileError(f"{path}: encoder_cameras returned NaN or inf for finite images "
+                                 f"in [0, 1] (broken weights?)")
+        return world_from_cam, focal
 
     def _blas_threads(self):
         """A context in which numpy's BLAS runs at most ``threads`` threads (the camera solve's
@@ -370,7 +390,7 @@ class IrisRuntime:
             if cameras == "refined":
                 start, start_focal = canonical_start(
                     photos, poses64, focal64,
-                    lambda perm: self._run_encoder(batch[perm], np.ones(len(perm), bool))[1:])
+                    lambda perm: self._run_cameras(batch[perm], np.ones(len(perm), bool)))
                 cams = refine_model_cameras(photos, start, start_focal, (H, W),
                                             (self.near, self.far))
             else:
@@ -433,7 +453,7 @@ class IrisRuntime:
         for start in range(0, queries.shape[0], per_call):
             chunk = queries[start:start + per_call]
             batch = np.concatenate([refs, chunk])
-            _, world_from_cam, focal = self._run_encoder(batch, np.arange(batch.shape[0]) < N)
+            world_from_cam, focal = self._run_cameras(batch, np.arange(batch.shape[0]) < N)
             expected = scene.focal if scene.encoder_focal is None else scene.encoder_focal
             if np.abs(focal.astype(np.float64) - expected).max() > 1e-6:   # bitwise when real
                 raise InputError(f"scene: its reference_images give focal {focal.tolist()}, not "

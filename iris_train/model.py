@@ -163,10 +163,20 @@ class IrisModel(nn.Module):
         encoder where the model has one (``cfg.camera_encoder``), else of the same encoder."""
         features, camera_tokens = self.encoder(images, is_reference)
         if self.camera_encoder is not None:
-            _, camera_tokens = self.camera_encoder(images, is_reference)
+            return (features, *self.camera_stages(images, is_reference))
         # The correlation head also reads the images (each view against view 0, a reference).
         world_from_cam, focal = self.camera_head(camera_tokens, images)
         return features, world_from_cam, focal
+
+    def camera_stages(self, images: torch.Tensor, is_reference: torch.Tensor | None):
+        """``encode_stages``' cameras alone, for a model whose camera head reads an encoder of its
+        own (``cfg.camera_encoder``): the field's encoder is not run (the exported
+        "encoder_cameras" graph)."""
+        if self.camera_encoder is None:
+            raise ValueError("camera_stages: this model's camera head reads the field's encoder "
+                             "(config.camera_encoder is false)")
+        _, camera_tokens = self.camera_encoder(images, is_reference)
+        return self.camera_head(camera_tokens, images)
 
     def _check_images(self, images: torch.Tensor, name: str) -> None:
         cfg = self.cfg

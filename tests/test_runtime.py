@@ -865,3 +865,54 @@ def test_trained_model_locate_matches_torch(shipped_pair):
         want = model.locate(torch.from_numpy(scene.reference_images.copy()),
                             torch.from_numpy(runtime._load_images(targets)))
     assert np.abs(got - want.double().numpy()).max() <= 1e-5
+
+
+@pytest.mark.torch
+def test_trained_model_cameras_graph_is_the_encoders_camera_half(shipped_pair):
+    """The shipped model's camera head reads an encoder of its own, so its export has the
+    "encoder_cameras" graph, validated against torch like the encoder. Its cameras equal the
+    encoder graph's bit for bit (all references, and references with queries), and the runtime
+    runs it, not the whole encoder, where it needs no field maps: the refinement's start in the
+    photos' canonical order, and ``locate``."""
+    import torch
+
+    from iris_runtime.cameras import canonical_order
+    runtime, _, model, _ = shipped_pair
+    assert "encoder_cameras" in runtime.manifest.graphs
+    validation = json.loads((runtime.manifest.model_dir / "iris.json").read_text())["validation"]
+    assert validation["encoder_cameras"]["passed"]
+    paths = sorted(SAMPLE.glob("frame_*.png"))
+    batch = runtime._load_images(paths)
+    for is_reference in (np.ones(8, bool), np.arange(8) < 5):
+        cams = runtime._run_cameras(batch, is_reference)
+        full = runtime._run_encoder(batch, is_reference)[1:]
+        for a, b in zip(cams, full):
+            np.testing.assert_array_equal(a, b)
+    with pytest.raises(ValueError, match="camera_encoder"):
+        from .conftest import random_model
+        random_model("tiny").camera_stages(torch.zeros(1, 2, 3, 64, 64), None)
+
+    runs = []
+    session = runtime._session
+
+    def counted(name):
+        s = session(name)
+
+        class Counting:
+            def run(self, outputs, feed):
+                runs.append((name, len(feed["images"])))
+                return s.run(outputs, feed)
+        return Counting()
+
+    runtime._session = counted
+    try:
+        photos = [paths[i] for i in (3, 0, 5, 1, 7, 2, 6, 4)]
+        from iris_runtime.images import load_image
+        assert not np.array_equal(canonical_order([load_image(p) for p in photos]), np.arange(8))
+        scene = runtime.encode(photos, cameras="refined")
+        assert [name for name, _ in runs] == ["encoder", "encoder_cameras"]
+        runs.clear()
+        runtime.locate(scene, paths[0])
+        assert runs == [("encoder_cameras", 9)]
+    finally:
+        del runtime._session
