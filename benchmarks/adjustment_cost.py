@@ -6,7 +6,7 @@ alternately, on one thread. Reports the seconds of each (the sum over the proble
 of ``--runs``), their ratio, and whether the two take the same iterations to the same cameras.
 
     python benchmarks/adjustment_cost.py MODEL_DIR --against 7d32703
-    python benchmarks/adjustment_cost.py MODEL_DIR --against 7d32703 --scenes validation --json out.json
+    python benchmarks/adjustment_cost.py MODEL_DIR --against 7d32703 --scenes validation --json F
 
 Needs the [train] extra (the scenes) and git (the other revision).
 """

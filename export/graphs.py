@@ -388,7 +388,7 @@ def toposort_with_subgraphs(graph) -> None:
     graph.node.extend(nodes[k] for k in order)
 
 
-__all__ = ["EncoderGraph", "EncoderCamerasGraph", "RendererGraph", "WRAPPERS", "DEFAULT_OPSET", "MIN_OPSET", "EXPORTER",
-           "fixed_dims", "example_inputs", "export_graph", "quantize_int8", "check_opset",
-           "set_min_ir_version", "toposort_with_subgraphs", "GraphFile", "SAMPLERS",
-           "resolve_sampler"]
+__all__ = ["EncoderGraph", "EncoderCamerasGraph", "RendererGraph", "WRAPPERS", "DEFAULT_OPSET",
+           "MIN_OPSET", "EXPORTER", "fixed_dims", "example_inputs", "export_graph",
+           "quantize_int8", "check_opset", "set_min_ir_version", "toposort_with_subgraphs",
+           "GraphFile", "SAMPLERS", "resolve_sampler"]

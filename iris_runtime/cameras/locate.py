@@ -23,9 +23,8 @@ from .two_view import (CONFIDENCE, MAX_ERROR, fundamental_matrix, intrinsics, pi
                        sampson_distances)
 
 __all__ = ["PointMap", "pose_from_points", "pose_distinct_first", "confident_iterations",
-           "locate_photos",
-           "point_map_from_cameras", "locate_views", "PNP_ERROR", "PNP_MIN_INLIERS",
-           "PNP_MIN_INLIER_RATIO", "PNP_ITERATIONS", "MIN_TRIANGULATION_ANGLE"]
+           "locate_photos", "point_map_from_cameras", "locate_views", "PNP_ERROR",
+           "PNP_MIN_INLIERS", "PNP_MIN_INLIER_RATIO", "PNP_ITERATIONS", "MIN_TRIANGULATION_ANGLE"]
 
 #: Reprojection threshold of a registration (pixels at ``two_view.REFERENCE_SIZE``).
 PNP_ERROR = 4.0
