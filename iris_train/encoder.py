@@ -20,7 +20,7 @@ import torch
 import torch.nn as nn
 
 from .config import ModelConfig
-from .layers import SelfAttentionBlock, sincos_2d
+from .layers import MASK_FILL, SelfAttentionBlock, sincos_2d
 
 # Images arrive in [0, 1]; centre them so that patch embeddings start near zero mean.
 _PIXEL_MEAN = 0.5
@@ -58,12 +58,15 @@ class MultiViewEncoder(nn.Module):
             is_canonical = (torch.arange(V, device=tokens.device) == 0).to(tokens.dtype)
             marker = is_canonical.repeat(B)[:, None, None] * self.canonical_embed       # [BV, 1, D]
             tokens = tokens + marker
-        attend = None if is_reference is None else cross_view_mask(is_reference, T)
+        # Cross-view attention's mask as an additive bias (0, or MASK_FILL where a token may not
+        # attend), built once: in ONNX Runtime a bool mask costs a Where and a NaN guard a block.
+        bias = None if is_reference is None else \
+            (~cross_view_mask(is_reference, T)).to(tokens.dtype) * MASK_FILL
         for i, block in enumerate(self.blocks):
             if i % 2 == 0:
                 tokens = block(tokens)                                   # per-view attention
             else:                                                        # cross-view
-                tokens = block(tokens.reshape(B, V * T, D), attend).reshape(B * V, T, D)
+                tokens = block(tokens.reshape(B, V * T, D), bias).reshape(B * V, T, D)
         tokens = self.norm(tokens)
         camera_tokens = tokens[:, 0].reshape(B, V, D)
         features = tokens[:, 1:].transpose(1, 2).reshape(B, V, D, h, w)

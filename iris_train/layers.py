@@ -71,9 +71,10 @@ class MLP(nn.Sequential):
 class SelfAttentionBlock(nn.Module):
     """Pre-norm transformer block (attention + MLP) over tokens ``[B, T, D]``.
 
-    Used by the encoder; uses PyTorch's fused attention. ``attend [B or 1, T, T]`` (bool, optional)
-    says which key each query may attend to; every query must be allowed at least one key (the
-    encoder always allows a token its own view), so no row is fully masked.
+    Used by the encoder; uses PyTorch's fused attention. ``bias [B or 1, T, T]`` (float, optional)
+    is added to the attention scores: 0 where a query may attend to a key, ``MASK_FILL`` where it
+    may not; every query must be allowed at least one key (the encoder always allows a token its
+    own view), so no row is fully masked.
     """
 
     def __init__(self, dim: int, heads: int, mlp_ratio: float):
@@ -85,10 +86,10 @@ class SelfAttentionBlock(nn.Module):
         self.norm2 = nn.LayerNorm(dim)
         self.mlp = MLP(dim, int(dim * mlp_ratio), dim)
 
-    def forward(self, x: torch.Tensor, attend: torch.Tensor | None = None) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, bias: torch.Tensor | None = None) -> torch.Tensor:
         B, T, D = x.shape
         q, k, v = self.qkv(self.norm1(x)).view(B, T, 3, self.heads, D // self.heads).permute(2, 0, 3, 1, 4)
-        mask = None if attend is None else attend[:, None]            # [B|1, 1, T, T]
+        mask = None if bias is None else bias[:, None]                # [B|1, 1, T, T]
         a = F.scaled_dot_product_attention(q, k, v, attn_mask=mask)   # [B, H, T, Dh]
         x = x + self.proj(a.transpose(1, 2).reshape(B, T, D))
         return x + self.mlp(self.norm2(x))
