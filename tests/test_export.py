@@ -307,6 +307,15 @@ def test_encoder_graph_isolates_references(model, sessions):
     assert np.abs(fewer[1][len(refs)] - present[1][len(refs)]).max() <= 1e-6   # queries independent
 
 
+def test_encoder_cross_view_mask_is_an_additive_bias(exported):
+    """The encoder's cross-view attention adds its mask to the scores as a float bias: the graph
+    has no NaN guard behind a softmax (IsNaN), which a bool attention mask exports with, and one
+    cast of the mask instead of a Where per block (docs/PERFORMANCE.md)."""
+    ops = [n.op_type for n in onnx.load(str(exported / "encoder.onnx")).graph.node]
+    assert "IsNaN" not in ops
+    assert ops.count("Softmax") >= 2
+
+
 def _random_feed(V, R, S, seed, explicit_rgb=False):
     g = torch.Generator().manual_seed(seed)
     h, w = CFG.feature_grid
