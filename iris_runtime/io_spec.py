@@ -139,14 +139,10 @@ RENDERER_VIEWS = {
 #: without the field maps, whose encoder it does not run. The runtime runs it where it needs
 #: cameras only: the refinement's start in the photos' canonical order, and ``locate``.
 ENCODER_CAMERAS = {
+    **ENCODER,
     "file": "encoder_cameras.onnx",
-    "inputs": ENCODER["inputs"],
-    "outputs": {WORLD_FROM_CAM: ENCODER["outputs"][WORLD_FROM_CAM],
-                FOCAL: ENCODER["outputs"][FOCAL]},
-    "dynamic_axes": {IMAGES: {0: "V"}, IS_REFERENCE: {0: "V"}, WORLD_FROM_CAM: {0: "V"}},
-    "tolerance": {WORLD_FROM_CAM: ENCODER["tolerance"][WORLD_FROM_CAM],
-                  FOCAL: ENCODER["tolerance"][FOCAL]},
-    "isolation_tolerance": ENCODER["isolation_tolerance"],
+    **{key: {k: v for k, v in ENCODER[key].items() if k != FIELD_MAPS}
+       for key in ("outputs", "dynamic_axes", "tolerance")},
 }
 
 

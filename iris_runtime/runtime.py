@@ -265,22 +265,8 @@ class IrisRuntime:
     def _run_encoder(self, batch: np.ndarray, is_reference: np.ndarray):
         """The encoder graph on ``batch [V, 3, H, W]`` with ``is_reference`` bool [V] -> field_maps
         float32 [V, C', h, w], world_from_cam float32 [V, 4, 4], focal float32 [2], checked."""
-        maps, world_from_cam, focal = self._session("encoder").run(
-            [FIELD_MAPS, WORLD_FROM_CAM, FOCAL],
-            {IMAGES: batch, IS_REFERENCE: np.ascontiguousarray(is_reference, dtype=bool)})
-        V = batch.shape[0]
-        channels = self.manifest.field_channels
-        if (maps.ndim != 4 or maps.shape[0] != V or (channels and maps.shape[1] != channels)
-                or world_from_cam.shape != (V, 4, 4) or focal.shape != (2,)):
-            raise ModelFileError(f"{self.manifest.graphs['encoder'].path}: encoder returned "
-                                 f"field_maps {maps.shape}, world_from_cam {world_from_cam.shape}, "
-                                 f"focal {focal.shape} for {V} views; expected [V, C', h, w], "
-                                 f"[V, 4, 4], [2]")
-        if not (np.all(np.isfinite(maps)) and np.all(np.isfinite(world_from_cam))
-                and np.all(np.isfinite(focal))):
-            raise ModelFileError(f"{self.manifest.graphs['encoder'].path}: the encoder returned NaN "
-                                 f"or inf for finite images in [0, 1] (broken weights?)")
-        return maps, world_from_cam, focal
+        return self._run_checked("encoder", (FIELD_MAPS, WORLD_FROM_CAM, FOCAL), batch,
+                                 is_reference)
 
     def _run_cameras(self, batch: np.ndarray, is_reference: np.ndarray):
         """``_run_encoder``'s cameras alone: world_from_cam float32 [V, 4, 4], focal float32 [2],
@@ -288,19 +274,33 @@ class IrisRuntime:
         own encoder: the field's encoder is not run), else from the encoder graph."""
         if "encoder_cameras" not in self.manifest.graphs:
             return self._run_encoder(batch, is_reference)[1:]
-        world_from_cam, focal = self._session("encoder_cameras").run(
-            [WORLD_FROM_CAM, FOCAL],
-            {IMAGES: batch, IS_REFERENCE: np.ascontiguousarray(is_reference, dtype=bool)})
-        path = self.manifest.graphs["encoder_cameras"].path
-        V = batch.shape[0]
-        if world_from_cam.shape != (V, 4, 4) or focal.shape != (2,):
-            raise ModelFileError(f"{path}: encoder_cameras returned world_from_cam "
-                                 f"{world_from_cam.shape}, focal {focal.shape} for {V} views; "
-                                 f"expected [V, 4, 4], [2]")
-        if not (np.all(np.isfinite(world_from_cam)) and np.all(np.isfinite(focal))):
-            raise ModelFileError(f"{path}: encoder_cameras returned NaN or inf for finite images "
-                                 f"in [0, 1] (broken weights?)")
-        return world_from_cam, focal
+        return self._run_checked("encoder_cameras", (WORLD_FROM_CAM, FOCAL), batch, is_reference)
+
+    def _run_checked(self, graph: str, names: tuple[str, ...], batch: np.ndarray,
+                     is_reference: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Outputs ``names`` of an encoder ``graph`` on ``batch`` and ``is_reference``; a wrong
+        shape or a NaN or inf (finite images in [0, 1] never give one) is a ``ModelFileError``
+        naming the graph's file."""
+        outs = self._session(graph).run(
+            list(names), {IMAGES: batch, IS_REFERENCE: np.ascontiguousarray(is_reference, bool)})
+        V, channels = batch.shape[0], self.manifest.field_channels
+
+        def fits(name: str, x: np.ndarray) -> bool:
+            if name == FIELD_MAPS:
+                return x.ndim == 4 and x.shape[0] == V and (not channels or x.shape[1] == channels)
+            return x.shape == {WORLD_FROM_CAM: (V, 4, 4), FOCAL: (2,)}[name]
+
+        path = self.manifest.graphs[graph].path
+        expected = {FIELD_MAPS: "[V, C', h, w]", WORLD_FROM_CAM: "[V, 4, 4]", FOCAL: "[2]"}
+        if not all(fits(n, x) for n, x in zip(names, outs)):
+            raise ModelFileError(
+                f"{path}: {graph} returned " + ", ".join(f"{n} {x.shape}" for n, x in
+                                                         zip(names, outs))
+                + f" for {V} views; expected " + ", ".join(expected[n] for n in names))
+        if not all(np.all(np.isfinite(x)) for x in outs):
+            raise ModelFileError(f"{path}: {graph} returned NaN or inf for finite images in "
+                                 f"[0, 1] (broken weights?)")
+        return tuple(outs)
 
     def _blas_threads(self):
         """A context in which numpy's BLAS runs at most ``threads`` threads (the camera solve's

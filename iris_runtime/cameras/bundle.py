@@ -156,6 +156,18 @@ def _write_inverse_factor(Q, A):
     Q[2, 0] = -(l20 * Q[0, 0] + l21 * Q[1, 0]) * Q[2, 2]
 
 
+def _free_entries(v: np.ndarray, t: np.ndarray, fixed_view: int, scale_view: int) -> np.ndarray:
+    """bool [V, 7]: the free entries of each view's (rotation, translation, focal) in an
+    adjustment whose observations are in views ``v [n]``: the pose of every observed view but
+    the fixed one, less the scale view's largest translation coordinate (``t [V, 3]``). The
+    focal column is False; the caller adds it as one shared parameter."""
+    free = np.zeros((len(t), 7), bool)
+    free[np.unique(v), :6] = True
+    free[fixed_view] = False
+    free[scale_view, 3 + int(np.argmax(np.abs(t[scale_view])))] = False
+    return free
+
+
 def bundle_adjust(R, t, focal, centre, points, uv, active, *, fixed_view: int, scale_view: int,
                   refine_focal: bool = True, loss_scale: float = 1.0,
                   max_iterations: int = 50,
@@ -173,12 +185,7 @@ def bundle_adjust(R, t, focal, centre, points, uv, active, *, fixed_view: int, s
     V, P = R.shape[0], X.shape[0]
     if len(prob.p) == 0:
         return BundleResult(R, t, f, X, 0.0, 0)
-    # The free entries of each view's 7 (rotation, translation, focal): the pose of every
-    # observed view but the fixed one, less the scale view's largest translation coordinate.
-    free = np.zeros((V, 7), bool)
-    free[np.unique(prob.v), :6] = True
-    free[fixed_view] = False
-    free[scale_view, 3 + int(np.argmax(np.abs(t[scale_view])))] = False
+    free = _free_entries(prob.v, t, fixed_view, scale_view)
     # Parameter index of each entry (-1: fixed); the focal, when refined, is one shared last.
     index = -np.ones((V, 7), np.int64)
     index[free] = np.arange(free.sum())
@@ -298,12 +305,8 @@ def fast_bundle_adjust(R, t, focal, centre, points, uv, active, *, fixed_view: i
     # Where each observation's R_v X_p lies in (R.reshape(3V, 3) @ X.T).ravel(): [3, n].
     coords = (3 * v + np.arange(3)[:, None]) * P + p
 
-    # The free entries of the per-view (rotation, translation, focal) as in bundle_adjust, and
     # T [7V, n_free]: per-view entries from the parameters (the focal shared by every view).
-    free = np.zeros((V, 7), bool)
-    free[np.unique(v), :6] = True
-    free[fixed_view] = False
-    free[scale_view, 3 + int(np.argmax(np.abs(t[scale_view])))] = False
+    free = _free_entries(v, t, fixed_view, scale_view)
     n_pose = int(free.sum())
     n_free = n_pose + int(refine_focal)
     T = np.zeros((7 * V, n_free))

@@ -2,17 +2,16 @@
 
 The incremental mapper (``mapper``) spends most of the solve finding a start: starting pairs,
 focal priors and view-by-view registrations, tried until one reconstruction explains the photos.
-A model's camera head already gives every view a pose and the focal, so here they start a
-bundle adjustment instead: SIFT matches of every pair (``features``), kept where their
-essential matrix at the model's focal explains them (``two_view.essential_pose``, which also
-gives the pair's relative pose), tracks (``tracks``), then ``STARTS``: the model's cameras and
-two built from the pairs' relative poses (``average_rotations``, ``average_centres``). Each
-gets a first round of bundle adjustment (``bundle.fast_bundle_adjust``) with the focal held (a
-pose error of several degrees moves the focal as much as a wrong focal does), after which the
-best is chosen, and a second with the focal free. Like the solve it runs in ``canonical_order``
-and its result is in the solve's terms (``solve.CameraSolve``: its unit, root and point map), so
-it replaces a model's cameras as the solve does (``replace.refine_model_cameras``). Its accuracy
-rests on its
+A model's camera head already gives every view a pose and the focal, so here they start a bundle
+adjustment instead: SIFT matches of every pair (``features``), kept where their essential matrix
+at the model's focal explains them (``two_view.essential_pose``, which also gives the pair's
+relative pose), tracks (``tracks``), then ``STARTS``: the model's cameras and two built from the
+pairs' relative poses (``average_rotations``, ``average_centres``). Each gets a first round of
+bundle adjustment (``bundle.fast_bundle_adjust``) with the focal held (a pose error of several
+degrees moves the focal as much as a wrong focal does), after which the best is chosen, and a
+second with the focal free. Like the solve it runs in ``canonical_order`` and its result is in
+the solve's terms (``solve.CameraSolve``: its unit, root and point map), so it replaces a
+model's cameras as the solve does (``replace.refine_model_cameras``). Its accuracy rests on its
 starts: where the head and the pairs are both far off, the adjustment ends in a wrong minimum
 (docs/CAMERAS.md, "Refining the model's cameras"). A wrong minimum is rarely reached from two
 starts, so the chosen start is kept only where another start's cameras agree with it
