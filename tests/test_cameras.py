@@ -22,7 +22,7 @@ from iris_runtime.cameras.features import (DISTINCT_DISTANCE, LOW_TEXTURE_SIZE, 
                                            twin_distance)
 from iris_runtime.cameras.locate import pose_distinct_first, pose_from_points
 from iris_runtime.cameras.tracks import build_tracks
-from iris_runtime.cameras.triangulation import triangulate
+from iris_runtime.cameras.triangulation import camera_centres, max_ray_angles, triangulate
 from iris_runtime.cameras.two_view import estimate_from_distinct, estimate_two_view, intrinsics
 from iris_runtime.errors import InputError
 
@@ -130,6 +130,17 @@ def test_match_features_keeps_distinct_mutual_nearest_neighbours():
     assert m2.tolist() == []                                  # a2[0] and a2[1] both want b[0],
     #                                                           and their ratio test fails too
     assert match_features(_features(base[:1]), _features(base)).shape == (0, 2)
+
+
+def test_unit_descriptors_are_computed_once_per_photo():
+    rng = np.random.default_rng(1)
+    f = _features(rng.integers(0, 200, (5, 128)))
+    u = f.unit
+    assert u.dtype == np.float32 and f.unit is u               # matched against every photo
+    ref = f.descriptors / np.linalg.norm(f.descriptors.astype(np.float64), axis=1, keepdims=True)
+    np.testing.assert_allclose(u, ref, rtol=1e-6)
+    assert f.subset(np.array([3, 1])).unit is not u
+    np.testing.assert_array_equal(f.subset(np.array([3, 1])).unit, u[[3, 1]])
 
 
 def test_extract_features_is_deterministic_and_bounded():
@@ -359,6 +370,31 @@ def test_triangulation_recovers_points_and_applies_its_checks():
     _, ok = triangulate(cfw[:, :3, :3], cfw[:, :3, 3], FOCAL, centre, uv, use, max_error=0.5,
                         min_angle=60.0)                         # no pair sees them that wide
     assert not ok.any()
+
+
+def test_triangulation_is_track_by_track():
+    """A subset of the tracks triangulates to the same bits as within the whole set (the
+    refinement's rounds triangulate again only the tracks they replace), and at ``min_angle``
+    0 every point passes the angle check it then skips."""
+    rng = np.random.default_rng(4)
+    cfw = np.linalg.inv(_forward_cameras(rng, 4))
+    X = _cloud(rng, 60)
+    uv = np.stack([_project(np.linalg.inv(c), X)[0] for c in cfw], 1) + rng.normal(0, 0.3,
+                                                                                   (60, 4, 2))
+    use = rng.random((60, 4)) < 0.7
+    centre = np.array([SIZE[1] / 2, SIZE[0] / 2])
+    args = (cfw[:, :3, :3], cfw[:, :3, 3], FOCAL, centre)
+    X_all, ok_all = triangulate(*args, uv, use, max_error=1.0, min_angle=0.5)
+    rows = np.array([41, 3, 17, 0, 59, 22])
+    X_sub, ok_sub = triangulate(*args, uv[rows], use[rows], max_error=1.0, min_angle=0.5)
+    np.testing.assert_array_equal(X_sub, X_all[rows])
+    np.testing.assert_array_equal(ok_sub, ok_all[rows])
+    X0, ok0 = triangulate(*args, uv, use, max_error=1.0, min_angle=0.0)
+    err, z = reprojection_errors(*args[:2], FOCAL, centre, X0, uv)
+    checked = ((use.sum(1) >= 2) & np.all(~use | ((z > 0) & (err <= 1.0)), axis=1)
+               & (max_ray_angles(X0, camera_centres(*args[:2]), use) >= 0.0))
+    np.testing.assert_array_equal(ok0, checked)
+    assert 0 < ok0.sum() < 60
 
 
 def _noisy_observations(rng, V, P, max_angle, noise, outlier_px, seen):

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import hashlib
 from dataclasses import dataclass
+from functools import cached_property
 
 import cv2
 import numpy as np
@@ -65,6 +66,13 @@ class Features:
 
     def subset(self, index: np.ndarray) -> "Features":
         return Features(self.uv[index], self.descriptors[index], self.image_size)
+
+    @cached_property
+    def unit(self) -> np.ndarray:
+        """float32 [N, 128]: the descriptors as unit vectors, computed once: a photo is matched
+        with every other photo of its scene."""
+        d = self.descriptors.astype(np.float32)
+        return d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-6)
 
 
 def grey(photo: np.ndarray) -> np.ndarray:
@@ -154,11 +162,6 @@ def extract_features(photo: np.ndarray, max_features: int | None = None,
     return Features(kp[order, 1:3] + 0.5, desc, (H, W))
 
 
-def _unit(desc: np.ndarray) -> np.ndarray:
-    d = desc.astype(np.float32)
-    return d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-6)
-
-
 def match_features(a: Features, b: Features) -> np.ndarray:
     """Matches ``int64 [M, 2]`` (index in a, index in b) of two photos' features: each keypoint's
     nearest descriptor in the other photo, kept when it passes the ratio test (``MAX_RATIO``), is
@@ -166,7 +169,7 @@ def match_features(a: Features, b: Features) -> np.ndarray:
     if len(a) < 2 or len(b) < 2:
         return np.zeros((0, 2), np.int64)
     # Nearest and second nearest from the similarities: |x - y|^2 = 2 - 2 x.y for unit vectors.
-    sim = _unit(a.descriptors) @ _unit(b.descriptors).T
+    sim = a.unit @ b.unit.T
     rows = np.arange(sim.shape[0])
     nearest = np.argmax(sim, axis=1)
     best = sim[rows, nearest]
@@ -204,7 +207,7 @@ def twin_distance(f: Features, mirrored: bool = False) -> np.ndarray:
     mirrored: compare with the other keypoints' mirrored descriptors (``MIRROR``) instead."""
     if len(f) < 2:
         return np.full(len(f), 2.0)
-    u = _unit(f.descriptors)
+    u = f.unit
     sim = u @ (u[:, MIRROR] if mirrored else u).T
     x, y = f.uv[:, 0].astype(np.float32), f.uv[:, 1].astype(np.float32)
     near = (x[:, None] - x[None]) ** 2 + (y[:, None] - y[None]) ** 2 < TWIN_MIN_PIXELS ** 2

@@ -303,10 +303,14 @@ def _round(a: _Adjustment, iterations: int, refine_focal: bool, last: bool, cent
     err, z = reprojection_errors(res.R, res.t, res.focal, centre, X, tracks.uv)
     active = a.active & (err <= max_error) & (z > 0)
     if not last:
-        X2, ok2 = triangulate(res.R, res.t, res.focal, centre, tracks.uv, tracks.observed,
-                              max_error=max_error, min_angle=RETRIANGULATION_ANGLE)
-        again = ok2 & (active.sum(1) < 2)
-        X[again], active[again] = X2[again], tracks.observed[again]
+        # Only the points left with fewer than two observations are replaced (each track is
+        # triangulated on its own, so the others' need not be computed).
+        todo = np.flatnonzero((active.sum(1) < 2) & (tracks.observed.sum(1) >= 2))
+        X2, ok2 = triangulate(res.R, res.t, res.focal, centre, tracks.uv[todo],
+                              tracks.observed[todo], max_error=max_error,
+                              min_angle=RETRIANGULATION_ANGLE)
+        again = todo[ok2]
+        X[again], active[again] = X2[ok2], tracks.observed[again]
     else:
         active &= (active.sum(1) >= 2)[:, None]
     return _Adjustment(res.R, res.t, res.focal, X, active)

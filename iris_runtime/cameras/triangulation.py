@@ -52,5 +52,6 @@ def triangulate(R: np.ndarray, t: np.ndarray, focal: float, centre: np.ndarray, 
         ok[np.flatnonzero(ok)[~good]] = False
     err, z = reprojection_errors(R, t, focal, centre, X, uv)
     ok &= np.all(~use | ((z > 0) & (err <= max_error)), axis=1)
-    ok &= max_ray_angles(X, camera_centres(R, t), use) >= min_angle
+    if min_angle > 0:                     # every angle passes 0 (arccos lies in [0, pi])
+        ok &= max_ray_angles(X, camera_centres(R, t), use) >= min_angle
     return X, ok
