@@ -21,6 +21,7 @@ from iris_runtime.cameras.features import (DISTINCT_DISTANCE, LOW_TEXTURE_SIZE, 
                                            extract_features, match_features, scene_features,
                                            twin_distance)
 from iris_runtime.cameras.locate import pose_distinct_first, pose_from_points
+from iris_runtime.cameras.mapper import MapperOptions
 from iris_runtime.cameras.tracks import build_tracks
 from iris_runtime.cameras.triangulation import camera_centres, max_ray_angles, triangulate
 from iris_runtime.cameras.two_view import estimate_from_distinct, estimate_two_view, intrinsics
@@ -766,7 +767,6 @@ def test_starting_pairs_tried(corner, monkeypatch):
     the first registers every view, and the better reconstruction kept; ``min_trials=1`` stops
     at the first complete one. Both are as good on the corner."""
     import iris_runtime.cameras.mapper as mapper
-    from iris_runtime.cameras import MapperOptions
     photos, truth, _ = corner
     grown = []
     grow = mapper._grow
@@ -787,7 +787,6 @@ def test_a_mapping_of_too_few_views_is_left_unfinished(corner, monkeypatch):
     skips its two final adjustments (the refinement's witness can use no such mapping); one
     that registers as many is finished as by default."""
     import iris_runtime.cameras.mapper as mapper
-    from iris_runtime.cameras import MapperOptions
     photos = list(corner[0])
     grown = []
     grow = mapper._grow
@@ -1205,28 +1204,35 @@ def test_refine_cameras_asks_a_mapping_where_no_start_agrees_on_enough_views(cor
 
 def test_only_the_refinement_runs_the_fast_adjustment(corner, monkeypatch):
     """The solve adjusts with ``bundle_adjust`` alone (the teacher store holds its results); the
-    refinement's rounds and its witness mapping with ``fast_bundle_adjust`` alone."""
+    refinement's rounds and its witness mapping with ``fast_bundle_adjust`` alone, the witness
+    for ``WITNESS_ITERATIONS``."""
     import iris_runtime.cameras.bundle as bundle
     import iris_runtime.cameras.mapper as mapper
     import iris_runtime.cameras.refine as refine
     photos, truth, _ = corner
     calls = {"bundle_adjust": 0, "fast_bundle_adjust": 0}
+    mapper_iterations = set()
 
-    def counting(name):
+    def counting(name, module):
         adjust = getattr(bundle, name)
 
         def counted(*args, **kw):
             calls[name] += 1
+            if module is mapper:
+                mapper_iterations.add(kw["max_iterations"])
             return adjust(*args, **kw)
         return counted
 
     for module in (mapper, refine):
         for name in calls:
             if hasattr(module, name):
-                monkeypatch.setattr(module, name, counting(name))
+                monkeypatch.setattr(module, name, counting(name, module))
     solve_cameras(list(photos), DEPTH_RANGE)
     assert calls["bundle_adjust"] > 0 and calls["fast_bundle_adjust"] == 0
+    solve_options = MapperOptions()
+    assert mapper_iterations == {solve_options.ba_iterations, solve_options.final_ba_iterations}
     calls.update(bundle_adjust=0)
+    mapper_iterations.clear()
     # No start agrees and none salvages: the rounds, then the witness, run.
     witnessed = []
     mapping = refine._witness
@@ -1236,6 +1242,7 @@ def test_only_the_refinement_runs_the_fast_adjustment(corner, monkeypatch):
     refine.refine_cameras(list(photos), _perturbed(truth, np.random.default_rng(4), 6.0), FOCAL,
                           DEPTH_RANGE)
     assert witnessed and calls["fast_bundle_adjust"] > 0 and calls["bundle_adjust"] == 0
+    assert mapper_iterations == set(refine.WITNESS_ITERATIONS)
 
 
 def test_refine_cameras_ranks_its_starts_in_the_photos_pixels(corner, monkeypatch):
@@ -1243,7 +1250,6 @@ def test_refine_cameras_ranks_its_starts_in_the_photos_pixels(corner, monkeypatc
     its truncation in the photos' pixels as the solve has it: 3 px at 320 px, 4.8 px on photos
     of 512 px (the corner enlarged twice), not the reference size's 3."""
     import iris_runtime.cameras.refine as refine
-    from iris_runtime.cameras import MapperOptions
     from iris_runtime.cameras.two_view import pixel_scale
     photos, truth, _ = corner
     large = [np.repeat(np.repeat(p, 2, axis=0), 2, axis=1) for p in photos]
