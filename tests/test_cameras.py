@@ -1245,6 +1245,36 @@ def test_only_the_refinement_runs_the_fast_adjustment(corner, monkeypatch):
     assert mapper_iterations == set(refine.WITNESS_ITERATIONS)
 
 
+
+def test_the_salvage_and_the_witness_cap_their_pnp_ransac(corner, monkeypatch):
+    """The solve's registrations run ``PNP_ITERATIONS``; the refinement's salvage and witness at
+    most ``SALVAGE_PNP_ITERATIONS`` (and fewer where ``confident_iterations`` says so)."""
+    import cv2
+
+    import iris_runtime.cameras.locate as locate
+    import iris_runtime.cameras.refine as refine
+    photos, truth, _ = corner
+    counts = []
+    ransac = cv2.solvePnPRansac
+
+    def recorded(*args, iterationsCount, **kw):
+        counts.append(iterationsCount)
+        return ransac(*args, iterationsCount=iterationsCount, **kw)
+
+    monkeypatch.setattr(locate.cv2, "solvePnPRansac", recorded)
+    solve_cameras(list(photos), DEPTH_RANGE)
+    assert max(counts) == locate.PNP_ITERATIONS
+    counts.clear()
+    # No start agrees: the salvage (its core from the witness alone) and the witness run.
+    core = refine.salvage_core
+    monkeypatch.setattr(refine, "agreement", lambda *args: 0.0)
+    monkeypatch.setattr(refine, "salvage_core",
+                        lambda best, witnesses: core(best, witnesses) if len(witnesses) == 1
+                        and witnesses[0].history else None)
+    refine.refine_cameras(list(photos), _perturbed(truth, np.random.default_rng(4), 6.0), FOCAL,
+                          DEPTH_RANGE)
+    assert counts and max(counts) <= refine.SALVAGE_PNP_ITERATIONS < locate.PNP_ITERATIONS
+
 def test_refine_cameras_ranks_its_starts_in_the_photos_pixels(corner, monkeypatch):
     """The starts are ranked as the mapper ranks reconstructions (``reprojection_score``), with
     its truncation in the photos' pixels as the solve has it: 3 px at 320 px, 4.8 px on photos

@@ -32,7 +32,8 @@ PNP_ERROR = 4.0
 PNP_MIN_INLIERS = 15
 #: ... and the fraction of its 2D-3D correspondences they must be (COLMAP's default).
 PNP_MIN_INLIER_RATIO = 0.25
-#: RANSAC iterations of the PnP.
+#: RANSAC iterations of the PnP (the solve's; the refinement's salvage and witness run fewer,
+#: ``refine.SALVAGE_PNP_ITERATIONS``).
 PNP_ITERATIONS = 1000
 #: Points of known cameras seen under a narrower angle (degrees) carry no depth.
 MIN_TRIANGULATION_ANGLE = 1.5
@@ -57,11 +58,12 @@ class PointMap:
         return PointMap(X, self.view, self.point, self.descriptors, self.enlargement)
 
 
-def confident_iterations(N: int, min_inliers: int, method: int) -> int:
+def confident_iterations(N: int, min_inliers: int, method: int,
+                         max_iterations: int = PNP_ITERATIONS) -> int:
     """The RANSAC iterations after which a pose that ``min_inliers`` of ``N`` correspondences
     support, were there one, would have been drawn from an all-inlier sample with probability
     ``two_view.CONFIDENCE``: log(1 - CONFIDENCE) / log(1 - (min_inliers / N)^s), s the points
-    of OpenCV's sample (4 for P3P and AP3P, else 5), rounded up (at most ``PNP_ITERATIONS``).
+    of OpenCV's sample (4 for P3P and AP3P, else 5), rounded up (at most ``max_iterations``).
     OpenCV's adaptive stop never runs longer once its best pose has that many inliers, so a
     search capped here ends as the uncapped one does whenever it finds such a pose by then;
     where it has not, it gives up with the confidence the adaptive stop has in its result."""
@@ -70,27 +72,28 @@ def confident_iterations(N: int, min_inliers: int, method: int) -> int:
     if drawn >= 1.0:
         return 1
     needed = np.log(1.0 - CONFIDENCE) / np.log1p(-drawn)
-    return int(min(PNP_ITERATIONS, np.ceil(needed)))
+    return int(min(max_iterations, np.ceil(needed)))
 
 
 def pose_from_points(points: np.ndarray, uv: np.ndarray, focal: float,
                      image_size: tuple[int, int], *, max_error: float,
                      min_inliers: int = PNP_MIN_INLIERS,
                      min_inlier_ratio: float = PNP_MIN_INLIER_RATIO,
-                     method: int = cv2.SOLVEPNP_SQPNP, confident_stop: bool = False):
+                     method: int = cv2.SOLVEPNP_SQPNP, confident_stop: bool = False,
+                     max_iterations: int = PNP_ITERATIONS):
     """cam_from_world ``(R [3, 3], t [3], inliers bool [N])`` of a photo whose pixels ``uv [N, 2]``
     see ``points [N, 3]``, or None when fewer than ``min_inliers`` (or ``min_inlier_ratio`` of
     them) reproject within ``max_error`` pixels. ``method``: OpenCV's PnP in the RANSAC (the
     pose is then refined on the inliers either way). ``confident_stop``: the RANSAC runs at most
-    ``confident_iterations`` (else ``PNP_ITERATIONS``): a view with few correspondences and no
+    ``confident_iterations`` (else ``max_iterations``): a view with few correspondences and no
     pose gives up sooner. Deterministic (OpenCV's RNG seeded with 0)."""
     N = len(points)
     if N < max(min_inliers, 6):
         return None
     K = intrinsics(focal, image_size)
     obj, img = np.ascontiguousarray(points, np.float64), np.ascontiguousarray(uv, np.float64)
-    iterations = confident_iterations(N, min_inliers, method) if confident_stop \
-        else PNP_ITERATIONS
+    iterations = confident_iterations(N, min_inliers, method, max_iterations) \
+        if confident_stop else max_iterations
     cv2.setRNGSeed(0)
     try:
         ok, rvec, tvec, inl = cv2.solvePnPRansac(obj, img, K, None, iterationsCount=iterations,
@@ -127,18 +130,19 @@ def _refine(obj, img, K, inliers, rvec, tvec, max_error):
 def pose_distinct_first(points: np.ndarray, uv: np.ndarray, distinct: np.ndarray, focal: float,
                         image_size: tuple[int, int], *, max_error: float,
                         min_inliers: int = PNP_MIN_INLIERS, method: int = cv2.SOLVEPNP_SQPNP,
-                        confident_stop: bool = False):
+                        confident_stop: bool = False, max_iterations: int = PNP_ITERATIONS):
     """``pose_from_points`` of the correspondences whose keypoints are distinct (``distinct``
     bool [N]: no near twin in their photo, ``features.distinct_keypoints``), then refined on
     every correspondence it explains; ``pose_from_points`` of all of them when the distinct ones
     give no pose. On a repeated texture a keypoint matched one period off points at a pose one
     period off, and such correspondences agree with one another (docs/CAMERAS.md), so the
     refined pose needs ``min_inliers`` of them, not a fraction: most may be shifted.
-    ``method``, ``confident_stop``: the RANSAC's, as in ``pose_from_points``."""
+    ``method``, ``confident_stop``, ``max_iterations``: the RANSAC's, as in
+    ``pose_from_points``."""
     if distinct.sum() >= min_inliers:
         first = pose_from_points(points[distinct], uv[distinct], focal, image_size,
                                  max_error=max_error, min_inliers=min_inliers, method=method,
-                                 confident_stop=confident_stop)
+                                 confident_stop=confident_stop, max_iterations=max_iterations)
         if first is not None:
             K = intrinsics(focal, image_size)
             obj = np.ascontiguousarray(points, np.float64)
@@ -151,7 +155,7 @@ def pose_distinct_first(points: np.ndarray, uv: np.ndarray, distinct: np.ndarray
                     return R, t, inliers
     return pose_from_points(points, uv, focal, image_size, max_error=max_error,
                             min_inliers=min_inliers, method=method,
-                            confident_stop=confident_stop)
+                            confident_stop=confident_stop, max_iterations=max_iterations)
 
 
 def correspondences(point_map: PointMap, features: Features) -> tuple[np.ndarray, np.ndarray]:

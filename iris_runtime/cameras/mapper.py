@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 
 from .bundle import bundle_adjust, fast_bundle_adjust, reprojection_errors
-from .locate import PNP_ERROR, PNP_MIN_INLIERS, pose_distinct_first
+from .locate import PNP_ERROR, PNP_ITERATIONS, PNP_MIN_INLIERS, pose_distinct_first
 from .tracks import Tracks
 from .triangulation import camera_centres, max_ray_angles, triangulate
 from .two_view import MAX_ERROR, MIN_INLIERS, TwoViewGeometry, relative_pose
@@ -54,6 +54,8 @@ class MapperOptions:
     pnp_method:         OpenCV's PnP in a registration's RANSAC (``locate.pose_from_points``)
     pnp_confident_stop: ... and whether it gives up once a pose would have been found with its
                         confidence (``locate.confident_iterations``; the refinement's witness)
+    pnp_iterations:     ... and its iterations at most (``locate.PNP_ITERATIONS``; the witness
+                        runs fewer, ``refine.SALVAGE_PNP_ITERATIONS``)
     fast_adjustment:    adjust with ``bundle.fast_bundle_adjust`` (the refinement's witness)
                         instead of ``bundle.bundle_adjust`` (the solve: the teacher store holds
                         its results)
@@ -80,6 +82,7 @@ class MapperOptions:
     final_ba_iterations: int = 50
     pnp_method: int = cv2.SOLVEPNP_SQPNP
     pnp_confident_stop: bool = False
+    pnp_iterations: int = PNP_ITERATIONS
     fast_adjustment: bool = False
     finish_min_views: int = 0
 
@@ -220,7 +223,8 @@ def _register(rec: Reconstruction, tracks: Tracks, v: int, image_size, opts, dis
     pose = pose_distinct_first(rec.points[sees], tracks.uv[sees, v], first, rec.focal,
                                image_size, max_error=opts.pnp_error,
                                min_inliers=opts.pnp_min_inliers, method=opts.pnp_method,
-                               confident_stop=opts.pnp_confident_stop)
+                               confident_stop=opts.pnp_confident_stop,
+                               max_iterations=opts.pnp_iterations)
     if pose is None:
         return False
     R, t, inliers = pose
