@@ -47,8 +47,7 @@ def recorded_problems(model_dir: str, scenes: str) -> list:
 
     import iris_runtime.cameras.mapper as mapper
     import iris_runtime.cameras.refine as refine
-    from benchmarks.camera_solve import (eval_heldout_64_scenes, heldout_64_scenes,
-                                         validation_64_scenes, validation_more_64_scenes)
+    from benchmarks.camera_solve import SETS_64
     from iris_runtime import IrisRuntime
     cv2.setNumThreads(1)
     problems, adjust = [], refine.fast_bundle_adjust
@@ -58,11 +57,9 @@ def recorded_problems(model_dir: str, scenes: str) -> list:
         return adjust(*args, **kw)
 
     refine.fast_bundle_adjust = mapper.fast_bundle_adjust = recording
-    sets = {"heldout": heldout_64_scenes, "validation": validation_64_scenes,
-            "validation-more": validation_more_64_scenes, "eval-heldout": eval_heldout_64_scenes}
     rt = IrisRuntime(model_dir, threads=1)
     try:
-        for scene in sets[scenes]():
+        for scene in SETS_64[scenes]():
             rt.encode(scene.photos, cameras="refined")
     finally:
         refine.fast_bundle_adjust = mapper.fast_bundle_adjust = adjust

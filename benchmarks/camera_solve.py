@@ -135,6 +135,11 @@ def validation_more_64_scenes():
     return _synthetic("validation-64", VALIDATION_SEEDS[24:48], size=MODEL_SIZE)
 
 
+#: The 64x64 scene sets of the refinement's benchmarks, by the name their ``--scenes`` takes.
+SETS_64 = {"heldout": heldout_64_scenes, "validation": validation_64_scenes,
+           "validation-more": validation_more_64_scenes, "eval-heldout": eval_heldout_64_scenes}
+
+
 def validation_more_scenes():
     """Validation scenes 24-47: a second sample where a choice is checked before held-out."""
     from iris_train.data import VALIDATION_SEEDS

@@ -66,8 +66,7 @@ def measure(model_dir: str, settings: list[str], profile: bool = False,
 
     import iris_runtime.cameras.refine as refine
     import iris_runtime.cameras.replace as replace
-    from benchmarks.camera_solve import (eval_heldout_64_scenes, heldout_64_scenes, pair_errors,
-                                         validation_64_scenes, validation_more_64_scenes)
+    from benchmarks.camera_solve import SETS_64, pair_errors
     from iris_runtime import IrisRuntime
     from scripts.camera_study import apply
     cv2.setNumThreads(1)
@@ -94,10 +93,8 @@ def measure(model_dir: str, settings: list[str], profile: bool = False,
     refine.fast_bundle_adjust, replace.refine_cameras = counted, timed
     rt = IrisRuntime(model_dir, threads=1)
     rows = []
-    sets = {"heldout": heldout_64_scenes, "validation": validation_64_scenes,
-            "validation-more": validation_more_64_scenes, "eval-heldout": eval_heldout_64_scenes}
     by_step, profiled = {}, 0.0
-    for scene in sets[scenes]():
+    for scene in SETS_64[scenes]():
         counts.update(iterations=0, refine_s=0.0)
         profiler = cProfile.Profile() if profile else None
         t0 = time.perf_counter()

@@ -6,12 +6,13 @@ true cameras over the pairs it poses (the witness's cameras are judged at 5 degr
 ``refine.AGREEMENT_DEGREES``), the scenes on which it is worse or better at 5 degrees than the
 first setting, and its seconds (one thread, summed over the set).
 
-    python benchmarks/witness_quality.py MODEL_DIR --witness ba_iterations=10,final_ba_iterations=50 \
+    python benchmarks/witness_quality.py MODEL_DIR \
+        --witness ba_iterations=10,final_ba_iterations=50 \
         --witness ba_iterations=5,final_ba_iterations=20 --json out.json
 
 ``--witness`` takes ``MapperOptions`` fields that replace the witness's own (those
-``refine._witness`` sets, ``WITNESS_ITERATIONS`` among them); the first is the reference. The scenes:
-all four sets of ``refine_cost.py`` (validation 0-23 and 24-47 to choose on, the held-out
+``refine._witness`` sets, ``WITNESS_ITERATIONS`` among them); the first is the reference. The
+scenes: all four sets of ``refine_cost.py`` (validation 0-23 and 24-47 to choose on, the held-out
 scenes as made and as iris-eval resizes them to check). Needs the [train] extra.
 """
 from __future__ import annotations
@@ -36,11 +37,11 @@ class _Asked(Exception):
 
 
 def _options(text: str) -> dict:
-    out = {}
-    for item in filter(None, text.split(",")):
-        name, _, value = item.partition("=")
-        out[name.strip()] = int(value)
-    return out
+    """``FIELD=VALUE,...`` -> ``MapperOptions`` fields, each of its default's type."""
+    from iris_runtime.cameras import MapperOptions
+    from scripts.camera_study import _value
+    fields = dict(item.split("=", 1) for item in text.split(",") if item)
+    return {name: _value(value, getattr(MapperOptions(), name)) for name, value in fields.items()}
 
 
 def measure(model_dir: str, settings: list[dict]) -> dict:
@@ -48,8 +49,7 @@ def measure(model_dir: str, settings: list[dict]) -> dict:
     import numpy as np
 
     import iris_runtime.cameras.refine as refine
-    from benchmarks.camera_solve import (eval_heldout_64_scenes, heldout_64_scenes, pair_errors,
-                                         validation_64_scenes, validation_more_64_scenes)
+    from benchmarks.camera_solve import SETS_64, pair_errors
     from iris_runtime import IrisRuntime
     cv2.setNumThreads(1)
     # No start confirms and none is salvaged, so every scene asks the witness.
@@ -70,7 +70,7 @@ def measure(model_dir: str, settings: list[dict]) -> dict:
             mapped = witness(features, tracks, inliers, relative, focal, image_size, opts,
                              useful)
             seconds = time.perf_counter() - t0
-            row = {"registered": 0, "rpa@5": None, "rpa@15": None, "seconds": seconds}
+            row = {"registered": 0, "rpa@5": 0.0, "rpa@15": 0.0, "seconds": seconds}
             if mapped is not None:
                 cam = np.tile(np.eye(4), (len(mapped.R), 1, 1))
                 cam[:, :3, :3], cam[:, :3, 3] = mapped.R, mapped.t
@@ -90,14 +90,11 @@ def measure(model_dir: str, settings: list[dict]) -> dict:
     refine._witness, refine.canonical_order = asked, ordered
     refine.incremental_mapping = mapping
     rt = IrisRuntime(model_dir, threads=1)
-    loaders = {"heldout": heldout_64_scenes, "validation": validation_64_scenes,
-               "validation-more": validation_more_64_scenes,
-               "eval-heldout": eval_heldout_64_scenes}
     out = {"settings": settings, "load_before": list(os.getloadavg()), "sets": {}}
     for name in SETS:
         scene["rows"] = [[] for _ in settings]
         names = []
-        for s in loaders[name]():
+        for s in SETS_64[name]():
             scene["truth"] = s.world_from_cam
             try:
                 rt.encode(s.photos, cameras="refined")
@@ -106,13 +103,13 @@ def measure(model_dir: str, settings: list[dict]) -> dict:
         rows = scene["rows"]
         summary = []
         for k, setting in enumerate(settings):
-            at5 = np.array([r["rpa@5"] or 0.0 for r in rows[k]])
-            ref5 = np.array([r["rpa@5"] or 0.0 for r in rows[0]])
+            at5 = np.array([r["rpa@5"] for r in rows[k]])
+            ref5 = np.array([r["rpa@5"] for r in rows[0]])
             summary.append({
                 "witness": setting, "scenes": len(rows[k]),
                 "registered": float(np.mean([r["registered"] for r in rows[k]])),
                 "rpa@5": float(at5.mean()),
-                "rpa@15": float(np.mean([r["rpa@15"] or 0.0 for r in rows[k]])),
+                "rpa@15": float(np.mean([r["rpa@15"] for r in rows[k]])),
                 "worse@5": int((at5 < ref5 - 1e-9).sum()),
                 "better@5": int((at5 > ref5 + 1e-9).sum()),
                 "seconds": float(sum(r["seconds"] for r in rows[k]))})
@@ -130,7 +127,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("model_dir")
     ap.add_argument("--witness", action="append", type=_options, default=[],
-                    metavar="FIELD=INT,...", help="MapperOptions fields of the witness; the "
+                    metavar="FIELD=VALUE,...", help="MapperOptions fields of the witness; the "
                     "first is the reference (default: the shipped witness alone)")
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args(argv)

@@ -1274,6 +1274,11 @@ def test_the_salvage_and_the_witness_cap_their_pnp_ransac(corner, monkeypatch):
     refine.refine_cameras(list(photos), _perturbed(truth, np.random.default_rng(4), 6.0), FOCAL,
                           DEPTH_RANGE)
     assert counts and max(counts) <= refine.SALVAGE_PNP_ITERATIONS < locate.PNP_ITERATIONS
+    # By the cap, a pose that 42% of the correspondences support would have been drawn with the
+    # RANSAC's confidence; one that 41% support not yet (the cap's reason, refine's comment).
+    assert (locate.confident_iterations(100, 42, refine.SALVAGE_PNP)
+            <= refine.SALVAGE_PNP_ITERATIONS
+            < locate.confident_iterations(100, 41, refine.SALVAGE_PNP))
 
 def test_refine_cameras_ranks_its_starts_in_the_photos_pixels(corner, monkeypatch):
     """The starts are ranked as the mapper ranks reconstructions (``reprojection_score``), with

@@ -309,8 +309,8 @@ def test_encoder_graph_isolates_references(model, sessions):
 
 def test_encoder_cross_view_mask_is_an_additive_bias(exported):
     """The encoder's cross-view attention adds its mask to the scores as a float bias: the graph
-    has no NaN guard behind a softmax (IsNaN), which a bool attention mask exports with, and one
-    cast of the mask instead of a Where per block (docs/PERFORMANCE.md)."""
+    has no NaN guard behind a softmax (IsNaN), which a bool attention mask exports with
+    (docs/PERFORMANCE.md)."""
     ops = [n.op_type for n in onnx.load(str(exported / "encoder.onnx")).graph.node]
     assert "IsNaN" not in ops
     assert ops.count("Softmax") >= 2
