@@ -300,6 +300,12 @@ def test_bad_requests_get_4xx_json_and_the_server_stays_healthy(scene, client, s
         ("unknown quality", lambda: render(client, sid, eye, quality="ultra"), 422, "invalid",
          "quality"),
         ("unknown field", lambda: render(client, sid, eye, colour="red"), 422, "invalid", "colour"),
+        ("seq without stream", lambda: render(client, sid, eye, seq=3), 422, "invalid", "stream"),
+        ("stream without seq", lambda: render(client, sid, eye, stream="s"), 422, "invalid", "seq"),
+        ("stream not a token", lambda: render(client, sid, eye, stream="a b", seq=1), 422,
+         "invalid", "stream"),
+        ("negative seq", lambda: render(client, sid, eye, stream="s", seq=-1), 422, "invalid",
+         "seq"),
         ("locate without a photo", lambda: client.post(f"/scenes/{sid}/locate", files=[photo]),
          422, "invalid", "image"),
         ("too many orbit frames", lambda: client.get(f"/scenes/{sid}/orbit",
@@ -403,6 +409,114 @@ def test_token_backpressure_and_graceful_shutdown(model_dir, tmp_path):
         assert "s3cret-token" not in text                           # never logged
     finally:
         srv.stop()
+
+
+def _metric(client, line_start: str) -> float:
+    for line in client.get("/metrics").text.splitlines():
+        if line.startswith(line_start + " "):
+            return float(line.split()[1])
+    return 0.0
+
+
+def test_stale_render_of_a_stream_is_dropped_while_queued(model_dir):
+    """Two renders of one stream wait behind a long render on the only worker: the newer one's
+    arrival answers the older one 409 superseded at once, before the worker is free, and it is
+    never rendered; a request older than the stream's latest is refused on arrival; another
+    stream and requests without a stream are not affected."""
+    srv = IrisServer(model_dir, "--workers", "1", "--queue", "8", "--queue-timeout", "60")
+    files = [("images", (p.name, p.read_bytes(), "image/png")) for p in PHOTOS[:2]]
+    try:
+        with httpx.Client(base_url=srv.url, timeout=60.0) as c, ThreadPoolExecutor(4) as ex:
+            body = c.post("/scenes", files=files).json()
+            sid, pose = body["scene_id"], novel_pose(body)
+            small = {"height": 8, "width": 8, "quality": "fast"}
+            assert render(c, sid, pose, stream="warm", seq=0, **small).status_code == 200
+            renders0 = _metric(c, 'iris_job_duration_seconds_count{kind="render"}')
+            # A second or more on the only worker, even on a quiet machine.
+            blocker = ex.submit(render, c, sid, pose, height=64, width=64, quality="exact")
+            _wait_metric(c, "iris_jobs_running", 1)
+            older = ex.submit(render, c, sid, pose, stream="viewer-1", seq=1, **small)
+            _wait_metric(c, "iris_queue_depth", 1)
+            other = ex.submit(render, c, sid, pose, stream="viewer-2", seq=1, **small)
+            _wait_metric(c, "iris_queue_depth", 2)
+            newer = ex.submit(render, c, sid, pose, stream="viewer-1", seq=2, **small)
+            r = older.result(30)
+            assert not blocker.done()           # answered while the only worker was still busy
+            assert r.status_code == 409, r.text
+            assert r.json()["error"]["type"] == "superseded"
+            assert "seq 2" in r.json()["error"]["message"]
+            assert r.headers["x-iris-superseded-by"] == "2"
+            late = render(c, sid, pose, stream="viewer-1", seq=1, **small)   # stale on arrival
+            assert late.status_code == 409 and late.json()["error"]["type"] == "superseded"
+            assert late.headers["x-iris-superseded-by"] == "2"
+            r = newer.result(60)
+            assert r.status_code == 200 and r.headers["x-iris-seq"] == "2"
+            assert other.result(60).status_code == 200
+            assert blocker.result(60).status_code == 200
+            again = render(c, sid, pose, stream="viewer-1", seq=2, **small)  # a retry: same seq
+            assert again.status_code == 200
+            # Rendered: the blocker, the other stream's, the newer one and the retry; not the
+            # two superseded ones.
+            renders = _metric(c, 'iris_job_duration_seconds_count{kind="render"}') - renders0
+            assert renders == 4
+            assert _metric(c, 'iris_jobs_rejected_total{reason="superseded"}') == 2
+            statuses = [(rec["path"], rec["status"]) for rec in srv.logs
+                        if rec.get("logger") == "iris.access"]
+            assert statuses.count((f"/scenes/{sid}/render", 409)) == 2
+    finally:
+        srv.stop()
+
+
+def test_pool_hands_workers_over_in_order_and_drops_superseded_waiters():
+    """The worker pool in process: waiting jobs take the worker first come first served; a
+    waiter whose ``superseded`` future is done leaves the queue at once without running; a
+    cancelled waiter leaves its place; the worker count is never exceeded."""
+    import asyncio
+
+    from iris_runtime.serve.errors import Superseded
+    from iris_runtime.serve.pool import WorkerPool
+    from iris_runtime.serve.streams import Streams
+
+    async def scenario():
+        pool = WorkerPool(1, 8, 30.0)
+        streams = Streams(max_streams=2)
+        gate, ran = threading.Event(), []
+
+        def job(name):
+            if name == "first":
+                gate.wait(10)
+            ran.append(name)
+            return name
+
+        first = asyncio.ensure_future(pool.run("t", job, "first"))
+        await asyncio.sleep(0.05)
+        t1 = streams.admit("s", 1)
+        stale = asyncio.ensure_future(pool.run("t", job, "stale", superseded=t1.superseded))
+        plain = asyncio.ensure_future(pool.run("t", job, "plain"))
+        gone = asyncio.ensure_future(pool.run("t", job, "gone"))
+        await asyncio.sleep(0.05)
+        assert pool.waiting == 3 and pool.running == 1
+        gone.cancel()
+        t2 = streams.admit("s", 2)                     # stale's stream moves on
+        with pytest.raises(Superseded):
+            await asyncio.wait_for(stale, 5)
+        with pytest.raises(Superseded):
+            streams.admit("s", 1)
+        fresh = asyncio.ensure_future(pool.run("t", job, "fresh", superseded=t2.superseded))
+        await asyncio.sleep(0.05)
+        assert pool.waiting == 2 and pool.running == 1   # plain and fresh wait; first runs
+        gate.set()
+        assert await asyncio.wait_for(asyncio.gather(first, plain, fresh), 10) == \
+            ["first", "plain", "fresh"]
+        assert ran == ["first", "plain", "fresh"] and pool.running == 0 and pool.waiting == 0
+        streams.release(t1)
+        streams.release(t2)
+        streams.admit("a", 0)
+        streams.admit("b", 0)                          # "s" is forgotten (max_streams=2)
+        assert len(streams) == 2 and streams.latest("s") is None
+        pool.shutdown()
+
+    asyncio.run(scenario())
 
 
 def test_startup_errors_are_one_line(tmp_path, model_dir):

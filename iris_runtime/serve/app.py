@@ -7,7 +7,9 @@ The contract (statuses, bodies, limits) is documented in docs/SERVING.md.
 
     POST   /scenes                 multipart ``images`` (2+ photos), optional ``cameras`` -> 201 scene
     GET    /scenes/{id}            the scene JSON          DELETE /scenes/{id} -> 204
-    POST   /scenes/{id}/render     JSON RenderRequest -> image/png (16-bit depth PNG with depth)
+    POST   /scenes/{id}/render     JSON RenderRequest -> image/png (16-bit depth PNG with depth);
+                                   with ``stream`` + ``seq``: 409 when a newer request of the
+                                   stream made it stale before a worker took it (streams.py)
     POST   /scenes/{id}/locate     multipart ``image`` -> {"world_from_cam": 4x4}
     GET    /scenes/{id}/cameras.png  the solved cameras' picture (``camera_plot.draw_cameras``)
     GET    /scenes/{id}/orbit?frames=N  the orbit's poses (``orbit.orbit_poses``) and centre
@@ -50,6 +52,7 @@ from .metrics import Metrics
 from .observe import RequestObserver
 from .pool import WorkerPool
 from .store import SceneStore, StoredScene
+from .streams import Streams
 
 __all__ = ["ServeConfig", "RenderRequest", "OrbitRequest", "create_app", "warm_up"]
 
@@ -57,6 +60,8 @@ log = logging.getLogger("iris.serve")
 STATIC = Path(__file__).resolve().parent / "static"
 #: A render or orbit request is a few numbers: a JSON body over this is not one.
 MAX_JSON_BYTES = 64 * 1024
+#: ``seq`` of a render stream: an integer a browser holds exactly (2**53 - 1).
+MAX_SEQ = 2**53 - 1
 
 
 @dataclass(frozen=True)
@@ -90,6 +95,8 @@ class ServeConfig:
 Quality = Literal[tuple(QUALITY_PRESETS)]          # type: ignore[valid-type]
 Precision = Literal[tuple(PRECISIONS)]             # type: ignore[valid-type]
 Pixels = Annotated[int, Field(gt=0)]
+StreamId = Annotated[str, Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9._~-]+$")]
+Seq = Annotated[int, Field(ge=0, le=MAX_SEQ)]
 
 
 class RenderRequest(BaseModel):
@@ -101,6 +108,10 @@ class RenderRequest(BaseModel):
     quality: Quality | None = None         # type: ignore[valid-type]
     precision: Precision | None = None     # type: ignore[valid-type]
     depth: bool = False                    # a 16-bit depth PNG instead of the colour image
+    # A moving camera: the client's stream token and the request's number in it (only grows).
+    # A request still waiting for a worker when a larger seq of its stream arrives gets 409.
+    stream: StreamId | None = None
+    seq: Seq | None = None
 
 
 class OrbitRequest(BaseModel):
@@ -176,6 +187,7 @@ def create_app(runtime: IrisRuntime, config: ServeConfig = ServeConfig()) -> Fas
     pool = WorkerPool(config.workers, config.queue, config.queue_timeout,
                       on_job=metrics.observe_job, on_reject=metrics.observe_reject)
     store = SceneStore(config.store_bytes, config.max_scenes, on_evict=metrics.evictions.inc)
+    streams = Streams(on_reject=metrics.observe_reject)
     metrics.bind(pool, store)
     max_photos = min(config.max_photos, rt.max_views)
     precisions = [p for p, graph in PRECISIONS.items() if graph in rt.manifest.graphs]
@@ -197,6 +209,7 @@ def create_app(runtime: IrisRuntime, config: ServeConfig = ServeConfig()) -> Fas
     install_handlers(app)
     app.add_middleware(RequestObserver, metrics=metrics, max_body_bytes=config.max_upload_bytes)
     app.state.pool, app.state.store, app.state.metrics = pool, store, metrics
+    app.state.streams = streams
 
     async def require_token(request: Request) -> None:
         if config.token is None:
@@ -312,6 +325,11 @@ def create_app(runtime: IrisRuntime, config: ServeConfig = ServeConfig()) -> Fas
     async def viewer():
         return HTMLResponse((STATIC / "index.html").read_text(encoding="utf-8"))
 
+    @app.get("/favicon.ico", include_in_schema=False)
+    async def favicon():
+        return Response((STATIC / "favicon.ico").read_bytes(), media_type="image/x-icon",
+                        headers={"Cache-Control": "public, max-age=86400"})
+
     app.mount("/static", StaticFiles(directory=STATIC), name="static")
 
     @app.get("/healthz")
@@ -362,8 +380,16 @@ def create_app(runtime: IrisRuntime, config: ServeConfig = ServeConfig()) -> Fas
         pose = snap_world_from_cam(req.world_from_cam, "world_from_cam")
         h, w = check_size(req.height, req.width)
         check_precision(req.precision)
-        png = await pool.run("render", render_png, entry.scene, pose, req, h, w)
+        if (req.stream is None) != (req.seq is None):
+            given, missing = ("stream", "seq") if req.seq is None else ("seq", "stream")
+            raise Unprocessable(f"{missing}: required with {given} (a render stream is named by "
+                                f"both)")
+        with streams.ticket(req.stream, req.seq) as ticket:
+            png = await pool.run("render", render_png, entry.scene, pose, req, h, w,
+                                 superseded=None if ticket is None else ticket.superseded)
         headers = {"X-Iris-Depth-Far": f"{rt.far:g}"} if req.depth else {}
+        if req.seq is not None:
+            headers["X-Iris-Seq"] = str(req.seq)
         return Response(png, media_type="image/png", headers=headers)
 
     @scenes.post("/{scene_id}/locate", openapi_extra=_multipart("image", "one photo"))

@@ -21,7 +21,8 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from ..errors import ImageError, InputError, IrisError, ModelFileError
 
 __all__ = ["ApiError", "BadRequest", "Unauthorized", "NotFound", "PayloadTooLarge",
-           "UnsupportedMediaType", "Unprocessable", "Unsupported", "Busy", "Unavailable", "RUNTIME_ERRORS",
+           "UnsupportedMediaType", "Unprocessable", "Unsupported", "Superseded", "Busy", "Unavailable",
+           "RUNTIME_ERRORS",
            "error_response", "field_message", "install_handlers"]
 
 log = logging.getLogger("iris.serve")
@@ -67,6 +68,17 @@ class Unprocessable(ApiError):
     status, type = 422, "invalid"
 
 
+class Superseded(ApiError):
+    """A render of a stream (``stream`` + ``seq``) that a newer request of the same stream made
+    stale before a worker took it: nothing was rendered. ``X-Iris-Superseded-By`` names the newer
+    ``seq``. Not an error of the client's: it asked for a newer view since."""
+    status, type = 409, "superseded"
+
+    def __init__(self, message: str, newer: int):
+        super().__init__(message, {"X-Iris-Superseded-By": str(newer)})
+        self.newer = newer
+
+
 class Unsupported(ApiError):
     """This server cannot do it (e.g. its OpenCV has no video encoder): not the request's fault."""
     status, type = 501, "unsupported"
@@ -96,7 +108,7 @@ RUNTIME_ERRORS: tuple[tuple[type[IrisError], int, str], ...] = (
 )
 
 _STATUS_TYPES = {400: "bad_request", 401: "unauthorized", 404: "not_found",
-                 405: "method_not_allowed", 413: "too_large", 415: "unsupported_media_type",
+                 405: "method_not_allowed", 409: "superseded", 413: "too_large", 415: "unsupported_media_type",
                  422: "invalid", 429: "busy", 503: "unavailable"}
 
 

@@ -6,7 +6,8 @@ several apps in one process (tests) never share counters.
   (``/scenes/{scene_id}/render``, so ids never make new series; unmatched paths are
   ``<unmatched>``);
 - ``iris_job_duration_seconds{kind}``: time on a worker per job kind (encode, render, locate,
-  orbit, cameras); ``iris_jobs_rejected_total{reason}``: busy (429), timeout and shutdown (503);
+  orbit, cameras); ``iris_jobs_rejected_total{reason}``: busy (429), timeout and shutdown (503),
+  superseded (409: a render of a stream made stale by a newer one, never rendered);
 - ``iris_queue_depth``, ``iris_jobs_running``, ``iris_scenes``, ``iris_scene_store_bytes``,
   ``iris_scene_evictions_total``: read from the pool and the store at scrape time;
 - ``process_*`` (resident memory, CPU seconds, open files) and ``python_*``: the standard

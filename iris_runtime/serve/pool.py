@@ -8,7 +8,12 @@ worker. Admission is decided on the event loop, before any work:
 - ``workers`` jobs run at once; up to ``queue`` more wait for a worker;
 - a job that finds both full is refused at once with ``Busy`` (429 + ``Retry-After``);
 - a job that waits longer than ``queue_timeout`` seconds is refused with ``Unavailable`` (503 +
-  ``Retry-After``), as is every job after ``close()`` (graceful shutdown).
+  ``Retry-After``), as is every job after ``close()`` (graceful shutdown);
+- a job given a ``superseded`` future (a render of a stream, ``streams.Streams``) leaves the queue
+  as soon as that future is done, without running, with ``Superseded`` (409).
+
+Waiting jobs take the workers in arrival order (a FIFO of waiters; a freed worker is handed to the
+first one still waiting).
 
 ``Retry-After`` is the expected wait: jobs ahead of the caller times the mean job time (an
 exponential average) over the workers. A worker's slot is released when its thread finishes,
@@ -19,10 +24,11 @@ from __future__ import annotations
 
 import asyncio
 import time
+from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from typing import Callable, TypeVar
 
-from .errors import Busy, Unavailable
+from .errors import Busy, Superseded, Unavailable
 
 __all__ = ["WorkerPool"]
 
@@ -32,7 +38,7 @@ T = TypeVar("T")
 class WorkerPool:
     """``workers`` threads behind a queue of ``queue`` places (see the module docstring).
     ``on_job(kind, seconds)`` is called after every job (metrics); ``on_reject(reason)`` after
-    every refusal ("busy", "timeout", "shutdown")."""
+    every refusal ("busy", "timeout", "shutdown", "superseded")."""
 
     def __init__(self, workers: int, queue: int, queue_timeout: float, *,
                  on_job: Callable[[str, float], None] | None = None,
@@ -41,7 +47,8 @@ class WorkerPool:
             raise ValueError("workers >= 1, queue >= 0 and queue_timeout > 0 expected")
         self.workers, self.queue, self.queue_timeout = int(workers), int(queue), float(queue_timeout)
         self._executor = ThreadPoolExecutor(self.workers, thread_name_prefix="iris-worker")
-        self._slots: asyncio.Semaphore | None = None          # made on the serving loop
+        self._free = self.workers                            # workers without a job
+        self._waiters: deque[asyncio.Future] = deque()        # jobs waiting, first come first
         self._waiting = 0
         self._running = 0
         self._closed = False
@@ -65,34 +72,82 @@ class WorkerPool:
         self._on_reject(reason)
         return exc_type(message, retry_after=self._retry_after())
 
-    async def run(self, kind: str, fn: Callable[..., T], *args) -> T:
-        """``fn(*args)`` on a worker thread, or ``Busy`` / ``Unavailable`` (see the module
-        docstring). ``kind`` names the job in metrics ("encode", "render", ...)."""
+    def _superseded(self, superseded: asyncio.Future) -> Superseded:
+        self._on_reject("superseded")
+        newer = superseded.result()
+        return Superseded(f"seq: a newer request of this stream (seq {newer}) arrived while this "
+                          f"one waited for a worker; nothing was rendered", newer=newer)
+
+    async def run(self, kind: str, fn: Callable[..., T], *args,
+                  superseded: asyncio.Future | None = None) -> T:
+        """``fn(*args)`` on a worker thread, or ``Busy`` / ``Unavailable`` / ``Superseded`` (see
+        the module docstring). ``kind`` names the job in metrics ("encode", "render", ...);
+        ``superseded``: a future that is done when the job is no longer wanted."""
         if self._closed:
             raise self._reject(Unavailable, "shutdown", "the server is shutting down; retry on "
                                "another instance or after the restart")
-        if self._slots is None:
-            self._slots = asyncio.Semaphore(self.workers)
+        if superseded is not None and superseded.done() and not superseded.cancelled():
+            raise self._superseded(superseded)
         if self._running + self._waiting >= self.workers + self.queue:
             raise self._reject(Busy, "busy", f"all {self.workers} workers are busy and "
                                f"{self._waiting} requests wait; retry later")
-        self._waiting += 1
-        try:
-            await asyncio.wait_for(self._slots.acquire(), self.queue_timeout)
-        except asyncio.TimeoutError:
-            raise self._reject(Unavailable, "timeout", f"waited {self.queue_timeout:g} s for a "
-                               f"worker (server overloaded); retry later") from None
-        finally:
-            self._waiting -= 1
+        await self._acquire(superseded)
         if self._closed:
-            self._slots.release()
+            self._hand_over()
             raise self._reject(Unavailable, "shutdown", "the server is shutting down")
         self._running += 1
         loop = asyncio.get_running_loop()
         future = loop.run_in_executor(self._executor, self._timed, kind, fn, args)
         future.add_done_callback(self._release)
-        # Shielded: a cancelled request leaves its job to finish; the slot is freed only then.
+        # Shielded: a cancelled request leaves its job to finish; the worker is freed only then.
         return await asyncio.shield(future)
+
+    async def _acquire(self, superseded: asyncio.Future | None) -> None:
+        """Take a worker: at once when one is free and nobody waits, else wait in line until one
+        is handed over, the queue timeout passes or ``superseded`` is done."""
+        if self._free > 0 and not self._waiters:
+            self._free -= 1
+            return
+        slot = asyncio.get_running_loop().create_future()
+        self._waiters.append(slot)
+        self._waiting += 1
+        try:
+            await asyncio.wait([slot] if superseded is None else [slot, superseded],
+                               timeout=self.queue_timeout, return_when=asyncio.FIRST_COMPLETED)
+        except BaseException:                      # the request itself was cancelled
+            self._leave(slot)
+            raise
+        finally:
+            self._waiting -= 1
+        stale = superseded is not None and superseded.done() and not superseded.cancelled()
+        if slot.done() and not stale:
+            return
+        self._leave(slot)
+        if stale:
+            raise self._superseded(superseded)
+        raise self._reject(Unavailable, "timeout", f"waited {self.queue_timeout:g} s for a "
+                           f"worker (server overloaded); retry later")
+
+    def _leave(self, slot: asyncio.Future) -> None:
+        """A waiter gives up: out of the line, or, if a worker was already handed to it, the
+        worker goes to the next one."""
+        if slot.done() and not slot.cancelled():
+            self._hand_over()
+        else:
+            slot.cancel()
+            try:
+                self._waiters.remove(slot)
+            except ValueError:
+                pass
+
+    def _hand_over(self) -> None:
+        """A worker is free: to the first job still waiting, else back to the free ones."""
+        while self._waiters:
+            slot = self._waiters.popleft()
+            if not slot.done():
+                slot.set_result(None)
+                return
+        self._free += 1
 
     def _timed(self, kind: str, fn, args):
         t0 = time.perf_counter()
@@ -105,7 +160,7 @@ class WorkerPool:
 
     def _release(self, _future) -> None:
         self._running -= 1
-        self._slots.release()
+        self._hand_over()
 
     def close(self) -> None:
         """Refuse new jobs (503); jobs already admitted finish."""
