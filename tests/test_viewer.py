@@ -1,6 +1,10 @@
 """The viewer page at / in a real headless browser (Debian's chromium + chromium-driver, driven by
 selenium) against a real iris-serve process: upload photos, wait for the solved cameras and a
-rendered view, check its pixels against the API's render of the same pose, drag to orbit.
+rendered view, check its pixels against the API's render of the same pose, drag to orbit; a
+scripted drag (real mouse events through Chrome DevTools, benchmarks/viewer_drag.py's) shows
+quick previews with one render request in flight and the full frame once the camera stops, turns
+the camera by an angle scaled to the photos' spread and stops outside their views, flagged; the
+page's layout, favicon and orbit-frames limit.
 
 Skipped, with the reason, only where no browser (or selenium) is installed. With
 ``IRIS_VIEWER_SCREENSHOT=PATH`` the test also saves a screenshot of the page there (how
@@ -23,8 +27,10 @@ from PIL import Image  # noqa: E402
 from selenium import webdriver  # noqa: E402
 from selenium.webdriver.common.action_chains import ActionChains  # noqa: E402
 from selenium.webdriver.common.by import By  # noqa: E402
+from selenium.webdriver.common.keys import Keys  # noqa: E402
 from selenium.webdriver.support.ui import Select, WebDriverWait  # noqa: E402
 
+from benchmarks.viewer_drag import FETCH_PROBE, cdp_drag, open_scene, wait_for  # noqa: E402
 from tests.test_serve import PHOTOS, IrisServer  # noqa: E402
 
 BROWSER = next((shutil.which(n) for n in ("chromium", "chromium-browser", "google-chrome")
@@ -38,7 +44,7 @@ WAIT = 180.0
 
 @pytest.fixture(scope="module")
 def server(model_dir):
-    srv = IrisServer(model_dir, "--workers", "2")
+    srv = IrisServer(model_dir, "--workers", "2", "--max-orbit-frames", "60")
     try:
         yield srv
     finally:
@@ -54,6 +60,7 @@ def browser():
     for arg in ("--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
                 "--window-size=1440,960", "--force-device-scale-factor=1"):
         options.add_argument(arg)
+    options.set_capability("goog:loggingPrefs", {"browser": "ALL"})
     driver = webdriver.Chrome(service=Service(executable_path=DRIVER), options=options)
     driver.set_page_load_timeout(60)
     driver.set_script_timeout(60)
@@ -82,6 +89,18 @@ def api_render(url: str, scene_id: str, pose, height: int, width: int, quality: 
                          "quality": quality})
     assert r.status_code == 200, r.text
     return np.asarray(Image.open(io.BytesIO(r.content)).convert("RGB"))
+
+
+def full_frame_of_current_pose(driver) -> bool:
+    """The page is idle and shows the full frame of the pose it was last asked for."""
+    return driver.execute_script(
+        "const c = document.getElementById('view');"
+        "return !pumping && c.dataset.kind === 'full' && c.dataset.pose === "
+        "JSON.stringify(state.pose);")
+
+
+def severe_console_messages(driver) -> list[str]:
+    return [e["message"] for e in driver.get_log("browser") if e["level"] == "SEVERE"]
 
 
 def test_viewer_uploads_shows_cameras_renders_and_orbits(browser, server):
@@ -125,7 +144,7 @@ def test_viewer_uploads_shows_cameras_renders_and_orbits(browser, server):
     canvas = d.find_element(By.ID, "view")
     ActionChains(d).move_to_element(canvas).click_and_hold().move_by_offset(40, 0) \
         .move_by_offset(40, 10).release().perform()
-    wait.until(lambda d: renders(d) > before and not d.execute_script("return pumping"))
+    wait.until(lambda d: renders(d) > before and full_frame_of_current_pose(d))
     ds = d.execute_script("return Object.assign({}, document.getElementById('view').dataset)")
     moved = np.array(json.loads(ds["pose"]))
     centre = np.array(d.execute_script("return state.centre"))
@@ -171,12 +190,183 @@ def test_viewer_uploads_shows_cameras_renders_and_orbits(browser, server):
         "return document.getElementById('view').dataset.pose")) == scene["world_from_cam"][2]
         and not d.execute_script("return pumping"))
     assert d.find_element(By.ID, "error").get_attribute("hidden") is not None   # no error shown
+    assert severe_console_messages(d) == []             # no 404 (favicon), no script error
 
     shot = os.environ.get("IRIS_VIEWER_SCREENSHOT")
-    if shot:
+    if shot:                               # docs/images/viewer.png (docs/SERVING.md says how)
         Select(d.find_element(By.ID, "size")).select_by_value("2")      # twice the model's
         Select(d.find_element(By.ID, "quality")).select_by_value("exact")
         n = renders(d)
         buttons[1].click()
-        wait.until(lambda d: renders(d) > n and not d.execute_script("return pumping"))
-        d.save_screenshot(shot)
+        wait.until(lambda d: renders(d) > n and full_frame_of_current_pose(d))
+        d.set_window_size(1440, 1000)                                   # the whole view card
+        try:
+            d.execute_script("window.scrollTo(0, 0)")
+            d.save_screenshot(shot)
+        finally:
+            d.set_window_size(1440, 960)
+
+
+# -- a moving camera ----------------------------------------------------------------------------
+
+def expected_sweep_deg(scene: dict, centre) -> tuple[float, float, float]:
+    """docs/SERVING.md's rule, from the scene's cameras: (degrees one drag across the view
+    turns, the photos' azimuth span, the margin the orbit may leave it by)."""
+    T = np.array(scene["world_from_cam"])
+    up = -T[:, :3, 1].mean(0)
+    up /= np.linalg.norm(up)
+    d = T[:, :3, 3] - np.asarray(centre)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    e1 = d.mean(0) - (d.mean(0) @ up) * up
+    e1 /= np.linalg.norm(e1)
+    az = np.sort(np.degrees(np.arctan2(d @ np.cross(up, e1), d @ e1)))
+    el = np.degrees(np.arcsin(np.clip(d @ up, -1, 1)))
+    gap = max(np.diff(az).max(initial=0.0), az[0] + 360 - az[-1])
+    span = 360 - gap
+    margin = max(6.0, 0.2 * max(span, el.max() - el.min()))
+    sweep = 180.0 if gap <= 2 * margin else float(np.clip(span + 2 * margin, 15, 180))
+    return sweep, span, margin
+
+
+def angle_about(centre, a, b) -> float:
+    """Degrees between camera centres a and b seen from the scene centre."""
+    u, v = np.asarray(a) - centre, np.asarray(b) - centre
+    return float(np.degrees(np.arccos(np.clip(u @ v / np.linalg.norm(u) / np.linalg.norm(v),
+                                              -1, 1))))
+
+
+def test_drag_previews_with_one_request_in_flight_then_the_full_frame(browser, server):
+    """A scripted drag (real mouse events): only previews (half the model's size, "fast") are
+    asked for while the mouse moves, never more than one render request in flight; holding still
+    asks for the full frame SETTLE_MS later; after the release the full frame of the final pose
+    is shown, equal to the API's render. The drag turns the camera about the scene centre by
+    the angle the scene's camera spread gives, not half a circle per view width."""
+    d = browser
+    scene = open_scene(d, server.url, PHOTOS[:4], WAIT, quality="balanced")
+    H, W = scene["image_size"]
+    centre = np.array(d.execute_script("return state.centre"))
+    start = np.array(scene["world_from_cam"][0])
+    sweep = float(d.execute_script("return document.getElementById('view').dataset.sweepDeg"))
+    expected, span, margin = expected_sweep_deg(scene, centre)
+    assert sweep == pytest.approx(expected, abs=0.01)
+    assert sweep < 90                            # these photos span a few tens of degrees at most
+    width = float(d.execute_script("return document.getElementById('view').clientWidth"))
+    d.execute_script(FETCH_PROBE)
+    dx = round(0.2 * width)                      # 0.2 sweep < margin: never at the orbit's limit
+    cdp_drag(d, dx, 0, seconds=1.2, hz=60, hold=0.6)
+    wait_for(d, "const c = document.getElementById('view'); return !pumping && "
+             "c.dataset.kind === 'full' && c.dataset.pose === JSON.stringify(state.pose);",
+             60, "the full frame after the drag")
+    st = d.execute_script("return window.viewerStats")
+    probe = d.execute_script("return window.__renderProbe")
+    drag = st["drags"][-1]
+    assert probe["max"] == 1 and st["maxInflight"] == 1          # never two renders in flight
+    moving = [r for r in probe["log"] if drag["start"] < r["t"] <= drag["lastMove"]]
+    assert moving and all((r["width"], r["height"], r["quality"]) == (W // 2, H // 2, "fast")
+                          for r in moving), moving
+    drawn = [f for f in st["frames"] if drag["start"] < f["t"] <= drag["end"]
+             and f["kind"] == "preview"]
+    assert drawn and all((f["width"], f["height"]) == (W // 2, H // 2) for f in drawn)
+    # Held still: the full frame was asked for SETTLE_MS (150 ms) after the last move, before
+    # the release; before it at most the preview of the last pose, which waited behind the one
+    # in flight; then nothing (the release finds the full frame on its way).
+    after = [(r["width"], r["height"], r["quality"], r["t"]) for r in probe["log"]
+             if r["t"] > drag["lastMove"]]
+    fulls = [r for r in after if r[:3] == (W, H, "balanced")]
+    assert len(fulls) == 1 and len(after) <= 2 and after[-1] == fulls[0], after
+    assert 130 <= fulls[0][3] - drag["lastMove"] and fulls[0][3] < drag["end"]
+    ds = d.execute_script("return Object.assign({}, document.getElementById('view').dataset)")
+    assert (int(ds["height"]), int(ds["width"]), ds["quality"]) == (H, W, "balanced")
+    moved = np.array(json.loads(ds["pose"]))
+    assert np.abs(moved[:3, :3].T @ moved[:3, :3] - np.eye(3)).max() < 1e-9
+    assert np.isclose(np.linalg.norm(moved[:3, 3] - centre), np.linalg.norm(start[:3, 3] - centre))
+    assert angle_about(centre, start[:3, 3], moved[:3, 3]) == pytest.approx(
+        dx * sweep / width, rel=0.03)
+    assert ds["coverage"] == "inside" and not d.find_element(By.ID, "outside").is_displayed()
+    shown = canvas_pixels(d)
+    expected_pixels = api_render(server.url, scene["scene_id"], moved.tolist(), H, W, "balanced")
+    assert np.abs(shown.astype(int) - expected_pixels.astype(int)).max() <= 1
+
+    # Far past the photos: the orbit stops at their arc plus the margin, and says it is outside.
+    turned = angle_about(centre, start[:3, 3], moved[:3, 3])
+    cdp_drag(d, -3 * width, 0, seconds=0.6, hz=60)
+    wait_for(d, "const c = document.getElementById('view'); return !pumping && "
+             "c.dataset.kind === 'full' && c.dataset.pose === JSON.stringify(state.pose);",
+             60, "the full frame after the second drag")
+    far = np.array(json.loads(d.execute_script(
+        "return document.getElementById('view').dataset.pose")))
+    beyond = angle_about(centre, start[:3, 3], far[:3, 3])
+    assert beyond <= span + margin + 0.5 + turned        # not 3 x sweep: stopped at the limit
+    assert beyond >= margin - 0.5
+    assert d.execute_script("return document.getElementById('view').dataset.coverage") == \
+        "outside"
+    assert d.find_element(By.ID, "outside").is_displayed()
+    d.find_element(By.CSS_SELECTOR, "#view-buttons button[data-view='1']").click()
+    wait_for(d, "return document.getElementById('view').dataset.coverage === 'inside' && "
+             "!pumping", 60, "back inside at view 1")
+    assert not d.find_element(By.ID, "outside").is_displayed()
+
+
+# -- layout, favicon, limits ---------------------------------------------------------------------
+
+OVERFLOW = """
+const out = [];
+for (const card of document.querySelectorAll('.card')) {
+  const c = card.getBoundingClientRect();
+  if (card.scrollWidth > card.clientWidth + 1) out.push(card.id + ' scrolls');
+  for (const el of card.querySelectorAll('*')) {
+    const r = el.getBoundingClientRect();
+    if (r.width === 0 || r.height === 0) continue;
+    if (r.right > c.right + 0.5 || r.left < c.left - 0.5)
+      out.push(card.id + ' > ' + (el.id || el.tagName) + ' ' + r.left + '..' + r.right +
+               ' outside ' + c.left + '..' + c.right);
+  }
+}
+return out;
+"""
+
+
+def test_layout_favicon_and_orbit_frames_limit(browser, server):
+    """Every card holds its content at four window widths (the Cameras menu overflowed its
+    card); the favicon is served and nothing fails in the console; the orbit-frames box shows
+    the server's limit and refuses a number over it instead of clamping it."""
+    d = browser
+    r = httpx.get(server.url + "/favicon.ico", timeout=30)
+    assert r.status_code == 200 and r.headers["content-type"] == "image/x-icon"
+    assert Image.open(io.BytesIO(r.content)).size[0] >= 16
+    assert httpx.get(server.url + "/static/favicon.svg", timeout=30).status_code == 200
+    d.get_log("browser")                                          # start from an empty log
+    open_scene(d, server.url, PHOTOS[:3], WAIT, quality="fast")
+    assert d.execute_script("return document.querySelector('link[rel=icon]').href")
+    Select(d.find_element(By.ID, "cameras")).select_by_value("refined")   # its longest option
+    try:
+        for size in ((1440, 960), (1180, 900), (1024, 900), (720, 900)):
+            d.set_window_size(*size)
+            assert d.execute_script(OVERFLOW) == [], size
+    finally:
+        d.set_window_size(1440, 960)
+
+    frames = d.find_element(By.ID, "frames")
+    assert d.find_element(By.ID, "frames-limit").text == "2–60"      # the server's limit
+    assert frames.get_attribute("max") == "60"
+    play, download = d.find_element(By.ID, "play"), d.find_element(By.ID, "download")
+    assert play.is_enabled() and download.is_enabled()
+    for text, message in (("9999", "at most 60"), ("61", "at most 60"), ("1", "2 to 60"),
+                          ("", "give a number")):
+        frames.clear()
+        if text:
+            frames.send_keys(text)
+        else:
+            frames.send_keys("5", Keys.BACKSPACE)
+        assert frames.get_attribute("value") == text                 # kept, not clamped
+        assert frames.get_attribute("aria-invalid") == "true"
+        assert not d.execute_script("return document.getElementById('frames').validity.valid")
+        error = d.find_element(By.ID, "frames-error")
+        assert error.is_displayed() and message in error.text, (text, error.text)
+        assert not play.is_enabled() and not download.is_enabled()
+    frames.clear()
+    frames.send_keys("60")
+    assert frames.get_attribute("aria-invalid") == "false"
+    assert not d.find_element(By.ID, "frames-error").is_displayed()
+    assert play.is_enabled() and download.is_enabled()
+    assert severe_console_messages(d) == []

@@ -21,8 +21,8 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from ..errors import ImageError, InputError, IrisError, ModelFileError
 
 __all__ = ["ApiError", "BadRequest", "Unauthorized", "NotFound", "PayloadTooLarge",
-           "UnsupportedMediaType", "Unprocessable", "Unsupported", "Superseded", "Busy", "Unavailable",
-           "RUNTIME_ERRORS",
+           "UnsupportedMediaType", "Unprocessable", "Unsupported", "Superseded", "Busy",
+           "Unavailable", "RUNTIME_ERRORS",
            "error_response", "field_message", "install_handlers"]
 
 log = logging.getLogger("iris.serve")
