@@ -326,10 +326,16 @@ def main(argv=None) -> int:
         if driver is not None:
             driver.quit()
         server.stop()
+    try:
+        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, text=True,
+                                capture_output=True, timeout=30).stdout.strip() or None
+    except (OSError, subprocess.SubprocessError):
+        commit = None
     out = {
         "command": "benchmarks/viewer_drag.py " + " ".join(sys.argv[1:] if argv is None
                                                            else argv),
         "note": args.note,
+        "commit": commit,
         "machine": {"cpus": os.cpu_count(), "platform": platform.platform(),
                     "python": platform.python_version(), "chromium": version,
                     "load_avg_start": [round(x, 2) for x in load_start],
