@@ -154,9 +154,10 @@ def wait_for(driver, script: str, timeout: float, what: str, poll: float = 0.02)
 
 
 def open_scene(driver, url: str, photos, timeout: float = 180.0, quality: str | None = None,
-               size: str | None = None) -> dict:
-    """Load the viewer, upload ``photos`` (full frames in ``quality`` at ``size``, the page's
-    menu values, when given), wait for the first full frame; the scene JSON."""
+               size: str | None = None, cameras: str | None = None) -> dict:
+    """Load the viewer, upload ``photos`` (full frames in ``quality`` at ``size``, cameras
+    ``cameras``: the page's menu values, when given), wait for the first full frame; the scene
+    JSON."""
     from selenium.webdriver.common.by import By
     from selenium.webdriver.support.ui import Select
     driver.get(url + "/")
@@ -166,6 +167,8 @@ def open_scene(driver, url: str, photos, timeout: float = 180.0, quality: str | 
         Select(driver.find_element(By.ID, "quality")).select_by_value(quality)
     if size is not None:
         Select(driver.find_element(By.ID, "size")).select_by_value(size)
+    if cameras is not None:
+        Select(driver.find_element(By.ID, "cameras")).select_by_value(cameras)
     driver.find_element(By.ID, "photos").send_keys("\n".join(str(p) for p in photos))
     driver.find_element(By.ID, "encode").click()
     wait_for(driver, "return document.getElementById('view').dataset.kind === 'full' && !pumping",

@@ -570,7 +570,7 @@ def test_cuda_provider_renders_like_the_cpu(model_dir, rt):
 def test_scene_store_is_lru_and_bounded(rt):
     from iris_runtime.serve.errors import NotFound, PayloadTooLarge
     from iris_runtime.serve.store import SceneStore, scene_nbytes
-    scene = rt.encode(PHOTOS[:2])
+    scene = rt.encode(PHOTOS[:2], cameras="model")      # no head's poses kept beside them
     size = scene_nbytes(scene)
     # The camera head's poses kept beside solved cameras count too.
     with_head = dataclasses.replace(scene, encoder_world_from_cam=scene.world_from_cam)

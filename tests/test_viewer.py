@@ -245,7 +245,8 @@ def test_drag_previews_with_one_request_in_flight_then_the_full_frame(browser, s
     is shown, equal to the API's render. The drag turns the camera about the scene centre by
     the angle the scene's camera spread gives, not half a circle per view width."""
     d = browser
-    scene = open_scene(d, server.url, PHOTOS[:4], WAIT, quality="balanced")
+    # Cameras solved from the photos: the same geometry whatever model the server runs.
+    scene = open_scene(d, server.url, PHOTOS[:4], WAIT, quality="adaptive", cameras="epipolar")
     H, W = scene["image_size"]
     centre = np.array(d.execute_script("return state.centre"))
     start = np.array(scene["world_from_cam"][0])
@@ -275,11 +276,11 @@ def test_drag_previews_with_one_request_in_flight_then_the_full_frame(browser, s
     # in flight; then nothing (the release finds the full frame on its way).
     after = [(r["width"], r["height"], r["quality"], r["t"]) for r in probe["log"]
              if r["t"] > drag["lastMove"]]
-    fulls = [r for r in after if r[:3] == (W, H, "balanced")]
+    fulls = [r for r in after if r[:3] == (W, H, "adaptive")]
     assert len(fulls) == 1 and len(after) <= 2 and after[-1] == fulls[0], after
     assert 130 <= fulls[0][3] - drag["lastMove"] and fulls[0][3] < drag["end"]
     ds = d.execute_script("return Object.assign({}, document.getElementById('view').dataset)")
-    assert (int(ds["height"]), int(ds["width"]), ds["quality"]) == (H, W, "balanced")
+    assert (int(ds["height"]), int(ds["width"]), ds["quality"]) == (H, W, "adaptive")
     moved = np.array(json.loads(ds["pose"]))
     assert np.abs(moved[:3, :3].T @ moved[:3, :3] - np.eye(3)).max() < 1e-9
     assert np.isclose(np.linalg.norm(moved[:3, 3] - centre), np.linalg.norm(start[:3, 3] - centre))
@@ -287,7 +288,7 @@ def test_drag_previews_with_one_request_in_flight_then_the_full_frame(browser, s
         dx * sweep / width, rel=0.03)
     assert ds["coverage"] == "inside" and not d.find_element(By.ID, "outside").is_displayed()
     shown = canvas_pixels(d)
-    expected_pixels = api_render(server.url, scene["scene_id"], moved.tolist(), H, W, "balanced")
+    expected_pixels = api_render(server.url, scene["scene_id"], moved.tolist(), H, W, "adaptive")
     assert np.abs(shown.astype(int) - expected_pixels.astype(int)).max() <= 1
 
     # Far past the photos: the orbit stops at their arc plus the margin, and says it is outside.
