@@ -36,6 +36,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 import torch
 import torch.distributed as dist
@@ -98,6 +99,17 @@ class TrainConfig:
     # model's by area averaging, so that the camera solve of ``render_cameras="epipolar"`` sees
     # photos at a photo's resolution, as at inference, not the model's thumbnails.
     classic_render_size: int = 0
+    # The renderer's reference colours and target pixels at this square size (0: the model's):
+    # the scenes are read at it (classic ones need ``classic_render_size`` equal to it, capture
+    # ones are rendered at CAPTURE_RENDER_SIZE) and the encoder sees them area-downsampled to the
+    # model's size, as the runtime brings a photo to the model. Features stay on the model's
+    # grid, so a ray costs what it costs at the model's size, and the blend learns from texture
+    # finer than the model's pixels (the runtime samples colours from the photos at the
+    # output's scale).
+    colour_size: int = 0
+    # Keep the camera head and its own encoder as they are (no gradient, no weight decay): a
+    # renderer fine-tune of a model whose head was distilled apart (``camera_encoder``).
+    freeze_cameras: bool = False
     seed: int = 0
     log_every: int = 10
     ckpt_every: int = 250
@@ -134,23 +146,30 @@ class PhotometricLoss(nn.Module):
 
     def forward(self, images: torch.Tensor, ref: list[torch.Tensor], tgt: list[torch.Tensor],
                 pixels: list[torch.Tensor], depths: list[torch.Tensor], teacher: list | None = None,
-                pose_batch: tuple | None = None, solved: list | None = None):
+                pose_batch: tuple | None = None, solved: list | None = None,
+                colour_images: torch.Tensor | None = None):
         """``images [B, V, 3, H, W]``; per scene b: reference/target view indices, target pixel
         indices ``[T, n]`` into H*W, stratified sample depths ``[T*n, S]``, and the teacher's
         ``(cam_from_cam [V, V, 4, 4], trusted [V, V], focal)`` in the drawn view order (or None);
         ``pose_batch``: ``(images [P, V, 3, H, W], is_reference [P, V], teachers)`` of extra scenes
         that only the teacher losses see (``TrainConfig.teacher_scenes``); ``solved``: per scene
         the solved cameras ``(world_from_cam [V, 4, 4], focal [2])`` in the drawn order, which the
-        renderer then uses instead of the head's (``TrainConfig.render_cameras``)."""
+        renderer then uses instead of the head's (``TrainConfig.render_cameras``);
+        ``colour_images [B, V, 3, H', W']``: the same views at ``TrainConfig.colour_size``, the
+        renderer's colours and targets (``pixels`` then index H'*W'), else ``images`` are."""
         model, cfg = self.model, self.cfg
         B, V = images.shape[:2]
-        H, W = images.shape[-2:]
+        colour = images if colour_images is None else colour_images
+        H, W = colour.shape[-2:]
         is_reference = torch.ones(B, V, dtype=torch.bool)
         for b in range(B):
             is_reference[b, tgt[b]] = False
         # Targets are queries: the references' features and cameras never see a target image.
         features, world_from_cam, focal = model.encode_batch(images, is_reference)
-        blurred = ibr.blur(images.flatten(0, 1)).reshape(images.shape) if cfg.aux_blur_weight else None
+        # The blur spans the same part of the scene whatever the colours' size.
+        dilation = 2 * (H // images.shape[-2])
+        blurred = (ibr.blur(colour.flatten(0, 1), dilation).reshape(colour.shape)
+                   if cfg.aux_blur_weight else None)
         uv_all = G.pixel_centres(H, W, dtype=images.dtype)
         terms: dict[str, list[torch.Tensor]] = {}
 
@@ -163,9 +182,12 @@ class PhotometricLoss(nn.Module):
                 cams, cam_focal = solved[b]
                 for name, value in solve_losses(world_from_cam[b], focal[b], cams, cam_focal).items():
                     add(name, value)
-            scene = Scene(model.field.prepare(features[b, ref[b]]), cams[ref[b]], cam_focal, (H, W),
-                          images[b, ref[b]] if model.cfg.explicit_rgb else None)
-            K = scene.intrinsics()
+            # The scene's image size is the model's (its projections and validity); explicit
+            # colours are sampled on a normalised grid, so they may come at any size.
+            scene = Scene(model.field.prepare(features[b, ref[b]]), cams[ref[b]], cam_focal,
+                          tuple(images.shape[-2:]),
+                          colour[b, ref[b]] if model.cfg.explicit_rgb else None)
+            K = scene.intrinsics(H, W)
             idx = pixels[b]                                                         # [T, n]
             origins, directions = G.rays_from_pixels(uv_all[idx], K, cams[tgt[b]])
             origins, directions = origins.reshape(-1, 3), directions.reshape(-1, 3)
@@ -174,7 +196,7 @@ class PhotometricLoss(nn.Module):
                 rgb = source[b, tgt[b]].flatten(2).transpose(1, 2)                 # [T, HW, 3]
                 return torch.gather(rgb, 1, idx[..., None].expand(-1, -1, 3)).reshape(-1, 3)
 
-            gt = gt_of(images)
+            gt = gt_of(colour)
             f, points, mask, colours = model.field_at(scene, origins, directions, depths[b])
             rgb, blend_weights = model.renderer(f, points, directions, mask.amax(-1), need_weights=False,
                                                 colours=colours)
@@ -184,7 +206,7 @@ class PhotometricLoss(nn.Module):
                 # for the paper's renderer, a training-only logit head on the point features.
                 logits = (torch.log(blend_weights.clamp_min(1e-30)) if model.cfg.explicit_rgb
                           else self.sample_logit(f)[..., 0])                        # [R, S]
-                levels = [(images, gt, cfg.aux_weight)]
+                levels = [(colour, gt, cfg.aux_weight)]
                 if blurred is not None:
                     levels.append((blurred, gt_of(blurred), cfg.aux_blur_weight))
                 for level, (source, target, weight) in enumerate(levels):
@@ -194,7 +216,7 @@ class PhotometricLoss(nn.Module):
                     mean, _, count = ibr.view_mean(colours, valid)
                     add("warp_blur" if level else "warp", ((ibr.blend_render(logits, mean, count) - target) ** 2).mean())
             if cfg.plane_sweep_weight:
-                sweep = ibr.plane_sweep_render(images[b, ref[b]], scene.world_from_cam, K, origins,
+                sweep = ibr.plane_sweep_render(colour[b, ref[b]], scene.world_from_cam, K, origins,
                                                directions, depths[b])
                 add("sweep", ((sweep - gt) ** 2).mean())
             if teacher is not None and teacher[b] is not None:
@@ -269,9 +291,14 @@ def lr_factor(step: int, cfg: TrainConfig) -> float:
 def make_optimizer(model: IrisModel, cfg: TrainConfig, extra: list | None = None) -> torch.optim.AdamW:
     """AdamW over the model (encoder + camera head at ``encoder_lr_scale``) and ``extra``
     training-only parameters (at the renderer's rate)."""
-    slow = list(model.encoder.parameters()) + list(model.camera_head.parameters())
+    cameras = list(model.camera_head.parameters())
     if model.camera_encoder is not None:
-        slow += list(model.camera_encoder.parameters())
+        cameras += list(model.camera_encoder.parameters())
+    if cfg.freeze_cameras:
+        for p in cameras:
+            p.requires_grad_(False)
+        cameras = []
+    slow = list(model.encoder.parameters()) + cameras
     fast = list(model.field.parameters()) + list(model.renderer.parameters()) + list(extra or [])
 
     def split(params):   # no weight decay on norms and biases
@@ -317,16 +344,22 @@ def _draw_solved(scenes, solutions, rng: np.random.Generator, n_views: int):
 
 
 def draw_batch(scenes, cfg: TrainConfig, mcfg: ModelConfig, rng: np.random.Generator, teachers=None,
-               solutions=None):
+               solutions=None, colour_scenes=None):
     """Random scenes, views, split, target pixels and stratified depths for one step; with
     ``teachers`` (scene index -> PseudoPoses), each scene's teacher in the drawn view order; with
     ``solutions`` (scene index -> SolvedCameras), only solved views are drawn and each scene's
-    solved cameras come along in the drawn order (the last element, else None)."""
+    solved cameras come along in the drawn order (else None); with ``colour_scenes`` (the same
+    scenes at ``cfg.colour_size``), the rendered scenes' views come from it, the model's images
+    are those area-downsampled, target pixels index the larger grid and the larger views come
+    last (``PhotometricLoss.forward``'s ``colour_images``; else None)."""
     n_views = int(rng.integers(cfg.views_min, cfg.views_max + 1))
     n_tgt = int(rng.integers(cfg.targets_min, cfg.targets_max + 1))
     H, W = mcfg.image_height, mcfg.image_width
     S = cfg.train_samples or mcfg.samples
     images, ref, tgt, pixels, depths, teacher, solved = [], [], [], [], [], [], []
+    colour_images = []
+    if colour_scenes is not None:
+        H = W = cfg.colour_size
     for _ in range(cfg.scenes_per_step):
         if solutions is not None:
             index, order, cams = _draw_solved(scenes, solutions, rng, n_views)
@@ -336,7 +369,13 @@ def draw_batch(scenes, cfg: TrainConfig, mcfg: ModelConfig, rng: np.random.Gener
             index = int(rng.integers(len(scenes)))
             data = scenes[index]
             order = rng.permutation(data.images.shape[0])[:n_views]    # random order: "Rand"
-        images.append(data.images[order])
+        if colour_scenes is None:
+            images.append(data.images[order])
+        else:
+            large = colour_scenes[index].images[order]
+            colour_images.append(large)
+            images.append(np.stack([cv2.resize(v, (mcfg.image_width, mcfg.image_height),
+                                               interpolation=cv2.INTER_AREA) for v in large]))
         if teachers is not None:
             teacher.append(_teacher_in_order(teachers(index), order))
         # View 0 of the drawn order is the canonical frame, so it is always a reference.
@@ -364,7 +403,8 @@ def draw_batch(scenes, cfg: TrainConfig, mcfg: ModelConfig, rng: np.random.Gener
         pose_ref[:, V - n_tgt:] = False          # the last n_tgt views are queries, as in rendering
         pose_batch = (_as_batch(pose_images), pose_ref, pose_targets)
     return (_as_batch(images), ref, tgt, pixels, depths, (teacher if teachers is not None else None), pose_batch,
-            solved if solutions is not None else None)
+            solved if solutions is not None else None,
+            _as_batch(colour_images) if colour_scenes is not None else None)
 
 
 #: Render size of the capture-like training scenes: the teacher's solve sees them at this size,
@@ -429,9 +469,13 @@ def model_config(cfg: TrainConfig, start: dict | None = None) -> ModelConfig:
     or, when that is "", the head of the checkpoint the run starts from (``start``: its config
     dict; a checkpoint without the field has the token head), else the preset's own."""
     base = preset(cfg.preset)
-    head = cfg.camera_head or (start.get("camera_head", "tokens") if isinstance(start, dict)
-                               else base.camera_head)
-    return dataclasses.replace(base, camera_head=head)
+    if cfg.camera_head or not isinstance(start, dict):
+        return dataclasses.replace(base, camera_head=cfg.camera_head or base.camera_head)
+    # The checkpoint's cameras as they are: its head, and its own camera encoder if it has one.
+    return dataclasses.replace(base, camera_head=start.get("camera_head", "tokens"),
+                               camera_encoder=bool(start.get("camera_encoder", False)),
+                               correlation_scale=start.get("correlation_scale",
+                                                           base.correlation_scale))
 
 
 #: State-dict prefix of the camera head: the only weights an ``--init`` may leave unloaded.
@@ -476,6 +520,27 @@ def load_init_weights(model: IrisModel, payload: dict, what: str = "init") -> li
                                     if k in own and k not in reshaped}, strict=False)
     assert not result.unexpected_keys and set(result.missing_keys) == missing | reshaped
     return sorted(missing | reshaped)
+
+
+def _colour_scenes(cfg: TrainConfig):
+    """The training scenes at ``cfg.colour_size`` (square), indexed as ``train``'s scene sets:
+    the classic scenes (their cached renders: ``classic_render_size`` must be that size), then
+    the capture ones (CAPTURE_RENDER_SIZE). ``ValueError`` for a size no cache holds."""
+    from .data import SyntheticScenes
+    side = cfg.colour_size
+    if cfg.classic_render_size != side:
+        raise ValueError(f"colour_size: the classic scenes are cached at classic_render_size "
+                         f"({cfg.classic_render_size}); expected colour_size equal to it, got {side}")
+    if cfg.capture_scenes and CAPTURE_RENDER_SIZE != (side, side):
+        raise ValueError(f"colour_size: the capture scenes are rendered at {CAPTURE_RENDER_SIZE}; "
+                         f"expected colour_size {CAPTURE_RENDER_SIZE[0]}, got {side}")
+    size = (side, side)
+    scenes = SyntheticScenes(range(cfg.train_scenes), size=size, render_size=size)
+    if cfg.capture_scenes:
+        capture = SyntheticScenes(range(cfg.capture_scenes), size=size, kind="capture",
+                                  render_size=CAPTURE_RENDER_SIZE)
+        scenes = SceneSets([scenes, capture])
+    return scenes
 
 
 def _setup_distributed() -> tuple[int, int]:
@@ -544,6 +609,7 @@ def train(cfg: TrainConfig, out: Path, resume: bool = False, scenes=None, thread
             capture = SyntheticScenes(range(cfg.capture_scenes), size=size, kind="capture",
                                       render_size=CAPTURE_RENDER_SIZE)
             scenes = SceneSets([scenes, capture])
+    colour_scenes = _colour_scenes(cfg) if cfg.colour_size else None
     if cfg.render_cameras not in CAMERAS[:2]:        # "refined" needs a trained head first
         raise ValueError(f"render_cameras: expected one of {CAMERAS[:2]}, got "
                          f"{cfg.render_cameras!r}")
@@ -574,7 +640,7 @@ def train(cfg: TrainConfig, out: Path, resume: bool = False, scenes=None, thread
             group["lr"] = cfg.lr * factor * group["lr_scale"]
         # One generator per (seed, rank, step): a resumed run draws exactly the batches it would have.
         batch = draw_batch(scenes, cfg, mcfg, np.random.default_rng([cfg.seed, rank, step]), teachers,
-                           solutions)
+                           solutions, colour_scenes)
         loss, terms = step_module(*batch)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
@@ -632,6 +698,10 @@ def main(argv: list[str] | None = None) -> int:
             parser.add_argument("--camera-head", choices=CAMERA_HEADS, default=field.default,
                                 help="camera head of the model (default: the --init/--resume "
                                      "checkpoint's, else the preset's)")
+            continue
+        if isinstance(field.default, bool):
+            parser.add_argument("--" + field.name.replace("_", "-"), default=field.default,
+                                action=argparse.BooleanOptionalAction)
             continue
         parser.add_argument("--" + field.name.replace("_", "-"), type=type(field.default),
                             default=field.default, help=f"(default: {field.default})")
