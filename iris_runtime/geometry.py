@@ -209,7 +209,8 @@ def bilinear_taps(feature_maps: np.ndarray) -> np.ndarray:
 def sample_taps(taps: np.ndarray, size: tuple[int, int], grid: np.ndarray,
                 views: np.ndarray | None = None) -> np.ndarray:
     """``sample_bilinear`` of the maps of ``bilinear_taps`` (maps of ``size`` (h, w)) at ``grid
-    [V', ..., 2]``, view ``views[k]`` (default k) at ``grid[k]`` -> ``[V', ..., C]``, bit for bit.
+    [V', ..., 2]``, view ``views[k]`` (default k) at ``grid[k]`` -> ``[V', ..., C]``, bit for bit
+    (float taps; integer taps, such as uint8 photos, are interpolated in float32).
 
     One gather of a cell's four taps per sample, channel-major (the weights broadcast along
     contiguous rows), instead of four gathers of C-value rows and arithmetic on ``[N, C]`` with a
@@ -220,13 +221,15 @@ def sample_taps(taps: np.ndarray, size: tuple[int, int], grid: np.ndarray,
     h, w = size
     C = taps.shape[2]
     views = np.arange(grid.shape[0]) if views is None else views
-    out = np.empty(grid.shape[:-1] + (C,), dtype=taps.dtype)
+    # Integer taps (uint8 photos) are interpolated in float32 with the same rule.
+    dtype = taps.dtype if taps.dtype.kind == "f" else np.dtype(np.float32)
+    out = np.empty(grid.shape[:-1] + (C,), dtype=dtype)
     for k, view in enumerate(views):
         gx = np.clip(((grid[k, ..., 0] + 1.0) * w - 1.0) / 2.0, 0.0, w - 1.0).reshape(-1)
         gy = np.clip(((grid[k, ..., 1] + 1.0) * h - 1.0) / 2.0, 0.0, h - 1.0).reshape(-1)
         fx, fy = np.floor(gx), np.floor(gy)
-        wx = (gx - fx).astype(taps.dtype)
-        wy = (gy - fy).astype(taps.dtype)
+        wx = (gx - fx).astype(dtype)
+        wy = (gy - fy).astype(dtype)
         f = taps[view].take(fy.astype(np.intp) * w + fx.astype(np.intp), axis=2)   # [4, C, N]
         s = (f[0] * (1 - wx) + f[1] * wx) * (1 - wy) + (f[2] * (1 - wx) + f[3] * wx) * wy
         out[k] = s.T.reshape(out.shape[1:])

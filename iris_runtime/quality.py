@@ -82,6 +82,14 @@ class RenderSettings:
                mode's bin alone); None: every sample
     depth_mass:    ... unless the coarse rays carried less than this fraction of their weight in
                their windows: every sample then (the exact fallback of spread-out rays)
+    field_scale:   two scales (explicit-colour models, ``iris_runtime.detail``), for renders
+               that march more pixels than the model's resolution: march the field at this
+               fraction of the rows and columns and take the colour of every pixel from the
+               photos through the coarse rays' geometry. A render no larger than the model's
+               resolution is marched exactly (its colours are the model-resolution images: the
+               photos have nothing finer to give it). None: off
+    colour_samples: with ``field_scale``, depth bins of each coarse ray the colour is read at
+               (its heaviest, rescaled to its total weight)
     """
     samples: int | None = None
     top_k: int | None = None
@@ -94,6 +102,8 @@ class RenderSettings:
     refine_budget: float = 1.0
     depth_window: int | None = None
     depth_mass: float = 0.9
+    field_scale: float | None = None
+    colour_samples: int = 8
 
     def __post_init__(self):
         for name in ("samples", "top_k"):
@@ -108,11 +118,24 @@ class RenderSettings:
         if self.refine is not None:
             _check_fraction("refine", self.refine, ">= 0 or None", lambda x: x >= 0.0)
         check_integer(self.depth_window, "depth_window", minimum=0, allow_none=True)
+        if self.field_scale is not None:
+            _check_fraction("field_scale", self.field_scale, "in (0, 1] or None",
+                            lambda x: 0.0 < x <= 1.0)
+            if self.refine is not None or self.depth_window is not None:
+                raise InputError("field_scale: two scales replace refine and depth_window's "
+                                 "coarse-to-fine march; set refine and depth_window to None")
+        check_integer(self.colour_samples, "colour_samples", minimum=1)
         if self.precision is not None and (not isinstance(self.precision, str)
                                            or self.precision not in PRECISIONS):
             raise InputError(f"precision: expected one of {list(PRECISIONS)} or None, got "
                              f"{self.precision!r}")
 
+
+    def two_scales(self, march_size: tuple[int, int], model_size: tuple[int, int]) -> bool:
+        """Whether a render marching ``march_size`` pixels takes two scales: ``field_scale`` is
+        set and the march is larger than ``model_size`` on a side."""
+        return self.field_scale is not None and (march_size[0] > model_size[0]
+                                                 or march_size[1] > model_size[1])
 
     def march_size(self, height: int, width: int) -> tuple[int, int]:
         """The pixels a render of ``height`` x ``width`` marches before its resize: ``scale`` x

@@ -23,10 +23,11 @@ depth's mode) and the weight within ``mode_radius`` of it (how concentrated the 
 The renderer graph samples the field maps itself at ``grid`` (bilinear, align_corners=False,
 border-clamped; how is the exporter's choice: a dense bilinear matmul for small feature grids,
 ``GridSample`` above, see export/graphs.py). Explicit-colour models (``config.explicit_rgb``) also
-get ``colours`` [V', R, S, 3]: each call's views' reference photos (at the model's full
-resolution whatever the output size, scale or sample count) sampled in numpy at the same ``grid``
-(``geometry.sample_taps`` of the photos' ``bilinear_taps``, ``plan.photo_taps``, built once per
-plan: the same values as ``geometry.sample_bilinear_views``). Masked (view, sample) pairs carry
+get ``colours`` [V', R, S, 3]: each call's views' reference photos sampled in numpy at the same
+``grid``, from the level of each photo's pyramid that matches the plan's focal in pixels
+(``plan.colours``, an ``iris_runtime.colour.ColourSource`` built once per plan: the photos as
+given for a large output, the model-resolution images, bit for bit as
+``geometry.sample_bilinear_views``, at the model's size). Masked (view, sample) pairs carry
 colours too (ignored by the graph), so every culling, top_k, samples, scale, int8 and workers path
 feeds the graph exactly what it feeds without explicit colour, plus the colours of the same
 samples.
@@ -55,12 +56,13 @@ import numpy as np
 
 from . import geometry as G
 from . import quality as Q
+from .colour import ColourSource, blend_residual, mean_colour
 from .io_spec import (COLOURS, CUES, DIRECTIONS, FIELD_MAPS, GRID, GROUPS, MASK, PAIRS, POSITIONS,
                       RGB, WEIGHTS)
 from .scene import Scene
 
-__all__ = ["MarchPlan", "Block", "Call", "MarchStats", "MarchResult", "march", "trace_block",
-           "plan_calls", "call_feed", "empty_ray_rgb"]
+__all__ = ["MarchPlan", "focal_ratio", "Block", "Call", "MarchStats", "MarchResult", "march",
+           "trace_block", "plan_calls", "call_feed", "empty_ray_rgb"]
 
 f32 = np.float32
 
@@ -82,8 +84,8 @@ class MarchPlan:
       cam_from_world: float32 [V, 4, 4]    inverted in float64, then rounded
       centres:        float32 [V, 3]       camera centres in world
       field_maps:     float32 [V, C', h, w]
-      photo_taps:     float32 [V, 4, 3, H*W] or None: each view's reference photo (explicit
-                                           colour) as ``geometry.bilinear_taps``
+      colours:        ``colour.ColourSource`` or None: each view's reference photo (explicit
+                                           colour) at the level of this render's scale
     View sets:
       top_k:          int or None          views kept per sample point (None: every valid view)
       by_ray:         bool                 top_k chosen per ray (calls then shrink to top_k views)
@@ -104,6 +106,10 @@ class MarchPlan:
                                            (0 <= lo < hi <= S; the others are masked out)
       mode_radius:    float or None        also return each ray's weight mode and the weight
                                            within this depth distance of it (``MarchResult``)
+    Two scales (``iris_runtime.detail``):
+      keep_weights:   bool                 also return each ray's weights over the S depth bins
+                                           and its colour residual (``MarchResult``; explicit
+                                           colour, not with ``select_views``)
     """
     height: int
     width: int
@@ -115,7 +121,7 @@ class MarchPlan:
     cam_from_world: np.ndarray
     centres: np.ndarray
     field_maps: np.ndarray
-    photo_taps: np.ndarray | None
+    colours: ColourSource | None
     top_k: int | None
     by_ray: bool
     cull: bool
@@ -126,20 +132,25 @@ class MarchPlan:
     sample_window: np.ndarray | None = None
     mode_radius: float | None = None
     select_views: bool = False
+    keep_weights: bool = False
 
     @classmethod
     def build(cls, scene: Scene, world_from_cam: np.ndarray, K: np.ndarray, height: int,
               width: int, *, samples: int, near: float, far: float, top_k: int | None,
               top_k_by: str, chunk_rays: int, cull: bool, empty_rgb: np.ndarray | None,
-              photos: np.ndarray | None, pixel_index: np.ndarray | None = None,
+              photos: np.ndarray | None, kept_photos: tuple | None = None,
+              levels: dict | None = None, pixel_index: np.ndarray | None = None,
               sample_window: np.ndarray | None = None,
-              mode_radius: float | None = None, select_views: bool = False) -> "MarchPlan":
+              mode_radius: float | None = None, select_views: bool = False,
+              keep_weights: bool = False) -> "MarchPlan":
         """The plan of rendering ``scene`` from ``world_from_cam`` (checked, float64 4x4) with
         intrinsics ``K`` (pixels of the ``height`` x ``width`` render); ``pixel_index``,
         ``sample_window``, ``mode_radius``: see the class (built by ``iris_runtime.adaptive``,
         which owns their contract). ``select_views``: feed the renderer on per-point
         pre-selected views (``io_spec.RENDERER_VIEWS``, ``select_point_views``) with per-point
-        ``top_k``."""
+        ``top_k``. ``photos`` float32 [V, 3, H, W] (explicit colour: each view's photo at the
+        model's resolution) and ``kept_photos`` (per view uint8 [h, w, 3] or None, with the
+        pyramid cache ``levels``): the colour source, ``colour.ColourSource``."""
         V = scene.num_views
         by_ray = top_k is not None and top_k_by == "ray" and top_k < V
         return cls(height=int(height), width=int(width),
@@ -149,7 +160,8 @@ class MarchPlan:
                    cam_from_world=_frozen(G.invert_pose(scene.world_from_cam).astype(f32)),
                    centres=_frozen(scene.world_from_cam[:, :3, 3].astype(f32)),
                    field_maps=scene.field_maps,
-                   photo_taps=None if photos is None else _frozen(G.bilinear_taps(photos)),
+                   colours=None if photos is None else ColourSource.build(
+                       photos, kept_photos, focal_ratio(K, scene.K), levels),
                    top_k=top_k if top_k is not None and top_k < V else None, by_ray=by_ray,
                    cull=bool(cull), empty_rgb=empty_rgb if cull else None,
                    chunk_rays=int(chunk_rays),
@@ -159,7 +171,7 @@ class MarchPlan:
                    sample_window=None if sample_window is None else _frozen(
                        np.asarray(sample_window, np.int64)),
                    mode_radius=None if mode_radius is None else float(mode_radius),
-                   select_views=bool(select_views))
+                   select_views=bool(select_views), keep_weights=bool(keep_weights))
 
     @property
     def pixels(self) -> int:
@@ -259,12 +271,24 @@ class MarchResult:
     """rgb float32 [N, 3], depth float32 [N] of the N rays marched (row-major pixels, or in the
     order of ``plan.pixel_index``) and the stats. With ``plan.mode_radius``: ``mode`` float32 [N],
     the depth of each ray's largest weight, and ``mass`` float32 [N], its weight within
-    ``mode_radius`` of that depth (both 0 for a ray without valid samples); else None."""
+    ``mode_radius`` of that depth (both 0 for a ray without valid samples); else None. With
+    ``plan.keep_weights``: ``weights`` float32 [N, S], each ray's blend weights over the depth
+    bins ``plan.z_bins`` (0 where a sample was culled), and ``residual`` float32 [N, 3], what the
+    renderer's colour head added to the blend's logit (``colour.blend_residual``); else None."""
     rgb: np.ndarray
     depth: np.ndarray
     stats: MarchStats
     mode: np.ndarray | None = None
     mass: np.ndarray | None = None
+    weights: np.ndarray | None = None
+    residual: np.ndarray | None = None
+
+
+def focal_ratio(K: np.ndarray, ref_K: np.ndarray) -> float:
+    """The render's focal in its pixels over the references' in the model's (geometric mean of
+    x and y): how many model pixels one output pixel spans, inverted."""
+    return float(np.sqrt(abs(float(K[0, 0]) * float(K[1, 1]))
+                         / (float(ref_K[0, 0]) * float(ref_K[1, 1]))))
 
 
 def _frozen(a: np.ndarray) -> np.ndarray:
@@ -285,11 +309,19 @@ def march(plan: MarchPlan, session, *, workers: int = 1,
     n, block = plan.rays, plan.block_rays
     rgb, depth = np.empty((n, 3), f32), np.zeros(n, f32)
     modes = None if plan.mode_radius is None else (np.zeros(n, f32), np.zeros(n, f32))
+    kept = None
+    if plan.keep_weights:
+        if plan.select_views or plan.colours is None:
+            raise ValueError("keep_weights: needs explicit colour and the view-major feed")
+        # Rays no call renders keep zero weights and the residual of the empty colour.
+        kept = (np.zeros((n, plan.samples), f32),
+                np.broadcast_to(blend_residual(plan.empty_rgb, np.zeros(3, f32)), (n, 3)).copy()
+                if plan.empty_rgb is not None else np.zeros((n, 3), f32))
     stats = MarchStats()
     starts = range(0, n, block)
 
     def one(start: int) -> MarchStats:
-        return _march_block(plan, session, start, rgb, depth, modes)
+        return _march_block(plan, session, start, rgb, depth, modes, kept)
 
     def done(start: int, part: MarchStats) -> None:
         stats.add(part)
@@ -304,15 +336,15 @@ def march(plan: MarchPlan, session, *, workers: int = 1,
         with ThreadPoolExecutor(workers, thread_name_prefix="iris-render") as pool:
             for start, part in zip(starts, pool.map(one, starts)):
                 done(start, part)
-    if modes is None:
-        return MarchResult(rgb, depth, stats)
-    return MarchResult(rgb, depth, stats, *modes)
+    return MarchResult(rgb, depth, stats, *(modes or (None, None)), *(kept or (None, None)))
 
 
 def _march_block(plan: MarchPlan, session, start: int, rgb: np.ndarray, depth: np.ndarray,
-                 modes: tuple[np.ndarray, np.ndarray] | None) -> MarchStats:
+                 modes: tuple[np.ndarray, np.ndarray] | None,
+                 kept: tuple[np.ndarray, np.ndarray] | None = None) -> MarchStats:
     """Trace the block of rays from ``start``, run its renderer calls, write its rows of
-    ``rgb`` and ``depth`` (and of ``modes`` = (mode, mass) with ``plan.mode_radius``)."""
+    ``rgb`` and ``depth`` (and of ``modes`` = (mode, mass) with ``plan.mode_radius``, of
+    ``kept`` = (weights, residual) with ``plan.keep_weights``)."""
     stats = MarchStats()
     t0 = time.perf_counter()
     block = trace_block(plan, start)
@@ -340,6 +372,13 @@ def _march_block(plan: MarchPlan, session, start: int, rgb: np.ndarray, depth: n
             modes[0][rows] = z_mode[:, 0]
             modes[1][rows] = np.where(np.abs(z - z_mode) <= plan.mode_radius, weights,
                                       f32(0)).sum(axis=1)
+        if kept is not None:
+            # The packed samples back on their bins (z is a bin centre, bit for bit).
+            dense = np.zeros((len(rows), plan.samples), f32)
+            np.put_along_axis(dense, np.searchsorted(plan.z_bins, z), weights, axis=1)
+            kept[0][rows] = dense
+            mean = mean_colour(feed[COLOURS], feed[MASK])                     # [r, s, 3]
+            kept[1][rows] = blend_residual(out_rgb, np.einsum("rs,rsc->rc", weights, mean))
         t3 = time.perf_counter()
         stats.rays_s += (t1 - t0) + (t3 - t2)
         stats.renderer_s += t2 - t1
@@ -445,9 +484,8 @@ def call_feed(plan: MarchPlan, block: Block, call: Call,
     feed = {FIELD_MAPS: field_maps, GRID: grid, CUES: np.ascontiguousarray(cue),
             MASK: np.ascontiguousarray(mask), POSITIONS: points,
             DIRECTIONS: block.directions[call.rays]}
-    if plan.photo_taps is not None:    # explicit colour: the photos at the same grid
-        feed[COLOURS] = G.sample_taps(plan.photo_taps, plan.image_size, grid,
-                                        block.views[call.views])
+    if plan.colours is not None:       # explicit colour: the photos at the same grid
+        feed[COLOURS] = plan.colours.sample(grid, block.views[call.views])
     return (select_point_views(feed) if plan.select_views else feed), z
 
 

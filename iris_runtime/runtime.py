@@ -37,12 +37,13 @@ from typing import Callable, Sequence
 import numpy as np
 import onnxruntime as ort
 
-from . import adaptive
+from . import adaptive, detail
 from . import geometry as G
 from . import limits as L
 from . import quality as Q
 from . import raymarch
 from .errors import InputError, ManifestError, ModelFileError
+from .colour import ColourSource, keep_photo
 from .images import fit_to_model, load_image
 from .io_spec import FIELD_MAPS, FOCAL, IMAGES, IS_REFERENCE, WORLD_FROM_CAM
 from .limits import (MAX_CHUNK_RAYS, MAX_CHUNK_SAMPLES, MAX_ENCODER_TOKENS, MAX_LOCATE_CALLS,
@@ -383,8 +384,12 @@ class IrisRuntime:
         poses64 = world_from_cam.astype(np.float64)
         model_id = self.manifest.graphs["encoder"].sha256
         model_K = G.intrinsics_from_focal(focal64, H, W)
+        # Explicit colour: the photos as given (cropped, bounded) for colours finer than the
+        # model's pixels (iris_runtime.colour).
+        kept = (tuple(keep_photo(p, (H, W)) for p in photos) if self.manifest.explicit_rgb
+                else None)
         if cameras == "model":
-            return Scene(maps, poses64, focal64, model_K, (H, W), model_id, batch)
+            return Scene(maps, poses64, focal64, model_K, (H, W), model_id, batch, photos=kept)
         from .cameras import canonical_start, refine_model_cameras, replace_model_cameras
         with self._blas_threads():
             if cameras == "refined":
@@ -402,7 +407,8 @@ class IrisRuntime:
                      encoder_focal=None if cams.source == "model" else focal64,
                      camera_size=cams.camera_size, camera_status=cams.status,
                      camera_solve=cams.solve,
-                     encoder_world_from_cam=None if cams.source == "model" else poses64)
+                     encoder_world_from_cam=None if cams.source == "model" else poses64,
+                     photos=kept)
 
     # -- locating ---------------------------------------------------------------------------
     def locate(self, scene: Scene, image, *, with_status: bool = False):
@@ -508,7 +514,9 @@ class IrisRuntime:
         job = self._render_job(images_or_scene, pose, Q.resolve_settings(quality, **knobs),
                                height, width, intrinsics, chunk_rays, progress, timings)
         march = functools.partial(self._march_at, job)
-        if job.settings.refine is None and job.settings.depth_window is None:
+        if job.settings.two_scales(job.march_size, self.image_size):
+            marched, work = self._two_scales(job, progress, timings)
+        elif job.settings.refine is None and job.settings.depth_window is None:
             marched, work = march(*job.march_size, progress=progress), {}
         else:
             marched = adaptive.render(job.settings, march, *job.march_size, near=self.near,
@@ -538,7 +546,12 @@ class IrisRuntime:
             self._check_scene(scene)
         else:
             scene = self._encode(images_or_scene, timings, self.default_cameras)
+        if settings.field_scale is not None and not self.manifest.explicit_rgb:
+            raise InputError("field_scale: two scales need an explicit-colour model (the colour "
+                             "from the photos); this model's colour comes from its field")
         photos = self._view_images(scene)             # explicit colour: the photos are there
+        kept_photos = (None if photos is None or scene.photos is None
+                       else tuple(scene.photos[i] for i in scene.image_index.tolist()))
         world_from_cam = self._check_pose(pose, scene)
         K = self._check_intrinsics(intrinsics, scene, *size)
         samples = settings.samples or self.samples
@@ -559,7 +572,7 @@ class IrisRuntime:
         return RenderJob(scene=scene, world_from_cam=world_from_cam, K=K, size=size,
                           march_size=march_size, settings=settings, samples=samples,
                           chunk_rays=chunk_rays, graph=graph, select_views=select_views,
-                          photos=photos)
+                          photos=photos, kept_photos=kept_photos)
 
     def _march_at(self, job: "RenderJob", mh: int, mw: int, progress=None,
                   **subset) -> raymarch.MarchResult:
@@ -571,10 +584,33 @@ class IrisRuntime:
             job.scene, job.world_from_cam, K, mh, mw, samples=job.samples, near=self.near,
             far=self.far, top_k=job.settings.top_k, top_k_by=job.settings.top_k_by,
             chunk_rays=job.chunk_rays, cull=self.cull, photos=job.photos,
+            kept_photos=job.kept_photos, levels=job.scene._levels,
             empty_rgb=self._empty_ray_rgb(job.scene, job.graph) if self.cull else None,
             select_views=job.select_views, **subset)
         session = self._session("renderer_views" if job.select_views else job.graph)
         return raymarch.march(plan, session, workers=self.workers, progress=progress)
+
+    def _two_scales(self, job: "RenderJob", progress, timings: dict):
+        """``field_scale``: the field marched at the coarse size, the colour of every pixel of
+        ``job.march_size`` composed from the photos through it (``iris_runtime.detail``) ->
+        (``raymarch.MarchResult`` at ``job.march_size``, work counts)."""
+        h, w = job.march_size
+        hc = max(1, int(round(h * job.settings.field_scale)))
+        wc = max(1, int(round(w * job.settings.field_scale)))
+        coarse = self._march_at(job, hc, wc, progress=progress, keep_weights=True)
+        t0 = time.perf_counter()
+        scene = job.scene
+        colours = ColourSource.build(job.photos, job.kept_photos,
+                                     raymarch.focal_ratio(job.K, scene.K), scene._levels)
+        rgb, depth = detail.compose_fine(
+            detail.CoarseField((hc, wc), coarse.weights, coarse.residual, coarse.depth), h, w,
+            job.K, job.world_from_cam, G.sample_depths(self.near, self.far, job.samples, 1,
+                                                       dtype=np.float32)[0],
+            scene.K.astype(np.float32), G.invert_pose(scene.world_from_cam).astype(np.float32),
+            scene.image_size, colours, job.settings.colour_samples)
+        timings["colour"] = time.perf_counter() - t0
+        work = {"coarse_rays": hc * wc, "pixels": h * w}
+        return raymarch.MarchResult(rgb, depth, coarse.stats), work
 
     @staticmethod
     def _to_output_size(job: "RenderJob", marched, timings: dict):

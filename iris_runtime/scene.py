@@ -82,6 +82,12 @@ class Scene:
                     ``world_from_cam`` is the encoder's). Rigid, in the head's own frame and unit
                     (its view 0 = I before ``subset``), so compare it with other cameras only
                     after a similarity alignment. ``subset`` keeps it in step with the views
+    photos:         per row of ``reference_images``, the photo as given (uint8 [h, w, 3]),
+                    centre-cropped to the model's aspect and at most
+                    ``colour.MAX_PHOTO_SIDE`` on its long side (``colour.keep_photo``): where
+                    explicit-colour models read colours finer than the model's resolution
+                    (``iris_runtime.colour``). None: the model-resolution images serve every
+                    output size
     """
     field_maps: np.ndarray
     world_from_cam: np.ndarray
@@ -98,6 +104,9 @@ class Scene:
     camera_solve: "CameraSolve | None" = field(default=None, repr=False)
     # Last, not beside encoder_focal: callers build Scenes with positional arguments.
     encoder_world_from_cam: np.ndarray | None = field(default=None, repr=False)
+    photos: tuple[np.ndarray, ...] | None = field(default=None, repr=False)
+    # The photos' pyramid levels made by renders ({(id, size): (photo, level)}, colour._level).
+    _levels: dict = field(default_factory=dict, init=False, repr=False)
 
     def __post_init__(self):
         arrays = {}
@@ -193,7 +202,11 @@ class Scene:
             if len(status) != V or any(x not in CAMERA_STATUSES for x in status):
                 raise InputError(f"camera_status: expected {V} values of {list(CAMERA_STATUSES)} "
                                  f"or None, got {self.camera_status!r}")
-        for name, value in (("field_maps", maps), ("world_from_cam", poses), ("focal", focal),
+        photos = self.photos
+        if photos is not None:
+            photos = _check_photos(photos, refs, size)
+        for name, value in (("photos", photos), ("field_maps", maps), ("world_from_cam", poses),
+                            ("focal", focal),
                             ("image_size", size), ("K", K), ("reference_images", refs),
                             ("image_index", index), ("encoder_focal", enc_focal),
                             ("camera_size", cam_size), ("camera_status", status),
@@ -235,13 +248,44 @@ class Scene:
                      else tuple(self.camera_status[i] for i in idx.tolist()),
                      self.camera_solve,
                      None if self.encoder_world_from_cam is None
-                     else self.encoder_world_from_cam[idx])
+                     else self.encoder_world_from_cam[idx], self.photos)
 
     def __repr__(self) -> str:
         solved = "" if self.camera_size is None else f", camera_size={self.camera_size}"
         return (f"Scene(views={self.num_views}, field_maps={tuple(self.field_maps.shape)}, "
                 f"image_size={self.image_size}, focal={np.round(self.focal, 4).tolist()}, "
                 f"camera_source={self.camera_source!r}{solved})")
+
+
+def _check_photos(photos, refs: np.ndarray | None, size: tuple[int, int]) -> tuple:
+    """``Scene.photos`` checked: one uint8 [h, w, 3] array per reference image, of the model's
+    aspect (its centre crop is itself) and within ``colour.MAX_PHOTO_SIDE``; read-only copies."""
+    from .colour import MAX_PHOTO_SIDE
+    from .images import plan_crop_resize
+    if refs is None:
+        raise InputError("photos: given without reference_images (one photo per reference image)")
+    if isinstance(photos, np.ndarray) or not isinstance(photos, (list, tuple)) \
+            or len(photos) != refs.shape[0]:
+        raise InputError(f"photos: expected a list of {refs.shape[0]} uint8 [h, w, 3] arrays (one "
+                         f"per reference image), got {type(photos).__name__}"
+                         + (f" of {len(photos)}" if isinstance(photos, (list, tuple)) else ""))
+    out = []
+    for i, p in enumerate(photos):
+        if not isinstance(p, np.ndarray) or p.dtype != np.uint8 or p.ndim != 3 \
+                or p.shape[2] != 3 or min(p.shape[:2]) == 0:
+            got = (f"{p.dtype} array of shape {p.shape}" if isinstance(p, np.ndarray)
+                   else type(p).__name__)
+            raise InputError(f"photos[{i}]: expected a uint8 [h, w, 3] array, got {got}")
+        h, w = p.shape[:2]
+        crop = plan_crop_resize(h, w, *size)
+        if (crop.crop_h, crop.crop_w) != (h, w) or max(h, w) > MAX_PHOTO_SIDE:
+            raise InputError(f"photos[{i}]: expected the model's aspect {size[0]}:{size[1]} and at "
+                             f"most {MAX_PHOTO_SIDE} pixels a side (colour.keep_photo), got "
+                             f"{h}x{w}")
+        # colour.keep_photo's arrays (read-only, owning their memory) are kept as they are.
+        owned = p.base is None and not p.flags.writeable and p.flags.c_contiguous
+        out.append(p if owned else _readonly(p, np.uint8))
+    return tuple(out)
 
 
 @dataclass(frozen=True, eq=False)
@@ -289,6 +333,8 @@ class RenderJob:
     graph:          str              the renderer graph of the call's precision
     select_views:   bool             per-point top-k on ``renderer_views``
     photos:         float32 [V, 3, H, W] or None   each view's photo (explicit colour)
+    kept_photos:    per view uint8 [h, w, 3] or None   each view's photo as given
+                                                    (``Scene.photos``; None: none kept)
     """
     scene: Scene
     world_from_cam: np.ndarray
@@ -301,3 +347,4 @@ class RenderJob:
     graph: str
     select_views: bool
     photos: np.ndarray | None
+    kept_photos: tuple | None = None

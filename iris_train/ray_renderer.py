@@ -22,11 +22,13 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+# The blend is clamped to [BLEND_EPS, 1 - BLEND_EPS] before its logit (one value for the
+# trainer and the runtime, which recomposes the colour at two scales).
+from iris_runtime.colour import BLEND_EPS
+
 from .config import ModelConfig
 from .layers import MLP, masked_softmax, sinusoidal_encoding, validity_bias
 
-#: The blend is clamped to [BLEND_EPS, 1 - BLEND_EPS] before its logit: finite at black and white.
-BLEND_EPS = 1e-4
 
 
 class RayBlock(nn.Module):

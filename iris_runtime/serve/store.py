@@ -22,11 +22,14 @@ __all__ = ["StoredScene", "SceneStore", "scene_nbytes"]
 
 
 def scene_nbytes(scene: Scene) -> int:
-    """Bytes of the arrays a ``Scene`` holds (what keeping it costs)."""
+    """Bytes of the arrays a ``Scene`` holds (what keeping it costs): its photos (at most
+    ``colour.MAX_PHOTO_SIDE`` a side) with the pyramid levels renders add to them (at most a
+    third more), and its model-resolution arrays."""
     arrays = (scene.field_maps, scene.world_from_cam, scene.focal, scene.K,
               scene.reference_images, scene.image_index, scene.encoder_focal,
               scene.encoder_world_from_cam)
-    return sum(a.nbytes for a in arrays if a is not None)
+    photos = sum(p.nbytes for p in scene.photos) if scene.photos is not None else 0
+    return sum(a.nbytes for a in arrays if a is not None) + photos * 4 // 3
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,148 @@
+"""Two scales: the field decides the geometry at a coarse resolution, the photos give the colour
+at the output's (numpy; no renderer call).
+
+An explicit-colour renderer's colour is ``sigmoid(logit(sum_s w_s mean_s) + r)``: blend weights
+``w`` over the ray's depth bins and a residual ``r`` from the field, ``mean_s`` the references'
+colours where sample ``s`` projects (``iris_runtime.colour``). The expensive part, the field, is
+what decides ``w`` and ``r``; the colours are a projection and a bilinear read. So a render at
+``field_scale`` marches the field on a coarse grid (``raymarch.MarchPlan(keep_weights=True)``:
+each coarse ray's ``w`` over the bins and ``r``), and ``compose_fine`` makes every output pixel
+from its own ray:
+
+1. **Geometry from the coarse rays around it.** Each of the (up to) four coarse rays whose
+   centres surround the pixel is a candidate: its weights on its ``colour_samples`` heaviest
+   bins (rescaled to its total weight) and its residual.
+2. **Colour through that geometry.** The pixel's own ray is sampled at those bins' depths,
+   every sample projected into every reference view and read from the photos at the output's
+   scale (``colour.ColourSource``), averaged over the views as the renderer averages them.
+3. **Edges by agreement.** Across a depth edge the candidates disagree: the wrong one puts the
+   pixel's samples where the views see different things. Each candidate is weighted by its
+   bilinear weight times ``exp(-spread / CONSISTENCY)``, ``spread`` the weighted variance of the
+   views' colours over its samples (photo-consistency). Where candidates agree this is the
+   bilinear upsampling of the coarse colour formula; at edges it follows the candidate whose
+   depth the photos confirm, without a guide image of the target.
+
+With ``field_scale`` 1 and ``colour_samples`` = every bin the result is the exact march's, up to
+float rounding (tested). What the lossy steps cost in ground-truth PSNR and what they save in
+time is measured by ``benchmarks/two_scale.py`` (docs/PERFORMANCE.md, "Two scales").
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import geometry as G
+from .colour import ColourSource, compose, mean_colour
+
+__all__ = ["CONSISTENCY", "FINE_BLOCK", "CoarseField", "compose_fine"]
+
+f32 = np.float32
+
+#: Colour variance (summed over RGB, colours in [0, 1]) at which a candidate geometry's weight
+#: drops by 1/e: photo noise and texture within a pixel stay well below it, two different
+#: surfaces seen by the views well above it.
+CONSISTENCY = 0.01
+#: Output rays composed at once: bounds the (ray, bin, view) arrays of a block to ~100 MB.
+FINE_BLOCK = 8192
+
+
+@dataclass(frozen=True, eq=False)
+class CoarseField:
+    """What the coarse march leaves for the fine pass (``raymarch.MarchResult`` with weights).
+
+    size:     (h, w)               the coarse grid, row-major
+    weights:  float32 [h*w, S]     blend weights over the depth bins
+    residual: float32 [h*w, 3]     the colour head's residual
+    depth:    float32 [h*w]        soft depth
+    """
+    size: tuple[int, int]
+    weights: np.ndarray
+    residual: np.ndarray
+    depth: np.ndarray
+
+
+def compose_fine(coarse: CoarseField, height: int, width: int, K: np.ndarray,
+                 world_from_cam: np.ndarray, z_bins: np.ndarray, ref_K: np.ndarray,
+                 cam_from_world: np.ndarray, image_size: tuple[int, int],
+                 colours: ColourSource, colour_samples: int,
+                 consistency: float = CONSISTENCY) -> tuple[np.ndarray, np.ndarray]:
+    """The ``height`` x ``width`` render (intrinsics ``K`` in its pixels, pose
+    ``world_from_cam``) from ``coarse``: rgb float32 [H*W, 3] and depth float32 [H*W].
+    ``z_bins [S]``: the march's depth bins; ``ref_K``, ``cam_from_world [V, 4, 4]``,
+    ``image_size``: the references (model pixels); ``colours``: their photos at the output's
+    scale; ``colour_samples``: bins kept per coarse ray (the heaviest)."""
+    hc, wc = coarse.size
+    S = z_bins.shape[0]
+    M = max(1, min(int(colour_samples), S))
+    # Each coarse ray's M heaviest bins, rescaled to keep its total weight.
+    w = coarse.weights
+    bins = np.argpartition(-w, M - 1, axis=1)[:, :M] if M < S else np.broadcast_to(
+        np.arange(S), w.shape)
+    top = np.take_along_axis(w, bins, axis=1)
+    total, kept = w.sum(axis=1, keepdims=True), top.sum(axis=1, keepdims=True)
+    top = top * np.where(kept > 0, total / np.where(kept > 0, kept, 1), 0).astype(f32)
+
+    n = height * width
+    rgb, depth = np.empty((n, 3), f32), np.empty(n, f32)
+    K32, pose32 = K.astype(f32), world_from_cam.astype(f32)
+    for start in range(0, n, FINE_BLOCK):
+        rows = np.arange(start, min(n, start + FINE_BLOCK))
+        cand, bilinear = _candidates(rows, height, width, hc, wc)              # [R, 4] each
+        uv = np.stack([rows % width, rows // width], axis=-1).astype(f32) + f32(0.5)
+        origins, directions = G.rays_from_pixels(uv, K32, pose32)
+        # The union of the candidates' bins per ray: each (ray, bin) sample is read once.
+        R = len(rows)
+        cand_bins = bins[cand]                                                 # [R, 4, M]
+        cand_w = top[cand]                                                     # [R, 4, M]
+        marks = np.zeros((R, S), bool)
+        used = cand_w.reshape(-1) > 0
+        marks[np.repeat(np.arange(R), 4 * M)[used], cand_bins.reshape(-1)[used]] = True
+        ray, b = np.nonzero(marks)                                             # P samples
+        points = origins[ray] + z_bins[b, None] * directions[ray]              # [P, 3]
+        mean, spread = _sample_colours(points, ref_K, cam_from_world, image_size, colours)
+        slot = np.zeros((R, S), np.intp)
+        slot[ray, b] = np.arange(len(ray))
+        p = slot[np.arange(R)[:, None, None], cand_bins]                       # [R, 4, M]
+        blend = np.einsum("rkm,rkmc->rkc", cand_w, mean[p])                   # [R, 4, 3]
+        mass = cand_w.sum(axis=2)                                              # [R, 4]
+        disagreement = (cand_w * spread[p]).sum(axis=2) / np.maximum(mass, f32(1e-12))
+        colour = compose(blend, coarse.residual[cand])                         # [R, 4, 3]
+        alpha = bilinear * np.exp(-disagreement / f32(consistency))
+        norm = alpha.sum(axis=1, keepdims=True)
+        alpha = np.where(norm > 1e-30, alpha / np.where(norm > 1e-30, norm, 1), bilinear)
+        rgb[rows] = np.einsum("rk,rkc->rc", alpha, colour)
+        depth[rows] = (alpha * coarse.depth[cand]).sum(axis=1)
+    return rgb, depth
+
+
+def _candidates(rows: np.ndarray, height: int, width: int, hc: int, wc: int):
+    """For output pixels ``rows`` (row-major), the four coarse pixels whose centres surround
+    each one's centre (border-clamped) and their bilinear weights: int [R, 4], float32 [R, 4]."""
+    i, j = rows // width, rows % width
+    cy = np.clip((i + 0.5) * (hc / height) - 0.5, 0.0, hc - 1.0)
+    cx = np.clip((j + 0.5) * (wc / width) - 0.5, 0.0, wc - 1.0)
+    y0, x0 = np.floor(cy).astype(np.intp), np.floor(cx).astype(np.intp)
+    y1, x1 = np.minimum(y0 + 1, hc - 1), np.minimum(x0 + 1, wc - 1)
+    fy, fx = (cy - y0).astype(f32), (cx - x0).astype(f32)
+    cand = np.stack([y0 * wc + x0, y0 * wc + x1, y1 * wc + x0, y1 * wc + x1], axis=1)
+    bilinear = np.stack([(1 - fy) * (1 - fx), (1 - fy) * fx, fy * (1 - fx), fy * fx], axis=1)
+    return cand, bilinear
+
+
+def _sample_colours(points: np.ndarray, ref_K: np.ndarray, cam_from_world: np.ndarray,
+                    image_size: tuple[int, int], colours: ColourSource):
+    """The references' mean colour float32 [P, 3] at world ``points [P, 3]`` (validity-weighted
+    as the renderer weighs them) and its spread float32 [P]: the weighted variance of the views'
+    colours, summed over RGB (0 where fewer than two views see the point)."""
+    H, W = image_size
+    V = cam_from_world.shape[0]
+    uv, z, _ = G.project_points(points, ref_K, cam_from_world, H, W)           # [V, P, 2]
+    weight = G.validity(uv, z, H, W)                                           # [V, P]
+    sampled = colours.sample(G.pixels_to_grid(uv, H, W), np.arange(V))        # [V, P, 3]
+    mean = mean_colour(sampled, weight)
+    m = weight[..., None]
+    count = m.sum(axis=0)
+    var = (m * (sampled - mean) ** 2).sum(axis=0) / np.maximum(count, f32(1e-12))
+    spread = np.where(count[:, 0] > 1.0, var.sum(axis=1), f32(0))
+    return mean.astype(f32), spread.astype(f32)

@@ -1,0 +1,215 @@
+"""Colours from the photos at their own resolution (iris_runtime.colour) and the two-scale render
+(iris_runtime.detail): the pyramid and its choice, sampling against a float64 reference, the
+model-size render unchanged bit for bit, and two scales against the exact march."""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from iris_runtime import IrisRuntime
+from iris_runtime import geometry as G
+from iris_runtime.colour import (MAX_PHOTO_SIDE, ColourSource, blend_residual, choose_level,
+                                 compose, keep_photo, level_sizes, mean_colour)
+from iris_runtime.errors import InputError
+from iris_runtime.quality import RenderSettings
+from iris_runtime.scene import Scene
+
+F32_EPS = float(np.finfo(np.float32).eps)
+
+
+def _photos(n: int, size: int, seed: int = 0) -> list[np.ndarray]:
+    """Smooth random photos with fine stripes: detail above a 64x64 model's resolution."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:size, 0:size] / size
+    out = []
+    for i in range(n):
+        base = rng.uniform(0.2, 0.8, 3)
+        stripes = 0.5 + 0.5 * np.sin(2 * np.pi * (xx * (size / 6) + yy * (i + 1)))
+        img = base[None, None, :] * 0.6 + 0.4 * stripes[..., None] * rng.uniform(0.5, 1.0, 3)
+        out.append(np.clip(img * 255, 0, 255).astype(np.uint8))
+    return out
+
+
+# -- the pyramid ------------------------------------------------------------------------------
+
+def test_keep_photo_crops_to_the_model_aspect_and_caps_the_side():
+    wide = np.zeros((300, 500, 3), np.uint8)
+    wide[:, 100:400] = 200                       # the centre square the model sees
+    kept = keep_photo(wide, (64, 64))
+    assert kept.shape == (300, 300, 3) and not kept.flags.writeable and (kept == 200).all()
+    big = np.full((3000, 2000, 3), 7, np.uint8)
+    kept = keep_photo(big, (64, 64))
+    assert kept.shape == (MAX_PHOTO_SIDE, MAX_PHOTO_SIDE, 3) and (kept == 7).all()
+    small = np.full((40, 40, 3), 9, np.uint8)     # smaller than the model: kept as is
+    assert keep_photo(small, (64, 64)).shape == (40, 40, 3)
+
+
+def test_level_sizes_and_choice():
+    assert level_sizes((256, 256), (64, 64)) == [(256, 256), (128, 128), (64, 64)]
+    assert level_sizes((480, 480), (64, 64)) == [(480, 480), (240, 240), (120, 120), (64, 64)]
+    assert level_sizes((64, 64), (64, 64)) == [(64, 64)]
+    assert level_sizes((40, 40), (64, 64)) == [(64, 64)]
+    sizes = level_sizes((480, 480), (64, 64))
+    assert sizes[choose_level(sizes, (64, 64), 1.0)] == (64, 64)      # the model's own size
+    assert sizes[choose_level(sizes, (64, 64), 4.0)] == (240, 240)    # 256 wanted: 240 nearest
+    assert sizes[choose_level(sizes, (64, 64), 8.0)] == (480, 480)
+    assert sizes[choose_level(sizes, (64, 64), 0.25)] == (64, 64)     # never below the model's
+
+
+def _bilinear_f64(image: np.ndarray, grid: np.ndarray) -> np.ndarray:
+    """Reference: grid_sample(align_corners=False, border) of ``image [h, w, C]`` in float64."""
+    h, w = image.shape[:2]
+    gx = np.clip(((grid[..., 0] + 1) * w - 1) / 2, 0, w - 1)
+    gy = np.clip(((grid[..., 1] + 1) * h - 1) / 2, 0, h - 1)
+    x0, y0 = np.floor(gx).astype(int), np.floor(gy).astype(int)
+    x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
+    fx, fy = (gx - x0)[..., None], (gy - y0)[..., None]
+    im = image.astype(np.float64)
+    return ((im[y0, x0] * (1 - fx) + im[y0, x1] * fx) * (1 - fy)
+            + (im[y1, x0] * (1 - fx) + im[y1, x1] * fx) * fy)
+
+
+def test_colour_source_samples_each_views_level():
+    photos = [keep_photo(p, (64, 64)) for p in _photos(2, 256)]
+    model = np.stack([cv2.resize(p, (64, 64), interpolation=cv2.INTER_AREA)
+                      for p in photos]).transpose(0, 3, 1, 2).astype(np.float32) / 255
+    rng = np.random.default_rng(1)
+    grid = rng.uniform(-1.1, 1.1, (2, 50, 7, 2)).astype(np.float32)
+    # At the model's focal: the model-resolution images, bit for bit as before.
+    at_model = ColourSource.build(model, tuple(photos), 1.0)
+    assert at_model.sizes == [(64, 64), (64, 64)]
+    np.testing.assert_array_equal(at_model.sample(grid, np.arange(2)),
+                                  G.sample_bilinear_views(model, grid))
+    # At 4x: the 256 photos themselves, against a float64 bilinear reference. The float32
+    # interpolation of values <= 255 errs by a few ulps of 255 before the 1/255 scale.
+    fine = ColourSource.build(model, tuple(photos), 4.0)
+    assert fine.sizes == [(256, 256), (256, 256)]
+    got = fine.sample(grid, np.arange(2))
+    want = np.stack([_bilinear_f64(p, g) for p, g in zip(photos, grid)]) / 255
+    np.testing.assert_allclose(got, want, rtol=0, atol=16 * F32_EPS)
+    # Views in another order read their own photos.
+    np.testing.assert_array_equal(fine.sample(grid[::-1], np.array([1, 0])), got[::-1])
+
+
+def test_blend_residual_composes_back():
+    rng = np.random.default_rng(2)
+    rgb = rng.uniform(0.01, 0.99, (100, 3)).astype(np.float32)
+    blend = rng.uniform(0.0, 1.0, (100, 3)).astype(np.float32)
+    r = blend_residual(rgb, blend)
+    # sigmoid(logit(b) + r) = rgb: float32 logit/sigmoid round trip, a few ulps of O(1) values.
+    np.testing.assert_allclose(compose(blend, r), rgb, rtol=0, atol=64 * F32_EPS)
+    assert np.isfinite(blend_residual(np.array([0.0, 1.0, 0.5], np.float32),
+                                      np.array([0.0, 1.0, 1.0], np.float32))).all()
+    colours = rng.uniform(0, 1, (3, 10, 3)).astype(np.float32)
+    mask = np.array([1.0, 0.5, 0.0], np.float32)[:, None].repeat(10, 1)
+    want = (colours[0] + 0.5 * colours[1]) / 1.5
+    np.testing.assert_allclose(mean_colour(colours, mask), want, rtol=0, atol=4 * F32_EPS)
+
+
+def test_settings_of_two_scales_are_checked():
+    RenderSettings(field_scale=0.25, colour_samples=4)
+    for bad in (0.0, 1.5, float("nan"), "x"):
+        with pytest.raises(InputError, match="field_scale"):
+            RenderSettings(field_scale=bad)
+    with pytest.raises(InputError, match="colour_samples"):
+        RenderSettings(field_scale=0.5, colour_samples=0)
+    with pytest.raises(InputError, match="field_scale"):
+        RenderSettings(field_scale=0.5, refine=0.1)
+
+
+# -- the runtime ------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def rt(rgb_model_dir):
+    return IrisRuntime(rgb_model_dir, threads=1)
+
+
+@pytest.fixture(scope="module")
+def scenes(rt):
+    """The same four views encoded from 256x256 photos and from their 64x64 copies."""
+    photos = _photos(4, 256, seed=3)
+    large = rt.encode(photos, cameras="model")
+    small = rt.encode([cv2.resize(p, (64, 64), interpolation=cv2.INTER_AREA) for p in photos],
+                      cameras="model")
+    return large, small
+
+
+def test_encode_keeps_the_photos(rt, scenes):
+    large, small = scenes
+    assert [p.shape for p in large.photos] == [(256, 256, 3)] * 4
+    assert [p.shape for p in small.photos] == [(64, 64, 3)] * 4
+    np.testing.assert_array_equal(large.reference_images, small.reference_images)
+    sub = large.subset([2, 0])
+    assert all(a is b for a, b in zip(sub.photos, large.photos))   # not copied again
+
+
+def test_model_size_render_reads_the_model_images(rt, scenes):
+    """At the model's size the 256 photos change nothing: the same bits as 64x64 photos."""
+    large, small = scenes
+    for kw in ({}, {"quality": "fast"}, {"height": 48, "width": 48}):
+        np.testing.assert_array_equal(rt.render(large, 1, **kw), rt.render(small, 1, **kw))
+
+
+def test_large_renders_read_the_photos(rt, scenes):
+    """At 128x128 the colours come from the 256 photos: the fine stripes reach the render."""
+    large, small = scenes
+    kw = dict(height=128, width=128, depth=True, field_scale=0.25, colour_samples=4)
+    a = rt.render(large, 1, **kw).image_float
+    b = rt.render(small, 1, **kw).image_float
+    assert np.isfinite(a).all() and np.abs(a - b).max() > 0.05
+    # High frequencies: the 128 render from 256 photos has more energy above the 64 grid's
+    # Nyquist than the one from 64x64 photos.
+    def high(x):
+        return np.abs(x - cv2.GaussianBlur(x, (0, 0), 1.5)).mean()
+    assert high(a) > 1.5 * high(b)
+
+
+def test_two_scales_at_full_scale_with_every_bin_is_the_exact_march(rt, scenes):
+    large, _ = scenes
+    pose = large.world_from_cam[1]
+    exact = rt.render(large, pose, height=72, width=72, depth=True)
+    two = rt.render(large, pose, height=72, width=72, depth=True, field_scale=1.0,
+                    colour_samples=rt.samples)
+    assert two.work["coarse_rays"] == 72 * 72            # marched at two scales
+    # The same weights, colours and residual recomposed in float32: a blend of 64 samples and a
+    # logit/sigmoid round trip, each a few ulps of O(1) values.
+    np.testing.assert_allclose(two.image_float, exact.image_float, rtol=0, atol=256 * F32_EPS)
+    np.testing.assert_allclose(two.depth, exact.depth, rtol=0, atol=64 * F32_EPS)
+
+
+def test_two_scales_are_close_and_finite(rt, scenes):
+    large, _ = scenes
+    pose = large.world_from_cam[2]
+    exact = rt.render(large, pose, height=80, width=80, depth=True)
+    two = rt.render(large, pose, height=80, width=80, depth=True, field_scale=0.5,
+                    colour_samples=8)
+    assert two.image.shape == (80, 80, 3) and np.isfinite(two.depth).all()
+    assert two.work["coarse_rays"] == 40 * 40 and "colour" in two.timings
+    # At or below the model's resolution two scales do not apply: the exact march, bit for bit.
+    np.testing.assert_array_equal(rt.render(large, pose, height=64, width=64, field_scale=0.5),
+                                  rt.render(large, pose, height=64, width=64))
+    # Lossy, but close on a smooth random scene: mean error well under a grey level of 8/255.
+    assert np.abs(two.image_float - exact.image_float).mean() < 8 / 255
+
+
+def test_two_scales_need_explicit_colour(model_dir):
+    rt = IrisRuntime(model_dir, threads=1)
+    scene = rt.encode(_photos(2, 64), cameras="model")
+    with pytest.raises(InputError, match="field_scale"):
+        rt.render(scene, 0, field_scale=0.5)
+
+
+def test_scene_photos_are_checked(scenes):
+    large, _ = scenes
+    args = (large.field_maps, large.world_from_cam, large.focal, large.K, large.image_size)
+    refs = large.reference_images
+    with pytest.raises(InputError, match="photos"):
+        Scene(*args, reference_images=refs, photos=large.photos[:2])
+    with pytest.raises(InputError, match=r"photos\[0\]"):
+        Scene(*args, reference_images=refs, photos=(np.zeros((10, 20, 3), np.uint8),) * 4)
+    with pytest.raises(InputError, match=r"photos\[1\]"):
+        Scene(*args, reference_images=refs,
+              photos=(large.photos[0], np.zeros((64, 64, 3), np.float32)) + large.photos[2:])
+    with pytest.raises(InputError, match="photos"):
+        Scene(*args, photos=large.photos)
