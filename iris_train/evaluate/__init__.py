@@ -3,6 +3,7 @@
     iris-eval runs/tiny/last.pt synthetic:heldout --json eval.json
     iris-eval out/ my_scenes/ --scenes 10 --grid grid.png      # an exported model, users' data
     iris-eval out/ real/castle --cameras true                  # the data's own cameras
+    iris-eval out/ synthetic:heldout --size 256 --json eval256.json   # at 256x256 output
 
 MODEL is a training checkpoint (``.pt``, run in torch) or an exported model directory (holding
 ``iris.json``, run with ``iris_runtime.IrisRuntime``: the numbers of what is served). DATA is
@@ -89,6 +90,35 @@ Protocol (DESIGN.md "Evaluation protocol", the paper's appendix scaled down):
   draws the head's cameras (green, references) beside the rendered (red) and true (blue) ones,
   each set similarity-aligned to the true cameras on its own.
 - LPIPS is left out: it needs pretrained network weights that cannot be fetched here.
+
+Output size (``--size S``, ``evaluate(..., size=S)``; a square model): the same protocol scored at
+S x S instead of the model's resolution.
+
+- Ground truth at S: each frame's photo at its own resolution (``PreparedScene.photos``: a
+  folder's files as stored, the synthetic sets' 256x256 renders, ``SYNTHETIC_PHOTO_SIZE``, from
+  the same seeds and cache as the photos above) centre-cropped to a square and shrunk to S with
+  ``cv2.INTER_AREA`` (``scenes.to_output_size``). A photo smaller than S on its shorter side is
+  refused (``InputError`` naming the photos' size and S): ground truth is never enlarged. The
+  true depth is brought to S by the same crop and a nearest-neighbour resize.
+- The references are handed to ``encode`` as photos at their own resolution (the encoder fits
+  them to the model itself; the model's images of the scene are then those fits, which a
+  synthetic scene's 64x64 renders only approximate), the targets are located from their
+  photos fitted to the model, and the cameras (``--cameras``, ``--locate``), split and Rand/Seq
+  orders are as above. A pose does not depend on the output size: it is rendered at S with
+  intrinsics of the same normalised focal (``IrisRuntime.render(scene, pose, height=S,
+  width=S)``; a checkpoint renders at S in torch, its explicit colours sampled from the
+  reference photos brought to S).
+- PSNR/SSIM of the model and the photo baselines (best and nearest reference, mean colour: the
+  same definitions) at S, ``depth_spearman`` at S, and the baseline **upsampled**: the render of
+  the same pose at the model's resolution (clipped to [0, 1]) resized to S with
+  ``cv2.INTER_CUBIC`` (clipped again), i.e. what the model gives without rendering at S. Each
+  order's JSON then holds ``"output_size": [S, S]``, ``"model_size": [H, W]`` and
+  ``baselines.upsampled`` {psnr, ssim} (per scene too); the tables an "upsampled" row and
+  column. ``--grid`` draws the S x S photos, renders and depths.
+- ``--quality PRESET`` (``iris_runtime.quality.QUALITY_PRESETS``) is passed to every
+  ``IrisRuntime.render`` (the model-resolution render of "upsampled" too), with or without
+  ``--size``; a checkpoint renders "exact" only.
+- Without ``--size`` and ``--quality`` nothing changes: same calls, same numbers, same JSON.
 
 PSNR per image is capped at ``PSNR_CAP`` dB (an identical image would otherwise give inf).
 """

@@ -10,6 +10,13 @@ data's, ``evaluate.cameras.pose_scene``), the camera head's kept beside them;
 or None when the scene's cameras are the head's; ``render(scene, poses [N, 4, 4]) -> (rgb [N, H,
 W, 3], depth [N, H, W])`` float64 at the model's resolution. ``default_cameras``: the cameras the
 model was trained with, ``iris-eval``'s default.
+
+``iris-eval --size S``: ``encode(photos, colour_size=(S, S))`` takes the reference photos at their
+own resolution (a list of uint8 [h, w, 3], any sizes; the encoder sees them fitted to the model),
+and ``render(scene, poses, size=(S, S), quality=...)`` renders at S. The runtime keeps and samples
+the photos itself (``IrisRuntime.encode``); the checkpoint's explicit colours are sampled from the
+reference photos brought to S (centre crop, ``cv2.INTER_AREA``) in place of the model-resolution
+images (``Scene.images``; torch samples them at normalised coordinates, so any size serves).
 """
 from __future__ import annotations
 
@@ -17,7 +24,21 @@ import dataclasses
 
 import numpy as np
 
-__all__ = ["TorchBackend", "RuntimeBackend", "backend_for", "focal_of"]
+__all__ = ["TorchBackend", "RuntimeBackend", "backend_for", "focal_of", "check_quality"]
+
+
+def check_quality(backend, quality) -> None:
+    """``InputError`` unless ``quality`` is None or a preset of ``iris_runtime.quality``; a
+    checkpoint (``TorchBackend``, which renders exactly) takes None or "exact" only."""
+    if quality is None:
+        return
+    from iris_runtime.errors import InputError
+    from iris_runtime.quality import QUALITY_PRESETS
+    if not isinstance(quality, str) or quality not in QUALITY_PRESETS:
+        raise InputError(f"quality: expected one of {list(QUALITY_PRESETS)}, got {quality!r}")
+    if isinstance(backend, TorchBackend) and quality != "exact":
+        raise InputError(f"quality: {quality!r} is a preset of the runtime; a checkpoint renders "
+                         "exactly in torch (export it with iris-export to evaluate the presets)")
 
 
 def focal_of(encoded) -> np.ndarray | None:
@@ -45,10 +66,23 @@ class TorchBackend:
         import torch
         return torch.from_numpy(np.ascontiguousarray(images)).permute(0, 3, 1, 2).float() / 255.0
 
-    def encode(self, images: np.ndarray):
+    def encode(self, images, colour_size: tuple[int, int] | None = None):
+        """``images`` uint8 [V, H, W, 3] at the model's size; with ``colour_size`` (``--size``)
+        a list of photos of any size: fitted to the model for the encoder, and (explicit-colour
+        models) brought to ``colour_size`` for the colours sampled at render time."""
         import torch
+        if colour_size is None:
+            with torch.no_grad():
+                return self.model.encode(self._tensor(images))
+        from iris_runtime.images import fit_to_model
+        photos = [np.asarray(p) for p in images]
+        model_in = np.stack([fit_to_model(p, *self.image_size)[0] for p in photos])
         with torch.no_grad():
-            return self.model.encode(self._tensor(images))
+            scene = self.model.encode(self._tensor(model_in))
+        if scene.images is None:            # no explicit colour: the field maps are all
+            return scene
+        colours = np.stack([fit_to_model(p, *colour_size)[0] for p in photos])
+        return dataclasses.replace(scene, images=self._tensor(colours).to(scene.images))
 
     def with_cameras(self, scene, world_from_cam: np.ndarray, focal: np.ndarray):
         import torch
@@ -75,9 +109,13 @@ class TorchBackend:
         with torch.no_grad():
             return self.model.locate(self._tensor(references), self._tensor(queries)).double().numpy()
 
-    def render(self, scene, poses: np.ndarray):
+    def render(self, scene, poses: np.ndarray, size: tuple[int, int] | None = None,
+               quality: str | None = None):
+        """At the model's size or ``size``; ``quality`` None or "exact" (torch renders exactly:
+        presets are the runtime's, ``check_quality``)."""
         import torch
-        H, W = self.image_size
+        check_quality(self, quality)
+        H, W = self.image_size if size is None else size
         rgb, depth = self.model.render(scene, torch.as_tensor(poses, dtype=scene.field_maps.dtype), H, W)
         return rgb.double().numpy(), depth.double().numpy()
 
@@ -92,7 +130,10 @@ class RuntimeBackend:
         self.depth_range = (float(runtime.near), float(runtime.far))
         self.default_cameras = getattr(runtime, "default_cameras", "model")
 
-    def encode(self, images: np.ndarray):
+    def encode(self, images, colour_size: tuple[int, int] | None = None):
+        """``images`` uint8 [V, H, W, 3], or (``colour_size``: ``--size``) a list of photos at
+        their own resolution, which ``IrisRuntime.encode`` fits to the model and keeps for the
+        colours it samples at render time (so ``colour_size`` is not needed here)."""
         if self.default_cameras == "model":     # (duck-typed runtimes need not know cameras=)
             return self.rt.encode(list(images))
         return self.rt.encode(list(images), cameras="model")
@@ -133,11 +174,15 @@ class RuntimeBackend:
             scene = dataclasses.replace(scene, camera_source="model")
         return np.asarray(self.rt.locate(scene, list(queries)), dtype=np.float64)
 
-    def render(self, scene, poses: np.ndarray):
-        H, W = self.image_size
+    def render(self, scene, poses: np.ndarray, size: tuple[int, int] | None = None,
+               quality: str | None = None):
+        """``IrisRuntime.render`` of each pose at the model's size or ``size`` (height, width),
+        with ``quality`` (a preset name, passed through) when given."""
+        H, W = self.image_size if size is None else (int(size[0]), int(size[1]))
+        knobs = {} if quality is None else {"quality": quality}
         rgbs, depths = [], []
         for pose in poses:
-            result = self.rt.render(scene, pose, height=H, width=W, depth=True)
+            result = self.rt.render(scene, pose, height=H, width=W, depth=True, **knobs)
             image = getattr(result, "image_float", None)
             if image is None:
                 image = np.asarray(getattr(result, "image", result), dtype=np.float64) / 255.0

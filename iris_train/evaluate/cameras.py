@@ -178,6 +178,10 @@ def pose_scene(backend, scene: PreparedScene, ref_order: Sequence[int],
 
     The model sees ``scene.images``; the camera solve sees ``scene.photos``, the frames at their
     own resolution, as ``IrisRuntime.encode(photos, cameras="epipolar")`` does with a user's.
+    With ``scene.output_size`` (``iris-eval --size``) the references are encoded from their
+    photos (``backend.encode(photos, colour_size=...)``: the encoder sees them fitted to the
+    model, which ``scene.images`` then are, and the render samples their colours); every other
+    step is the same.
     References: the model's cameras, the solve's (``replace_model_cameras``: a view it cannot
     pose keeps the model's camera), the model's refined by the photos (``refine_model_cameras``)
     or ``true_cameras`` (needs the scene's true poses and K, else
@@ -199,7 +203,10 @@ def pose_scene(backend, scene: PreparedScene, ref_order: Sequence[int],
                              "none (a folder needs transforms.json or COLMAP text files)")
         truth = true_cameras(images, scene.poses, scene.K, ref_order, backend.depth_range,
                              photos, scene.photo_K)
-    encoded = backend.encode(images[ref_order])
+    if scene.output_size is None:
+        encoded = backend.encode(images[ref_order])
+    else:       # --size: the reference photos at their own resolution, as a user hands them over
+        encoded = backend.encode([photos[r] for r in ref_order], colour_size=scene.output_size)
     source, refs_solved = "model", None
     if cameras == "true":
         encoded = backend.with_cameras(encoded, truth.world_from_cam[ref_order], truth.focal)

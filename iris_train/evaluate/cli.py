@@ -5,6 +5,8 @@ import argparse
 import sys
 from pathlib import Path
 
+from iris_runtime.quality import QUALITY_PRESETS
+
 from .backends import backend_for
 from .cameras import CAMERA_MODES, LOCATE_MODES
 from .evaluation import evaluate
@@ -20,6 +22,16 @@ _EPILOG = """\
     iris-eval runs/tiny/last.pt synthetic:heldout --json eval.json
     iris-eval out/ my_scenes/ --scenes 10 --grid grid.png      # an exported model, users' data
     iris-eval out/ real/castle --cameras true                  # the data's own cameras
+    iris-eval out/ synthetic:heldout --size 256 --json eval256.json   # at 256x256 output
+
+--size S: the targets are rendered at SxS and scored against their photos centre-cropped to a
+square and shrunk to S (cv2.INTER_AREA); the references go to the encoder as photos at their own
+resolution (synthetic sets: their 256x256 renders, so S <= 256; a folder's files as stored; S
+above the photos' size is refused). The JSON gains "output_size", "model_size" and the baseline
+"upsampled" (the model-resolution render of the same pose, cv2.INTER_CUBIC-resized to S) beside
+"best_reference" and "nearest_reference" at S; the cameras and located poses follow the same
+protocol. Exported models render through IrisRuntime.render(height=S, width=S); checkpoints
+render at S in torch, sampling their explicit colours from the reference photos brought to S.
 
 Protocol: see the module docstring of iris_train.evaluate."""
 
@@ -64,6 +76,19 @@ def build_parser() -> argparse.ArgumentParser:
                              "against the references' cameras (iris_runtime.cameras."
                              "locate_views; model fallback per target), or the data's own "
                              "(with --cameras true); default: as --cameras")
+    parser.add_argument("--size", metavar="S", type=int, default=None,
+                        help="evaluate at SxS output (a square model): renders at S against the "
+                             "photos brought to S (centre crop, INTER_AREA; refused when the "
+                             "data's photos are smaller than S), references encoded from their "
+                             "full-resolution photos, plus the 'upsampled' baseline (the "
+                             "model-resolution render resized to S, INTER_CUBIC). Exported "
+                             "models and checkpoints alike (a checkpoint samples its colours from "
+                             "the reference photos brought to S). Default: the model's resolution")
+    parser.add_argument("--quality", metavar="PRESET", choices=tuple(QUALITY_PRESETS), default=None,
+                        help=f"render preset passed to IrisRuntime.render(quality=...) (one of "
+                             f"{', '.join(QUALITY_PRESETS)}; exported models; a checkpoint "
+                             "renders 'exact' only), the model-resolution render of --size's "
+                             "'upsampled' too; default: none passed (IrisRuntime.render's default)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     return parser
 
@@ -75,6 +100,8 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--scenes must be at least 1")
     if args.views < 2:
         parser.error("--views must be at least 2")
+    if args.size is not None and args.size < 1:
+        parser.error("--size must be at least 1")
     if args.threads is not None:
         if args.threads < 1:
             parser.error("--threads must be at least 1")
@@ -84,17 +111,25 @@ def main(argv: list[str] | None = None) -> int:
     from iris_runtime.errors import IrisError
     try:
         model = load_evaluable(args.model, threads=args.threads)
-        scenes, count = load_scenes(args.data, backend_for(model).image_size, args.views,
-                                    args.scenes)
+        model_size = backend_for(model).image_size
+        extra = {} if args.size is None else {"size": args.size}     # (none: the calls as ever)
+        if args.quality is not None:
+            extra["quality"] = args.quality
+        scenes, count = load_scenes(args.data, model_size, args.views, args.scenes,
+                                    **({} if args.size is None else
+                                       {"output_size": (args.size, args.size)}))
         results = evaluate(model, scenes, views=args.views, seed=args.seed, grid=args.grid,
                            progress=not args.no_progress, total=count, cameras=args.cameras,
-                           locate=args.locate, grid_scene=args.grid_scene)
+                           locate=args.locate, grid_scene=args.grid_scene, **extra)
     except (IrisError, ValueError, FileNotFoundError) as exc:   # bad model, data or arguments
         print(f"iris-eval: error: {exc}", file=sys.stderr)
         return 2
     refs, targets = split_frames(args.views)
     print(f"iris-eval: {args.model} on {args.data}: {count} scene(s), {args.views} frames, "
-          f"references {refs}, targets {targets}")
+          f"references {refs}, targets {targets}"
+          + ("" if args.size is None else
+             f"; at {args.size}x{args.size} (model {model_size[1]}x{model_size[0]})")
+          + ("" if args.quality is None else f"; quality {args.quality}"))
     print(format_table(results))
     print()
     print(format_scenes(results))

@@ -12,7 +12,7 @@ import numpy as np
 from iris_runtime.errors import InputError
 
 from ..metrics import depth_spearman, rpa
-from .backends import backend_for, focal_of
+from .backends import backend_for, check_quality, focal_of
 from .cameras import PosedScene, camera_panel, check_modes, pose_scene
 from .protocol import (HEAD_RPA_KEYS, LOCATE_RPA_KEYS, ORDERS, RAND_SEED, DEFAULT_VIEWS,
                        REFERENCE_RPA_KEYS, RPA_KEYS, best_reference, locate_rpa,
@@ -29,12 +29,14 @@ _MODEL_KEYS = ("psnr", "ssim", *RPA_KEYS, *LOCATE_RPA_KEYS, "depth_spearman",
                *REFERENCE_RPA_KEYS, *HEAD_RPA_KEYS)
 _POSE_KEYS = (*RPA_KEYS, *LOCATE_RPA_KEYS)
 _IMAGE_BASELINES = ("best_reference", "nearest_reference", "mean_colour")
+#: The baseline of ``--size``: the model-resolution render resized to the output size.
+_UPSAMPLED = "upsampled"
 
 
 def evaluate(model, scenes: Iterable, *, views: int = DEFAULT_VIEWS, seed: int = RAND_SEED,
              grid: str | os.PathLike | None = None, progress: bool = True,
              total: int | None = None, cameras: str | None = None, locate: str | None = None,
-             grid_scene: int = 0) -> dict:
+             grid_scene: int = 0, size: int | None = None, quality: str | None = None) -> dict:
     """Evaluate ``model`` (an ``IrisModel`` or an ``iris_runtime.IrisRuntime``) on ``scenes``.
 
     ``scenes``: objects with ``images`` uint8 ``[V, H, W, 3]`` (trajectory order) and
@@ -75,9 +77,27 @@ def evaluate(model, scenes: Iterable, *, views: int = DEFAULT_VIEWS, seed: int =
     equals ``reference_rpa@t``). References only: a scene's head cameras are its references'
     (the targets' poses come from ``locate``). ``grid``'s camera picture then draws the head's
     cameras too.
+
+    ``size`` (S, ``iris-eval --size S``; a square model): the targets are rendered at S x S and
+    scored against their photos brought to S (``scenes.to_output_size``: centre crop to a
+    square, ``cv2.INTER_AREA``; ``InputError`` naming the photos' size where they are smaller
+    than S); the references reach the encoder as photos at their own resolution
+    (``scenes.prepare_scene``); cameras, split, orders and located poses as without it (a pose
+    is rendered at S with the same normalised focal). Each ``R`` then also holds
+    ``"output_size": [S, S]`` and ``"model_size": [H, W]``, the photo baselines are at S, and
+    ``"baselines"`` (means and per scene) holds ``"upsampled": {"psnr", "ssim"}``: the render of
+    the same pose at the model's resolution (clipped to [0, 1], as scored without ``size``)
+    resized to S with ``cv2.INTER_CUBIC`` and clipped again. ``depth_spearman`` is the depth
+    rendered at S against the true depth brought to S (nearest neighbour). ``grid`` shows the S
+    images. ``quality``: a preset of ``iris_runtime.quality`` passed to every render
+    (``IrisRuntime.render(..., quality=)``, the model-resolution one of "upsampled" too); a
+    checkpoint takes "exact" only. Without either, the protocol and its numbers are the ones
+    above, bit for bit.
     """
     backend = backend_for(model)
     cameras, locate = check_modes(backend.default_cameras, cameras, locate)
+    check_quality(backend, quality)
+    out_size = _output_size(backend, size)
     if grid is not None and not (0 <= grid_scene and (total is None or grid_scene < total)):
         raise InputError(f"grid_scene: expected a scene position in [0, {total}), got {grid_scene}")
     refs, targets = split_frames(views)
@@ -88,7 +108,8 @@ def evaluate(model, scenes: Iterable, *, views: int = DEFAULT_VIEWS, seed: int =
                dynamic_ncols=True)
     with _eval_mode(model), contextlib.closing(bar):
         for index, scene in enumerate(bar):
-            prepared = prepare_scene(scene, views, backend.image_size, index)
+            prepared = prepare_scene(scene, views, backend.image_size, index,
+                                     **({} if out_size is None else {"output_size": out_size}))
             if prepared is None:
                 n_skipped += 1
                 continue
@@ -101,9 +122,12 @@ def evaluate(model, scenes: Iterable, *, views: int = DEFAULT_VIEWS, seed: int =
                                        locate)
                 except InputError as exc:
                     raise InputError(f"scene {index} ({prepared.name}): {exc}") from None
-                rgb, depth = _render_targets(backend, posed, targets, f"scene {index} ({order})")
+                where = f"scene {index} ({order})"
+                rgb, depth = _render_targets(backend, posed, targets, where, out_size, quality)
+                upsampled = None if out_size is None else _upsampled(
+                    backend, posed, targets, where, out_size, quality)
                 runs[order].add(_scene_record(index, prepared, posed, rgb, depth, refs, targets,
-                                              baselines))
+                                              baselines, upsampled))
                 if grid is not None and order == "seq" and index == grid_scene:
                     _write_grid(grid, prepared, posed, rgb, depth, refs, targets, backend)
     if n_used == 0:
@@ -112,7 +136,25 @@ def evaluate(model, scenes: Iterable, *, views: int = DEFAULT_VIEWS, seed: int =
     if n_skipped:
         warnings.warn(f"iris-eval: skipped {n_skipped} scene(s) with fewer than {views} frames")
     report_cameras = cameras != "model" or locate != "model"
-    return {order: runs[order].summary(cameras, locate, report_cameras) for order in ORDERS}
+    results = {order: runs[order].summary(cameras, locate, report_cameras) for order in ORDERS}
+    if out_size is not None:
+        results = {order: {"output_size": list(out_size), "model_size": list(backend.image_size),
+                           **R} for order, R in results.items()}
+    return results
+
+
+def _output_size(backend, size) -> tuple[int, int] | None:
+    """``(S, S)`` of ``size`` S, or None; ``InputError`` for a non-integer or S < 1, or a model
+    that is not square (S x S renders would change its field of view)."""
+    if size is None:
+        return None
+    if isinstance(size, bool) or not isinstance(size, (int, np.integer)) or size < 1:
+        raise InputError(f"size: expected an integer output size >= 1, got {size!r}")
+    H, W = backend.image_size
+    if H != W:
+        raise InputError(f"size: S x S outputs need a square model, this one is {W}x{H} "
+                         "(width x height)")
+    return int(size), int(size)
 
 
 @contextlib.contextmanager
@@ -144,12 +186,30 @@ def _image_baselines(prepared: PreparedScene, refs, targets) -> dict:
     return out
 
 
-def _render_targets(backend, posed: PosedScene, targets, where: str):
-    rgb, depth = backend.render(posed.encoded, posed.world_from_cam[list(targets)])
+def _render_targets(backend, posed: PosedScene, targets, where: str, size=None, quality=None):
+    """The targets rendered at their poses (at the model's size or ``size``), clipped to [0, 1],
+    and their soft depth."""
+    poses = posed.world_from_cam[list(targets)]
+    if size is None and quality is None:
+        rgb, depth = backend.render(posed.encoded, poses)
+    else:
+        rgb, depth = backend.render(posed.encoded, poses, size=size, quality=quality)
     if not (np.isfinite(rgb).all() and np.isfinite(posed.world_from_cam).all()):
         raise InputError(f"{where}: the model returned NaN or inf (poses or colours); nothing to "
                          "score")
     return np.clip(rgb, 0.0, 1.0), depth
+
+
+def _upsampled(backend, posed: PosedScene, targets, where: str, size, quality) -> np.ndarray:
+    """The ``upsampled`` baseline of ``--size``: each target rendered at the model's resolution
+    (``_render_targets``: clipped to [0, 1]), resized to ``size`` (S, S) with
+    ``cv2.INTER_CUBIC``, clipped to [0, 1] again (cubic overshoots). ``[N, S, S, 3]`` float64."""
+    import cv2
+    rgb, _ = _render_targets(backend, posed, targets, f"{where}, at the model's resolution",
+                             None, quality)
+    H, W = size
+    return np.stack([np.clip(cv2.resize(np.ascontiguousarray(im), (W, H),
+                                        interpolation=cv2.INTER_CUBIC), 0.0, 1.0) for im in rgb])
 
 
 def _depth_score(pred_depths: np.ndarray, true_depths: np.ndarray) -> float | None:
@@ -164,12 +224,14 @@ def _flag_list(flags, frames):
 
 
 def _scene_record(index: int, prepared: PreparedScene, posed: PosedScene, rgb, depth, refs,
-                  targets, baselines: dict) -> dict:
+                  targets, baselines: dict, upsampled: np.ndarray | None = None) -> dict:
     """One scene in one order: ``{"index", "name", "model": {...}, "baselines": {...},
     "cameras": {"source", "references", "references_solved", "targets", "targets_located",
     "fallbacks", "scale", "scale_source", "principal_offset"}}`` (flags per frame of
     ``references`` / ``targets``; the last three for true cameras only, the principal point's
-    offset from the centre in pixels of the model image, which the renderer takes as centred)."""
+    offset from the centre in pixels of the model image, which the renderer takes as centred).
+    ``upsampled`` (``--size``): the targets' upsampled renders, scored into
+    ``baselines["upsampled"]``."""
     targets_a = list(targets)
     model = dict.fromkeys(_MODEL_KEYS)
     model.update(nvs_scores(rgb, prepared.gt_images[targets_a]))
@@ -186,6 +248,9 @@ def _scene_record(index: int, prepared: PreparedScene, posed: PosedScene, rgb, d
                                        prefix="head_reference_"))
         eye = np.broadcast_to(np.eye(4), prepared.poses.shape)
         identity = {**rpa(eye, prepared.poses), **locate_rpa(eye, prepared.poses, targets)}
+    if upsampled is not None:
+        baselines = {_UPSAMPLED: nvs_scores(upsampled, prepared.gt_images[targets_a]),
+                     **baselines}
     return {
         "index": index, "name": prepared.name, "model": model,
         "baselines": {**baselines, "identity_poses": identity},
@@ -218,9 +283,12 @@ class _OrderRecord:
         return {k: self._mean(lambda s, k=k: value(s, k)) for k in keys}
 
     def summary(self, cameras: str, locate: str, report_cameras: bool) -> dict:
+        names = _IMAGE_BASELINES
+        if any(_UPSAMPLED in s["baselines"] for s in self.scenes):
+            names = (_UPSAMPLED, *names)
         out = {"model": self._means(_MODEL_KEYS, lambda s: s["model"]),
                "baselines": {name: self._means(("psnr", "ssim"), lambda s, n=name: s["baselines"][n])
-                             for name in _IMAGE_BASELINES}}
+                             for name in names}}
         out["baselines"]["identity_poses"] = self._means(
             _POSE_KEYS, lambda s: s["baselines"]["identity_poses"])
         if report_cameras:

@@ -14,7 +14,8 @@ from .protocol import LOCATE_RPA_KEYS, ORDERS, RPA_KEYS, capped_psnr
 __all__ = ["format_table", "format_scenes", "format_cameras", "write_json", "save_grid"]
 
 #: Rows of the summary table: (label, where in an order's results).
-_ROWS = (("IRIS", ("model",)), ("best reference", ("baselines", "best_reference")),
+_ROWS = (("IRIS", ("model",)), ("upsampled", ("baselines", "upsampled")),
+         ("best reference", ("baselines", "best_reference")),
          ("nearest reference", ("baselines", "nearest_reference")),
          ("mean colour", ("baselines", "mean_colour")),
          ("identity poses", ("baselines", "identity_poses")))
@@ -23,7 +24,8 @@ _ROWS = (("IRIS", ("model",)), ("best reference", ("baselines", "best_reference"
 def format_table(results: dict) -> str:
     """The results as a fixed-width text table (one row per order and method; "-" = not measured).
     DEPTH-RHO is ``depth_spearman``, LOC@t is ``locate_rpa@t``; "best reference" is the oracle
-    photo baseline (``protocol.best_reference``), "nearest reference" the nearest camera's."""
+    photo baseline (``protocol.best_reference``), "nearest reference" the nearest camera's;
+    "upsampled" (``--size`` only) the model-resolution render resized to the output size."""
     cols = ("psnr", "ssim", *RPA_KEYS, *LOCATE_RPA_KEYS, "depth_spearman")
     labels = {"depth_spearman": "DEPTH-RHO",
               **{k: f"LOC@{t:g}" for k, t in zip(LOCATE_RPA_KEYS, RPA_THRESHOLDS)}}
@@ -58,10 +60,14 @@ def _flags(flags) -> str:
 def format_scenes(results: dict) -> str:
     """One row per scene and order: PSNR of the render and of the two photo baselines, where the
     cameras came from (``cameras.source``), how many references the solve (or the data) gave and
-    how many targets were located that way, and the views that fell back to the camera head."""
+    how many targets were located that way, and the views that fell back to the camera head.
+    With ``--size``, the PSNR of the "upsampled" baseline too (column UPSAMPLED)."""
     name_w = max([5] + [len(s["name"]) for o in ORDERS for s in results[o].get("scenes", [])])
-    head = (f"{'order':<6} {'scene':<{name_w}} {'PSNR':>7} {'SSIM':>6} {'BEST':>7} {'NEAREST':>8} "
-            f"{'cameras':>9} {'refs':>5} {'targets':>7} {'fallbacks':>9}")
+    upsampled = any("upsampled" in s["baselines"] for o in ORDERS
+                    for s in results[o].get("scenes", []))
+    head = (f"{'order':<6} {'scene':<{name_w}} {'PSNR':>7} {'SSIM':>6} "
+            + (f"{'UPSAMPLED':>9} " if upsampled else "")
+            + f"{'BEST':>7} {'NEAREST':>8} {'cameras':>9} {'refs':>5} {'targets':>7} {'fallbacks':>9}")
     lines = [head, "-" * len(head)]
     for order in ORDERS:
         for s in results[order].get("scenes", []):
@@ -70,7 +76,8 @@ def format_scenes(results: dict) -> str:
             lines.append(
                 f"{order.capitalize():<6} {s['name']:<{name_w}} {_cell(s['model']['psnr'], '.2f', 7)} "
                 f"{_cell(s['model']['ssim'], '.3f', 6)} "
-                f"{_cell(s['baselines']['best_reference']['psnr'], '.2f', 7)} "
+                + (f"{_cell(s['baselines']['upsampled']['psnr'], '.2f', 9)} " if upsampled else "")
+                + f"{_cell(s['baselines']['best_reference']['psnr'], '.2f', 7)} "
                 f"{_cell(None if near is None else near['psnr'], '.2f', 8)} {c['source']:>9} "
                 f"{_flags(c['references_solved']):>5} {_flags(c['targets_located']):>7} "
                 f"{c['fallbacks']:>9}")
@@ -114,7 +121,9 @@ def save_grid(path: str | os.PathLike, references: np.ndarray, targets: np.ndarr
     and range; grey where there is no geometry; the soft depth's title then gives its Spearman
     correlation with it); and a picture of the cameras below (``cameras``: an RGB uint8 image, e.g.
     from ``iris_runtime.camera_plot.draw_cameras``). Images float ``[n, H, W, 3]`` in [0, 1],
-    depths ``[n, H, W]``; ``*_frames`` label the columns with frame indices. Written atomically."""
+    depths ``[n, H, W]``; ``*_frames`` label the columns with frame indices. Panels grow with
+    images above ~116 pixels (``iris-eval --size``), so they show at about their own size.
+    Written atomically."""
     import matplotlib
     matplotlib.use("Agg")
     import io
@@ -137,7 +146,11 @@ def save_grid(path: str | os.PathLike, references: np.ndarray, targets: np.ndarr
                      [f"{t.min():.2f}-{t.max():.2f}" if t.count() else "no geometry" for t in masked]))
     ncols = max(len(r[1]) for r in rows)
     cam_rows = 3 if cameras is not None else 0
-    fig = plt.figure(figsize=(1.4 * ncols, 1.5 * (len(rows) + cam_rows)))
+    # Panels of 1.4 x 1.5 inches at 100 dpi, larger where the images are (--size): shown at
+    # about their own resolution.
+    h, w = np.asarray(renders).shape[1:3] if len(renders) else (0, 0)
+    cell_w, cell_h = max(1.4, (w + 24) / 100), max(1.5, (h + 36) / 100)
+    fig = plt.figure(figsize=(cell_w * ncols, cell_h * (len(rows) + cam_rows)))
     gs = fig.add_gridspec(len(rows) + cam_rows, ncols)
     cmap = matplotlib.colormaps["turbo"].with_extremes(bad="0.85")   # no geometry: grey
 

@@ -2,6 +2,7 @@
 and the model's resolution."""
 from __future__ import annotations
 
+import dataclasses
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -14,7 +15,7 @@ from iris_runtime.errors import InputError
 from .protocol import DEFAULT_VIEWS
 
 __all__ = ["SYNTHETIC_SETS", "SYNTHETIC_PHOTO_SIZE", "PreparedScene", "prepare_scene", "true_depth_and_K",
-           "load_scenes", "load_evaluable", "scene_name"]
+           "load_scenes", "load_evaluable", "scene_name", "to_output_size", "check_output_size"]
 
 #: DATA values naming a synthetic set: the held-out scenes (the record), the validation scenes
 #: (where choices are made; iris_train.data.VALIDATION_SEEDS), and the held-out capture-like
@@ -38,6 +39,12 @@ class PreparedScene:
     photos:     the same frames at their own resolution, uint8 [h, w, 3] each: what a user hands
                 the runtime, and what the camera solve works on (the model sees ``images``)
     photo_K:    float64 [N, 3, 3] true intrinsics in pixels of ``photos``, or None
+    output_size: None (the protocol at the model's resolution), or (S, S) for ``iris-eval
+                --size S``: then ``images`` are the photos fitted to the model
+                (``iris_runtime.images.fit_to_model``, what the runtime does with them), the
+                reference photos go to the encoder at their own resolution, and ``gt_images``
+                and ``true_depth`` are at the output size (``to_output_size``), what the renders
+                and the photo baselines are scored against
     """
     images: np.ndarray
     gt_images: np.ndarray
@@ -48,6 +55,7 @@ class PreparedScene:
     name: str
     photos: list[np.ndarray]
     photo_K: np.ndarray | None
+    output_size: tuple[int, int] | None = None
 
 
 def _frame_index(V: int, views: int) -> np.ndarray:
@@ -80,13 +88,43 @@ def _model_intrinsics(scene, idx: np.ndarray, image_size: tuple[int, int]) -> np
     return np.stack([plan.adjust_intrinsics(k) for k in K])
 
 
-def prepare_scene(scene, views: int, image_size: tuple[int, int], index: int = 0
-                  ) -> PreparedScene | None:
+def to_output_size(photo: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """A photo ``uint8 [h, w, 3]`` as the ground truth of an ``S x S`` render (``size`` (S, S)):
+    centre-cropped to a square (``min(h, w)`` on a side, offsets ``(w - side) // 2`` and
+    ``(h - side) // 2``: the crop ``fit_to_model`` gives the model too), then shrunk with
+    ``cv2.INTER_AREA`` (a copy when the crop is S already). ``uint8 [S, S, 3]``. The photo must
+    be at least S on its shorter side (``check_output_size``)."""
+    from iris_runtime.images import fit_to_model
+    return fit_to_model(np.asarray(photo), int(size[0]), int(size[1]))[0]
+
+
+def check_output_size(photos, size: tuple[int, int], where: str) -> None:
+    """``InputError`` unless every photo ``[h, w, 3]`` covers ``size`` (S, S) after the centre
+    crop to a square, i.e. ``min(h, w) >= S``: renders are never scored against enlarged
+    photos."""
+    S = int(size[0])
+    small = [np.asarray(p).shape[:2] for p in photos if min(np.asarray(p).shape[:2]) < S]
+    if small:
+        h, w = small[0]
+        raise InputError(f"{where}: its photos are {w}x{h} (width x height), smaller than the "
+                         f"output size {S}x{S} asked by --size {S}: ground truth would have to be "
+                         f"enlarged; evaluate at --size {min(h, w)} or less")
+
+
+def prepare_scene(scene, views: int, image_size: tuple[int, int], index: int = 0,
+                  output_size: tuple[int, int] | None = None) -> PreparedScene | None:
     """``scene`` (``images`` uint8 [V, H, W, 3], ``world_from_cam`` [V, 4, 4] or None, optional
     ``K``, ``depth``, ``meta``, and ``photos`` / ``photo_K``: the frames at their own resolution
     where ``images`` were brought to the model's) -> its ``views`` frames at the model's size
     (images of another size through ``iris_runtime.images.fit_to_model``), or None when it has
-    fewer frames."""
+    fewer frames.
+
+    ``output_size`` (S, S) (``iris-eval --size S``): the model's images are the photos (or the
+    images, without photos) fitted to the model, and the ground truth images and depth are the
+    photos and depth brought to S (``to_output_size``; depth centre-cropped alike and resized
+    nearest-neighbour); ``InputError`` when a photo is smaller than S (``check_output_size``)."""
+    if output_size is not None:
+        return _prepare_at_output_size(scene, views, image_size, index, output_size)
     images = np.asarray(scene.images)
     if images.ndim != 4 or images.shape[-1] != 3 or images.dtype != np.uint8:
         raise InputError(f"scene images: expected uint8 [V, H, W, 3], got {images.dtype} {images.shape}")
@@ -120,6 +158,47 @@ def prepare_scene(scene, views: int, image_size: tuple[int, int], index: int = 0
                          scene_name(scene, index), photos, photo_K)
 
 
+def _prepare_at_output_size(scene, views: int, image_size: tuple[int, int], index: int,
+                            output_size: tuple[int, int]) -> PreparedScene | None:
+    from iris_runtime.images import fit_to_model
+    prepared = prepare_scene(scene, views, image_size, index)
+    if prepared is None:
+        return None
+    photos = []
+    for k, p in enumerate(prepared.photos):
+        p = np.asarray(p)
+        if p.ndim != 3 or p.shape[-1] != 3 or p.dtype != np.uint8:
+            raise InputError(f"scene photos[{k}]: expected uint8 [h, w, 3], got {p.dtype} {p.shape}")
+        photos.append(p)
+    check_output_size(photos, output_size, f"scene {index} ({prepared.name})")
+    images = np.stack([fit_to_model(p, *image_size)[0] for p in photos])
+    gt = np.stack([to_output_size(p, output_size) for p in photos]).astype(np.float64) / 255.0
+    depth = getattr(scene, "depth", None)
+    true_depth = None
+    if depth is not None:
+        depth = np.asarray(depth, dtype=np.float64)
+        V = np.asarray(scene.images).shape[0]
+        if depth.ndim == 3 and depth.shape[0] == V:
+            true_depth = _fit_depth(depth[_frame_index(V, views)], output_size)
+    return dataclasses.replace(prepared, images=images, gt_images=gt, true_depth=true_depth,
+                               photos=photos, output_size=(int(output_size[0]), int(output_size[1])))
+
+
+def _fit_depth(depth: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """Depth maps ``[N, h, w]`` -> ``[N, H, W]``: the images' centre crop, nearest-neighbour resize
+    (no depths mixed across edges)."""
+    if depth.shape[1:] == tuple(size):
+        return depth
+    import cv2
+
+    from iris_runtime.images import plan_crop_resize
+    H, W = size
+    plan = plan_crop_resize(depth.shape[1], depth.shape[2], H, W)
+    return np.stack([cv2.resize(np.ascontiguousarray(d[plan.y0:plan.y0 + plan.crop_h,
+                                                       plan.x0:plan.x0 + plan.crop_w]),
+                                (W, H), interpolation=cv2.INTER_NEAREST) for d in depth])
+
+
 def true_depth_and_K(scene, views: int, image_size: tuple[int, int]):
     """-> ``(true depth float64 [N, H, W] at the model's size or None, K [3, 3] / [N, 3, 3] or None)``
     of the frames ``prepare_scene`` keeps. A depth of another size gets the same centre crop as
@@ -137,17 +216,7 @@ def true_depth_and_K(scene, views: int, image_size: tuple[int, int]):
     depth = np.asarray(depth, dtype=np.float64)
     if depth.ndim != 3 or depth.shape[0] != V:
         return None, K
-    depth = depth[idx]
-    if depth.shape[1:] != tuple(image_size):
-        import cv2
-
-        from iris_runtime.images import plan_crop_resize
-        H, W = image_size
-        plan = plan_crop_resize(depth.shape[1], depth.shape[2], H, W)
-        depth = np.stack([cv2.resize(np.ascontiguousarray(d[plan.y0:plan.y0 + plan.crop_h,
-                                                            plan.x0:plan.x0 + plan.crop_w]),
-                                     (W, H), interpolation=cv2.INTER_NEAREST) for d in depth])
-    return depth, K
+    return _fit_depth(depth[idx], image_size), K
 
 
 def _with_photos(scene, photos):
@@ -186,10 +255,29 @@ def load_evaluable(path: str | os.PathLike, threads: int | None = None):
 
 
 def load_scenes(data: str, image_size: tuple[int, int], views: int = DEFAULT_VIEWS,
-                limit: int | None = None) -> tuple[Iterable, int]:
+                limit: int | None = None, output_size: tuple[int, int] | None = None
+                ) -> tuple[Iterable, int]:
     """DATA argument -> (scenes, count). ``synthetic:heldout`` / ``synthetic:validation`` render
     the held-out / validation synthetic scenes lazily; anything else is a folder of scene folders
-    (``iris_train.data.load_dataset_folder``)."""
+    (``iris_train.data.load_dataset_folder``).
+
+    ``output_size`` (S, S) (``iris-eval --size S``): the synthetic sets are their photos at
+    ``SYNTHETIC_PHOTO_SIZE`` alone (the same seeds and cache as the photos of the default run;
+    ``prepare_scene`` fits them to the model), and an S above that size is an ``InputError``
+    before anything is rendered; a folder's scenes are checked likewise once loaded."""
+    if output_size is not None and data in SYNTHETIC_SETS:
+        check_output_size([np.zeros((*SYNTHETIC_PHOTO_SIZE, 3), np.uint8)], output_size,
+                          f"DATA {data!r}")
+        from .. import data as D
+        if data == "synthetic:capture-heldout":
+            seeds, kind = list(D.CAPTURE_HELDOUT_SEEDS)[:limit], "capture"
+        else:
+            seeds = list(D.HELDOUT_SEEDS if data == "synthetic:heldout" else D.VALIDATION_SEEDS)[:limit]
+            kind = None
+        # Cached at SYNTHETIC_PHOTO_SIZE (default_cache_dir: .../synthetic/256x256[/capture]),
+        # the files `python -m iris_train.data --heldout --render-size 256 256` writes.
+        photos = D.SyntheticScenes(seeds, n_views=views, size=SYNTHETIC_PHOTO_SIZE, kind=kind)
+        return (photos[i] for i in range(len(photos))), len(photos)
     if data == "synthetic:capture-heldout":
         from .. import data as D
         # The photos are the 256x256 renders with their camera effects, brought to the model's
@@ -213,4 +301,8 @@ def load_scenes(data: str, image_size: tuple[int, int], views: int = DEFAULT_VIE
         raise InputError(f"DATA {data!r}: not one of {list(SYNTHETIC_SETS)} and not a folder")
     from ..data import load_dataset_folder
     scenes = load_dataset_folder(path, size=tuple(image_size))[:limit]
+    if output_size is not None:         # refused before any scene is evaluated
+        for i, scene in enumerate(scenes):
+            check_output_size(scene.photos or scene.images, output_size,
+                              f"scene {i} ({scene_name(scene, i)})")
     return scenes, len(scenes)
