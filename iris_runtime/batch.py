@@ -67,8 +67,10 @@ def read_photos(scene: Path) -> dict[str, bytes]:
 
 def render_argv(args: argparse.Namespace) -> list[str]:
     """The iris-render options of one scene (after MODEL_DIR PHOTOS... -o DIR)."""
-    argv = ["--orbit", str(args.orbit), "--fps", str(args.fps), "--quality", args.quality,
-            "--precision", args.precision, "-q"]
+    argv = ["--orbit", str(args.orbit), "--fps", str(args.fps), "--precision", args.precision,
+            "-q"]
+    if args.quality:
+        argv += ["--quality", args.quality]
     if args.size:
         argv += ["--size", f"{args.size[0]}x{args.size[1]}"]
     if args.cameras:
@@ -207,7 +209,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--size", metavar="HxW", type=cli._size, help="output size (default: the "
                    "model's)")
     p.add_argument("--fps", type=cli._positive, default=24, help="orbit.mp4 frame rate")
-    p.add_argument("--quality", choices=list(QUALITY_PRESETS), default="exact")
+    p.add_argument("--quality", choices=list(QUALITY_PRESETS), default=None,
+                   help="speed/error preset (default: the model's, as iris-render)")
     p.add_argument("--cameras", choices=list(CAMERAS), default=None,
                    help="cameras of the inputs (default: the model's manifest)")
     p.add_argument("--precision", choices=["float32", "int8"], default="float32")

@@ -169,11 +169,14 @@ def build_parser() -> argparse.ArgumentParser:
                           "(default: the CPU)")
     out.add_argument("--precision", choices=list(PRECISIONS), default="float32",
                      help="renderer graph: float32, or int8 if exported with --quantize int8")
-    out.add_argument("--quality", choices=list(QUALITY_PRESETS), default="exact",
-                     help="speed/error preset (measured in docs/PERFORMANCE.md): exact = the full "
-                          "render; balanced = 32 samples, <= 8 views per ray; fast = 16 samples, "
-                          "2 views per ray, half resolution; adaptive = quarter resolution, the "
-                          "12%% least trusted pixels rendered again exactly")
+    out.add_argument("--quality", choices=list(QUALITY_PRESETS), default=None,
+                     help="speed/error preset (measured in docs/PERFORMANCE.md; default: the "
+                          "model's, auto for explicit colour, else exact): auto = the full render "
+                          "up to the model's resolution, above it the field at 1/8 of the size "
+                          "and the colour from the photos; exact = the full render; balanced = "
+                          "32 samples, <= 8 views per ray; fast = 16 samples, 2 views per ray, "
+                          "half resolution; adaptive = quarter resolution, the 12%% least "
+                          "trusted pixels rendered again exactly")
     out.add_argument("-q", "--quiet", action="store_true", help="print nothing but errors")
     return p
 
@@ -291,7 +294,7 @@ def _check_request(args: argparse.Namespace, runtime=None) -> _Request:
     H, W = rt.image_size
     size = rt.check_output_size(*args.size) if args.size else (H, W)
     if args.chunk_rays is not None:
-        samples = QUALITY_PRESETS[args.quality].samples or rt.samples
+        samples = QUALITY_PRESETS[args.quality or rt.default_quality].samples or rt.samples
         L.check_chunk_rays(args.chunk_rays, size[0] * size[1], samples, len(args.images),
                            name="--chunk-rays")
     originals = [load_image(p, p) for p in args.images]          # own resolution: the solve's
@@ -419,6 +422,9 @@ def _render_jobs(req: _Request, args: argparse.Namespace, scene, jobs, out: Path
                 if writer is not None:
                     writer.write(res.image[..., ::-1].copy())         # OpenCV wants BGR
             totals["write"] += time.perf_counter() - t0
+            if progress.bar is None or progress.bar.disable:
+                # No live bar (stderr is not a terminal: CI logs, | tee): a line per frame.
+                say(f"  frame {k + 1}/{len(jobs)} {name}: {time.perf_counter() - t_render:.1f} s")
     finally:
         progress.close()
         if writer is not None:

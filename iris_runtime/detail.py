@@ -10,11 +10,13 @@ each coarse ray's ``w`` over the bins and ``r``), and ``compose_fine`` makes eve
 from its own ray:
 
 1. **Geometry from the coarse rays around it.** Each of the (up to) four coarse rays whose
-   centres surround the pixel is a candidate: its weights on its ``colour_samples`` heaviest
-   bins (rescaled to its total weight) and its residual.
-2. **Colour through that geometry.** The pixel's own ray is sampled at those bins' depths,
-   every sample projected into every reference view and read from the photos at the output's
-   scale (``colour.ColourSource``), averaged over the views as the renderer averages them.
+   centres surround the pixel is a candidate: its weights pooled into windows of consecutive
+   depth bins (``ray_windows``), its ``colour_samples`` heaviest windows (rescaled to its total
+   weight), and its residual.
+2. **Colour through that geometry.** The pixel's own ray is sampled once per window its
+   candidates keep, at their centre of mass there, every sample projected into every reference
+   view and read from the photos at the output's scale (``colour.ColourSource``), averaged over
+   the views as the renderer averages them.
 3. **Edges by agreement.** Across a depth edge the candidates disagree: the wrong one puts the
    pixel's samples where the views see different things. Each candidate is weighted by its
    bilinear weight times ``exp(-spread / CONSISTENCY)``, ``spread`` the weighted variance of the
@@ -35,14 +37,14 @@ import numpy as np
 from . import geometry as G
 from .colour import ColourSource, compose, mean_colour
 
-__all__ = ["CONSISTENCY", "FINE_BLOCK", "CoarseField", "compose_fine"]
+__all__ = ["CONSISTENCY", "FINE_BLOCK", "CoarseField", "compose_fine", "ray_windows"]
 
 f32 = np.float32
 
 #: Colour variance (summed over RGB, colours in [0, 1]) at which a candidate geometry's weight
 #: drops by 1/e: photo noise and texture within a pixel stay well below it, two different
 #: surfaces seen by the views well above it.
-CONSISTENCY = 0.01
+CONSISTENCY = 0.003
 #: Output rays composed at once: bounds the (ray, bin, view) arrays of a block to ~100 MB.
 FINE_BLOCK = 8192
 
@@ -66,54 +68,76 @@ def compose_fine(coarse: CoarseField, height: int, width: int, K: np.ndarray,
                  world_from_cam: np.ndarray, z_bins: np.ndarray, ref_K: np.ndarray,
                  cam_from_world: np.ndarray, image_size: tuple[int, int],
                  colours: ColourSource, colour_samples: int,
-                 consistency: float = CONSISTENCY) -> tuple[np.ndarray, np.ndarray]:
+                 consistency: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The ``height`` x ``width`` render (intrinsics ``K`` in its pixels, pose
     ``world_from_cam``) from ``coarse``: rgb float32 [H*W, 3] and depth float32 [H*W].
     ``z_bins [S]``: the march's depth bins; ``ref_K``, ``cam_from_world [V, 4, 4]``,
     ``image_size``: the references (model pixels); ``colours``: their photos at the output's
-    scale; ``colour_samples``: bins kept per coarse ray (the heaviest)."""
+    scale; ``colour_samples``: depth windows kept per coarse ray (``ray_windows``);
+    ``consistency``: the spread scale of the candidates' weights (None: ``CONSISTENCY``)."""
+    tau = f32(CONSISTENCY if consistency is None else consistency)
     hc, wc = coarse.size
-    S = z_bins.shape[0]
-    M = max(1, min(int(colour_samples), S))
-    # Each coarse ray's M heaviest bins, rescaled to keep its total weight.
-    w = coarse.weights
-    bins = np.argpartition(-w, M - 1, axis=1)[:, :M] if M < S else np.broadcast_to(
-        np.arange(S), w.shape)
-    top = np.take_along_axis(w, bins, axis=1)
-    total, kept = w.sum(axis=1, keepdims=True), top.sum(axis=1, keepdims=True)
+    pooled, centre = ray_windows(coarse.weights, z_bins, colour_samples)      # [Nc, nW] each
+    M = min(max(1, int(colour_samples)), pooled.shape[1])
+    win = np.argpartition(-pooled, M - 1, axis=1)[:, :M] if M < pooled.shape[1] else \
+        np.broadcast_to(np.arange(M), (len(pooled), M))
+    top = np.take_along_axis(pooled, win, axis=1)
+    total, kept = pooled.sum(axis=1, keepdims=True), top.sum(axis=1, keepdims=True)
     top = top * np.where(kept > 0, total / np.where(kept > 0, kept, 1), 0).astype(f32)
+    n_win = pooled.shape[1]
 
     n = height * width
     rgb, depth = np.empty((n, 3), f32), np.empty(n, f32)
     K32, pose32 = K.astype(f32), world_from_cam.astype(f32)
     for start in range(0, n, FINE_BLOCK):
         rows = np.arange(start, min(n, start + FINE_BLOCK))
+        R = len(rows)
         cand, bilinear = _candidates(rows, height, width, hc, wc)              # [R, 4] each
         uv = np.stack([rows % width, rows // width], axis=-1).astype(f32) + f32(0.5)
         origins, directions = G.rays_from_pixels(uv, K32, pose32)
-        # The union of the candidates' bins per ray: each (ray, bin) sample is read once.
-        R = len(rows)
-        cand_bins = bins[cand]                                                 # [R, 4, M]
-        cand_w = top[cand]                                                     # [R, 4, M]
-        marks = np.zeros((R, S), bool)
+        # One sample per (ray, window) in the union of its candidates' kept windows, at the
+        # candidates' centre of mass in that window (their bilinear weights times their mass).
+        cand_win, cand_w = win[cand], top[cand]                                # [R, 4, M]
+        marks = np.zeros((R, n_win), bool)
         used = cand_w.reshape(-1) > 0
-        marks[np.repeat(np.arange(R), 4 * M)[used], cand_bins.reshape(-1)[used]] = True
-        ray, b = np.nonzero(marks)                                             # P samples
-        points = origins[ray] + z_bins[b, None] * directions[ray]              # [P, 3]
+        marks[np.repeat(np.arange(R), cand_w[0].size)[used], cand_win.reshape(-1)[used]] = True
+        ray, j = np.nonzero(marks)                                             # P samples
+        mass = pooled[cand[ray], j[:, None]] * (bilinear[ray] + f32(1e-6))     # [P, 4]
+        z = ((mass * centre[cand[ray], j[:, None]]).sum(axis=1)
+             / np.maximum(mass.sum(axis=1), f32(1e-30)))
+        points = origins[ray] + z[:, None] * directions[ray]                   # [P, 3]
         mean, spread = _sample_colours(points, ref_K, cam_from_world, image_size, colours)
-        slot = np.zeros((R, S), np.intp)
-        slot[ray, b] = np.arange(len(ray))
-        p = slot[np.arange(R)[:, None, None], cand_bins]                       # [R, 4, M]
+        slot = np.zeros((R, n_win), np.intp)
+        slot[ray, j] = np.arange(len(ray))
+        p = slot[np.arange(R)[:, None, None], cand_win]                        # [R, 4, M]
         blend = np.einsum("rkm,rkmc->rkc", cand_w, mean[p])                   # [R, 4, 3]
-        mass = cand_w.sum(axis=2)                                              # [R, 4]
-        disagreement = (cand_w * spread[p]).sum(axis=2) / np.maximum(mass, f32(1e-12))
+        weight = cand_w.sum(axis=2)                                            # [R, 4]
+        disagreement = (cand_w * spread[p]).sum(axis=2) / np.maximum(weight, f32(1e-12))
         colour = compose(blend, coarse.residual[cand])                         # [R, 4, 3]
-        alpha = bilinear * np.exp(-disagreement / f32(consistency))
+        alpha = bilinear * np.exp(-disagreement / tau)
         norm = alpha.sum(axis=1, keepdims=True)
         alpha = np.where(norm > 1e-30, alpha / np.where(norm > 1e-30, norm, 1), bilinear)
         rgb[rows] = np.einsum("rk,rkc->rc", alpha, colour)
         depth[rows] = (alpha * coarse.depth[cand]).sum(axis=1)
     return rgb, depth
+
+
+def ray_windows(weights: np.ndarray, z_bins: np.ndarray, colour_samples: int):
+    """Each ray's weights ``[N, S]`` pooled into windows of ``max(1, S // (2 M))`` consecutive
+    bins (M = ``colour_samples``; the last window may be shorter): the summed weight and the
+    centre of mass of each window (its bins' mean depth where it has no weight) ->
+    float32 [N, nW] each. The shipped model spreads its weights along the ray (the 8 heaviest
+    of 64 bins hold about 70 % of a ray's weight on the held-out and castle scenes, the 8
+    heaviest 4-bin windows about 97 %), so windows keep the weight that single bins drop."""
+    S = z_bins.shape[0]
+    size = max(1, S // (2 * max(1, int(colour_samples))))
+    starts = np.arange(0, S, size)
+    w = weights.astype(f32)
+    pooled = np.add.reduceat(w, starts, axis=1)
+    moment = np.add.reduceat(w * z_bins.astype(f32)[None], starts, axis=1)
+    middle = np.add.reduceat(z_bins.astype(f32), starts) / np.diff(np.append(starts, S))
+    centre = np.where(pooled > 0, moment / np.where(pooled > 0, pooled, 1), middle[None])
+    return pooled, centre.astype(f32)
 
 
 def _candidates(rows: np.ndarray, height: int, width: int, hc: int, wc: int):

@@ -50,7 +50,7 @@ import numpy as np
 from .errors import InputError
 from .validation import check_integer
 
-__all__ = ["RenderSettings", "QUALITY_PRESETS", "TOP_K_BY", "UPSAMPLERS", "PRECISIONS",
+__all__ = ["RenderSettings", "QUALITY_PRESETS", "TWO_SCALE_PRESETS", "TOP_K_BY", "UPSAMPLERS", "PRECISIONS",
            "resolve_settings", "top_k_mask", "ray_view_sets", "group_rays"]
 
 TOP_K_BY = ("point", "ray")
@@ -155,12 +155,19 @@ def _check_fraction(name: str, x, expected: str, ok) -> None:
 #: Named presets, chosen from the measured error/time table (docs/PERFORMANCE.md, "Choosing speed
 #: against quality"; benchmarks/results/error_vs_time.md):
 #:
-#: - "exact":    the full render.
+#: - "auto":     the default of explicit-colour models: the full render up to the model's
+#:               resolution; above it two scales (``field_scale``): the field marched at an
+#:               eighth of the output's rows and columns, each pixel's colour from the photos
+#:               through the 8 heaviest depth bins of the coarse rays around it (error and
+#:               time against the full render at 128, 256 and 512: docs/PERFORMANCE.md, "Two
+#:               scales").
+#: - "exact":    the full render (at every size: the field marched at every output pixel).
 #: - "balanced": 64 -> 32 samples and at most 8 views per ray: about half the time of the full
 #:               render at an error far below the model's own (ground-truth PSNR unchanged), and a
 #:               time per frame that grows much slower than the full render's with the views.
 #: - "fast":     16 samples, 2 views per ray, half resolution + bicubic upsampling: over an order
-#:               of magnitude faster, at a visible but small error against the full render.
+#:               of magnitude faster, at a visible but small error against the full render;
+#:               where the half resolution is above the model's, two scales at a quarter of it.
 #: - "adaptive": a quarter-resolution coarse pass, bicubic upsampling, and the 12 % least trusted
 #:               pixels (colour or depth range >= 0.1 over their coarse neighbourhood) rendered
 #:               again exactly: a coarse pass costs 1/16 of the full render and the budget
@@ -170,17 +177,25 @@ def _check_fraction(name: str, x, expected: str, ok) -> None:
 #:               ``depth_window``: the shipped model's weights are spread along its rays (the
 #:               fallback would keep every sample), see docs/PERFORMANCE.md.
 QUALITY_PRESETS: dict[str, RenderSettings] = {
+    "auto": RenderSettings(field_scale=0.125, colour_samples=8),
     "exact": RenderSettings(),
     "balanced": RenderSettings(samples=32, top_k=8, top_k_by="ray"),
-    "fast": RenderSettings(samples=16, top_k=2, top_k_by="ray", scale=0.5, upsample="cubic"),
+    "fast": RenderSettings(samples=16, top_k=2, top_k_by="ray", scale=0.5, upsample="cubic",
+                           field_scale=0.25, colour_samples=4),
     "adaptive": RenderSettings(upsample="cubic", coarse=0.25, refine=0.1, refine_budget=0.12),
 }
 
 
-def resolve_settings(quality: str | RenderSettings | None = None, **overrides) -> RenderSettings:
-    """The settings of preset ``quality`` (default "exact") with the non-None ``overrides``."""
+#: The presets that take two scales (``field_scale``), which only explicit-colour models have.
+TWO_SCALE_PRESETS = tuple(k for k, v in QUALITY_PRESETS.items() if v.field_scale is not None)
+
+
+def resolve_settings(quality: str | RenderSettings | None = None, default: str = "exact",
+                     **overrides) -> RenderSettings:
+    """The settings of preset ``quality`` (None: preset ``default``) with the non-None
+    ``overrides``."""
     if quality is None:
-        base = QUALITY_PRESETS["exact"]
+        base = QUALITY_PRESETS[default]
     elif isinstance(quality, RenderSettings):
         base = quality
     elif isinstance(quality, str) and quality in QUALITY_PRESETS:

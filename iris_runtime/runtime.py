@@ -152,6 +152,12 @@ class IrisRuntime:
                 f"threads={self.threads})")
 
     @property
+    def default_quality(self) -> str:
+        """``render``'s preset when none is asked for: "auto" for explicit-colour models (two
+        scales above the model's resolution, the full render up to it), "exact" otherwise."""
+        return "auto" if self.manifest.explicit_rgb else "exact"
+
+    @property
     def max_views(self) -> int:
         """Most images one ``encode`` accepts: ``MAX_ENCODER_TOKENS`` // (patches per view + 1)."""
         return L.max_views(self.image_size, self.manifest.config.get("patch_size", 8))
@@ -500,18 +506,22 @@ class IrisRuntime:
         progress:   called as ``progress(rays_done, rays_total)`` after each chunk.
 
         Speed/quality (``iris_runtime.quality``; measured error and time in docs/PERFORMANCE.md):
-        quality:    a preset, "exact" (default: the full render), "balanced", "fast" or
-                    "adaptive" (``QUALITY_PRESETS``), or a ``RenderSettings``, passed whole.
+        quality:    a preset, "auto" (explicit-colour models' default: two scales above the
+                    model's resolution), "exact" (other models' default: the full render),
+                    "balanced", "fast" or "adaptive" (``QUALITY_PRESETS``), or a
+                    ``RenderSettings``, passed whole. None: ``default_quality``.
         **knobs:    single ``RenderSettings`` fields overriding the preset's (documented there):
                     ``samples``, ``top_k``, ``top_k_by``, ``scale``, ``upsample``, ``precision``
                     (default: the runtime's), ``coarse``, ``refine``, ``refine_budget``,
-                    ``depth_window``, ``depth_mass``; any other name is an ``InputError``.
+                    ``depth_window``, ``depth_mass``, ``field_scale``, ``colour_samples``; any
+                    other name is an ``InputError``.
 
         Returns uint8 [H, W, 3] RGB, or a ``RenderResult`` with ``depth=True``.
         """
         t_start = time.perf_counter()
         timings: dict[str, float] = {}
-        job = self._render_job(images_or_scene, pose, Q.resolve_settings(quality, **knobs),
+        job = self._render_job(images_or_scene, pose,
+                               Q.resolve_settings(quality, self.default_quality, **knobs),
                                height, width, intrinsics, chunk_rays, progress, timings)
         march = functools.partial(self._march_at, job)
         if job.settings.two_scales(job.march_size, self.image_size):
@@ -547,8 +557,9 @@ class IrisRuntime:
         else:
             scene = self._encode(images_or_scene, timings, self.default_cameras)
         if settings.field_scale is not None and not self.manifest.explicit_rgb:
-            raise InputError("field_scale: two scales need an explicit-colour model (the colour "
-                             "from the photos); this model's colour comes from its field")
+            raise InputError(f"field_scale: two scales (presets {Q.TWO_SCALE_PRESETS}) need an "
+                             f"explicit-colour model (the colour from the photos); this model's "
+                             f"colour comes from its field: use another quality")
         photos = self._view_images(scene)             # explicit colour: the photos are there
         kept_photos = (None if photos is None or scene.photos is None
                        else tuple(scene.photos[i] for i in scene.image_index.tolist()))
