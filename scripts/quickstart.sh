@@ -5,7 +5,8 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}
 MODEL=${IRIS_MODEL:-models/iris-tiny-rgb.pt}
-SCENE=${IRIS_SCENE:-samples/heldout-1000003}
+SCENE=${IRIS_SCENE:-samples/heldout-1000003-256}
+SIZE=${IRIS_SIZE:-256x256}
 OUT=${IRIS_OUT:-out}
 
 if [ ! -x .venv/bin/python ]; then
@@ -19,11 +20,12 @@ echo "== 1/2 export $MODEL -> $OUT/model (two ONNX graphs + iris.json, validated
 .venv/bin/iris-export "$MODEL" "$OUT/model" --force
 
 echo "== 2/2 render $SCENE with the torch-free runtime"
-# Re-render frames 1, 4 and 6 from their poses, plus a 24-frame orbit video. The cameras are the
+# Re-render frames 1, 4 and 6 from their poses, plus a 24-frame orbit video, at the photos'
+# 256x256 (the model sees 64x64; the colour comes from the photos at their size). The cameras are the
 # manifest's default: the camera head's refined on the photos into the terms of the solve the
 # renderer was trained with (docs/CAMERAS.md); IRIS_CAMERAS=epipolar runs the solve itself,
 # IRIS_CAMERAS=model takes the head's as they are.
 .venv/bin/iris-render "$OUT/model" "$SCENE"/frame_*.png -o "$OUT/render" \
-  --view 1 --view 4 --view 6 --orbit 24 ${IRIS_CAMERAS:+--cameras "$IRIS_CAMERAS"}
+  --view 1 --view 4 --view 6 --orbit 24 --size "$SIZE" ${IRIS_CAMERAS:+--cameras "$IRIS_CAMERAS"}
 echo
 echo "outputs: $OUT/model (graphs + manifest), $OUT/render (PNGs, depth, orbit.mp4, transforms.json, colmap/)"
