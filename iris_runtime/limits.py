@@ -11,8 +11,9 @@ from .errors import InputError
 from .validation import check_integer
 
 __all__ = ["RENDER_BUDGET", "MAX_CHUNK_RAYS", "MAX_OUTPUT_PIXELS", "MAX_ENCODER_TOKENS",
-           "MAX_CHUNK_SAMPLES", "MAX_LOCATE_CALLS", "render_memory_bound", "default_chunk_rays",
-           "max_views", "check_output_size", "check_chunk_rays", "chunk_rays_for"]
+           "MAX_CHUNK_SAMPLES", "MAX_LOCATE_CALLS", "MAX_POSE_DISTANCE", "render_memory_bound",
+           "default_chunk_rays", "max_views", "check_output_size", "check_chunk_rays",
+           "chunk_rays_for"]
 
 #: Rays x samples x views per renderer call by default: ``default_chunk_rays`` gives
 #: ``min(MAX_CHUNK_RAYS, RENDER_BUDGET // (S * V))`` rays (256 for 1-2 views, 128 for 4, 64 for 8
@@ -33,6 +34,11 @@ MAX_ENCODER_TOKENS = 4160
 #: Rays x samples x views per renderer call when ``chunk_rays`` is given explicitly (8 x the default
 #: budget): ONNX Runtime's peak grows linearly with it (``render_memory_bound``), ~1 GB here.
 MAX_CHUNK_SAMPLES = 8 * RENDER_BUDGET
+#: Farthest target camera centre from the references' mean centre, in units of their spread
+#: (at least 1 model unit): the scene lies within the depth range [near, far] <= 1 of the
+#: references, so a camera this far sees none of it (and its rays' float32 arithmetic would
+#: overflow long before a translation of 1e300). ``render`` refuses a pose beyond it.
+MAX_POSE_DISTANCE = 1000.0
 #: Encoder calls one ``locate`` may make: photos per call are ``max_views`` minus the scene's
 #: references (at least 1), so one call locates up to this many batches (bounded work per request).
 MAX_LOCATE_CALLS = 64

@@ -672,13 +672,27 @@ class IrisRuntime:
 
     @staticmethod
     def _check_pose(pose, scene: Scene) -> np.ndarray:
+        """``pose`` (a view index or a rigid 4x4) as float64 ``world_from_cam``, or
+        ``InputError``: out of range, not rigid (``check_pose``), or a camera centre farther
+        than ``limits.MAX_POSE_DISTANCE`` x the references' spread from them."""
         if isinstance(pose, (int, np.integer)) and not isinstance(pose, (bool, np.bool_)):
             V = scene.num_views
             if not 0 <= pose < V:
                 raise InputError(f"pose: view index {int(pose)} out of range 0..{V - 1} "
                                  f"(the scene has {V} views)")
             return scene.world_from_cam[int(pose)].copy()
-        return check_pose(pose)
+        pose = check_pose(pose)
+        # A camera far beyond the references sees none of the scene (it lies within ``far`` of
+        # them) and its ray arithmetic overflows float32: refused, not a frame of empty rays.
+        centres = scene.world_from_cam[:, :3, 3]
+        reach = L.MAX_POSE_DISTANCE * max(1.0, float(np.ptp(centres, axis=0).max()))
+        distance = float(np.hypot.reduce(pose[:3, 3] - centres.mean(axis=0)))  # no overflow
+        if not distance <= reach:
+            raise InputError(f"pose: camera centre {distance:.3g} from the references' cameras; "
+                             f"at most {reach:.3g} (MAX_POSE_DISTANCE = {L.MAX_POSE_DISTANCE:g} "
+                             f"times the references' spread, at least 1: the scene lies within "
+                             f"the depth range of them)")
+        return pose
 
     @staticmethod
     def _check_intrinsics(intrinsics, scene: Scene, height: int, width: int) -> np.ndarray:

@@ -219,9 +219,18 @@ class Scene:
 
     def intrinsics(self, height: int | None = None, width: int | None = None) -> np.ndarray:
         """``K [3, 3]`` (float64) of the shared focal for an image of (height, width) pixels
-        (default: the model's resolution)."""
+        (default: the model's resolution), principal point at its centre. An image of another
+        aspect than the model's widens the field of view: the model's image scaled to fit the
+        shorter side (in the model's aspect) keeps its focal in pixels, the longer side sees
+        more, so its centre crop of the model's aspect is that scaled image."""
         H, W = self.image_size
-        return G.intrinsics_from_focal(self.focal, height or H, width or W).astype(np.float64)
+        h, w = height or H, width or W
+        if h * W == w * H:                                   # the model's aspect: as always
+            return G.intrinsics_from_focal(self.focal, h, w).astype(np.float64)
+        scale = min(h / H, w / W)
+        K = G.intrinsics_from_focal(self.focal, H * scale, W * scale).astype(np.float64)
+        K[0, 2], K[1, 2] = w / 2.0, h / 2.0
+        return K
 
     def subset(self, indices: Sequence[int]) -> "Scene":
         """A scene keeping only views ``indices`` (in that order) as references, in the same

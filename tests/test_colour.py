@@ -213,3 +213,29 @@ def test_scene_photos_are_checked(scenes):
               photos=(large.photos[0], np.zeros((64, 64, 3), np.float32)) + large.photos[2:])
     with pytest.raises(InputError, match="photos"):
         Scene(*args, photos=large.photos)
+
+
+# -- poses and sizes ---------------------------------------------------------------------------
+
+def test_a_far_pose_is_refused_not_a_black_frame(rt, scenes):
+    large, _ = scenes
+    pose = np.eye(4)
+    for far in (1e300, 1e6):
+        pose[0, 3] = far
+        with pytest.raises(InputError, match=r"pose: camera centre .*MAX_POSE_DISTANCE"):
+            rt.render(large, pose)
+    pose[0, 3] = 5.0                                   # far but within reach: a finite frame
+    assert np.isfinite(rt.render(large, pose, depth=True).image_float).all()
+
+
+def test_a_wide_output_widens_the_view(rt, scenes):
+    """A 48x96 output keeps the square render's focal in pixels: its centre 48x48 is the 48x48
+    render (the same rays; only the blocks' float rounding differs)."""
+    large, _ = scenes
+    pose = large.world_from_cam[1]
+    wide = rt.render(large, pose, height=48, width=96, quality="exact", depth=True)
+    square = rt.render(large, pose, height=48, width=48, quality="exact", depth=True)
+    K_wide, K_square = large.intrinsics(48, 96), large.intrinsics(48, 48)
+    assert K_wide[0, 0] == K_square[0, 0] and K_wide[1, 1] == K_square[1, 1]
+    np.testing.assert_allclose(wide.image_float[:, 24:72], square.image_float, rtol=0,
+                               atol=64 * F32_EPS)
