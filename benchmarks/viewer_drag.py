@@ -2,7 +2,9 @@
 end of the drag to the full frame, in a headless Chromium against a real iris-serve process.
 
 The script starts ``iris-serve MODEL_DIR`` on 127.0.0.1 (``--port 0``) and Debian's chromium
-through selenium and chromedriver (as tests/test_viewer.py does), uploads sample photos in the
+through selenium and chromedriver (as tests/test_viewer.py does), sizes the page's view to
+``--view-px`` CSS pixels (device scale 1: the full frame, rendered at the view's displayed size,
+is then ``--view-px`` square for a square model; 256 by default), uploads sample photos in the
 page, and then, per mode, runs ``--drags`` scripted drags: each starts from input view 0 (its
 full frame shown), presses the mouse in the middle of the view, moves it ``--dx`` x ``--dy`` CSS
 pixels at ``--hz`` mouse events per second for ``--drag-seconds`` seconds (real input events,
@@ -13,19 +15,22 @@ every frame drawn, with its time, kind and size; the drags' press, last move and
 
 - ``fps_during_drag``: frames drawn between press and release / the drag's seconds;
 - ``release_to_full_ms``: release -> the full frame of the final pose drawn (and from the last
-  move, ``last_move_to_full_ms``);
+  move, ``last_move_to_full_ms``; ``full_frame_ms``: that frame's round trip);
 - ``preview_ms``: round trips of the frames drawn during the drag; ``max_in_flight``: render
   requests in flight at once (the page promises 1); requests sent, aborted by the page, and
   answered 409 superseded (the server's count from /metrics as well).
 
-Modes: ``preview`` (the page's default: the "fast" preset at half the model's size while moving,
-the full frame after the camera stops) and ``off`` (full frames while moving too, as the viewer
-did before previews). Every loop is bounded (drags, mouse events, seconds); the server and the
-browser are started and stopped by this script.
+The full frame is the page's default unless ``--size`` / ``--quality`` choose otherwise: the
+view's displayed size ("view") at the server's default quality (no ``quality`` sent: "auto" for
+explicit-colour models). Modes: ``preview`` (the page's default previews while moving: "fast" at
+160x160 for the shipped 64x64 model, drawn scaled to the view; ``--preview-quality`` /
+``--preview-size`` choose others) and ``off`` (full frames while moving too). Every loop is
+bounded (drags, mouse events, seconds); the server and the browser are started and stopped by
+this script.
 
     python benchmarks/viewer_drag.py MODEL_DIR                            # defaults below
     python benchmarks/viewer_drag.py out/model --drags 3 --modes preview,off \\
-        --note "under load: ..." --json benchmarks/results/viewer_drag.json
+        --note "quiet machine" --json benchmarks/results/viewer_drag.json
 """
 from __future__ import annotations
 
@@ -59,7 +64,7 @@ if (!window.__renderProbe) {
     probe.inflight++; probe.sent++; probe.max = Math.max(probe.max, probe.inflight);
     const body = JSON.parse(options.body);
     probe.log.push({ t: performance.now(), width: body.width, height: body.height,
-                     quality: body.quality, seq: body.seq });
+                     quality: "quality" in body ? body.quality : null, seq: body.seq });
     if (probe.log.length > 1000) probe.log.shift();
     const p = fetch0(url, options);
     const done = () => { probe.inflight--; };
@@ -142,27 +147,57 @@ class Server:
                 self.proc.wait(10)
 
 
-def wait_for(driver, script: str, timeout: float, what: str, poll: float = 0.02):
-    """Poll ``script`` (JS returning a truthy value) until it holds, at most ``timeout`` s."""
+def wait_for(driver, script: str, timeout: float, what: str, poll: float = 0.02, args=()):
+    """Poll ``script`` (JS returning a truthy value; ``args`` as ``arguments``) until it holds,
+    at most ``timeout`` s."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
-        value = driver.execute_script(script)
+        value = driver.execute_script(script, *args)
         if value:
             return value
         time.sleep(poll)
     raise TimeoutError(f"viewer_drag: {what} did not happen within {timeout:g} s")
 
 
+#: The page's settings as it will send them: the full frame's and the previews' [H, W] and
+#: quality ("" for the full frame: the server's default), the view's displayed size.
+PAGE_SETTINGS = """
+const p = previewSettings(), f = fullSettings();
+return { full_size: f.size, full_quality: f.quality, size_menu: document.getElementById('size').value,
+         preview_size: p && p.size, preview_quality: p && p.quality, view_size: viewSize(),
+         view_css_px: [document.getElementById('view').clientWidth,
+                       document.getElementById('view').clientHeight],
+         device_pixel_ratio: window.devicePixelRatio, default_quality: state.model.default_quality };
+"""
+
+
+def set_view_px(driver, px: int | None, timeout: float = 30.0) -> list[int]:
+    """Size the page's view to ``px`` CSS pixels square (None: the page's own layout) and wait
+    until the page has seen it (its Size menu names the view's size); the view's size [H, W] in
+    device pixels, what a full frame at "view" is rendered at."""
+    driver.execute_script("document.getElementById('stage').style.width = arguments[0];",
+                          "" if px is None else f"{int(px)}px")
+    return wait_for(driver, "const v = state.model && viewSize();"
+                    "const o = document.querySelector(\"#size option[value='view']\");"
+                    "const w = document.getElementById('view').clientWidth;"
+                    "return v && (arguments[0] === null || w === arguments[0]) && o && "
+                    "o.textContent === `view (${v[1]}×${v[0]})` && v;",
+                    timeout, "the view's new size", args=(px,))
+
+
 def open_scene(driver, url: str, photos, timeout: float = 180.0, quality: str | None = None,
-               size: str | None = None, cameras: str | None = None) -> dict:
+               size: str | None = None, cameras: str | None = None,
+               view_px: int | None = None) -> dict:
     """Load the viewer, upload ``photos`` (full frames in ``quality`` at ``size``, cameras
-    ``cameras``: the page's menu values, when given), wait for the first full frame; the scene
-    JSON."""
+    ``cameras``: the page's menu values, when given; the view sized to ``view_px`` CSS pixels,
+    ``set_view_px``, when given), wait for the first full frame; the scene JSON."""
     from selenium.webdriver.common.by import By
     from selenium.webdriver.support.ui import Select
     driver.get(url + "/")
     wait_for(driver, "return document.getElementById('model').textContent.startsWith('model ')",
              60, "the page's model line")
+    if view_px is not None:
+        set_view_px(driver, view_px)
     if quality is not None:
         Select(driver.find_element(By.ID, "quality")).select_by_value(quality)
     if size is not None:
@@ -239,12 +274,12 @@ def measure_drag(driver, dx: float, dy: float, seconds: float, hz: float,
         "frames_during_drag": len(during),
         "fps_during_drag": round(len(during) / max((end - start) / 1000.0, 1e-9), 2),
         "preview_ms": [round(f["ms"], 1) for f in during],
-        "frame_sizes_during_drag": sorted({f"{f['width']}x{f['height']} {f['quality']}"
-                                           for f in during}),
+        "frame_sizes_during_drag": sorted({f"{f['width']}x{f['height']} "
+                                           f"{f['quality'] or 'default'}" for f in during}),
         "release_to_full_ms": round(max(full["t"] - end, 0.0), 1),
         "last_move_to_full_ms": round(full["t"] - last, 1),
         "full_frame_ms": round(full["ms"], 1),
-        "full_frame": f"{full['width']}x{full['height']} {full['quality']}",
+        "full_frame": f"{full['width']}x{full['height']} {full['quality'] or 'default'}",
         "requests_sent": st["sent"] - before["sent"],
         "aborted_by_page": st["aborted"] - before["aborted"],
         "superseded_409": st["superseded"] - before["superseded"],
@@ -256,8 +291,12 @@ def summary(drags: list[dict]) -> dict:
     med = lambda k: round(statistics.median(d[k] for d in drags), 2)    # noqa: E731
     previews = [ms for d in drags for ms in d["preview_ms"]]
     return {"drags": len(drags), "fps_during_drag_median": med("fps_during_drag"),
+            "fps_during_drag_range": [min(d["fps_during_drag"] for d in drags),
+                                      max(d["fps_during_drag"] for d in drags)],
             "release_to_full_ms_median": med("release_to_full_ms"),
             "last_move_to_full_ms_median": med("last_move_to_full_ms"),
+            "full_frame_ms_median": med("full_frame_ms"),
+            "full_frames": sorted({d["full_frame"] for d in drags}),
             "preview_ms_median": round(statistics.median(previews), 1) if previews else None,
             "max_in_flight": max(d["max_in_flight"] for d in drags)}
 
@@ -273,12 +312,18 @@ def main(argv=None) -> int:
     p.add_argument("--dx", type=float, default=240.0,
                    help="CSS px of one drag across (default 240)")
     p.add_argument("--dy", type=float, default=30.0, help="CSS px of one drag down (default 30)")
-    p.add_argument("--size", default="1", help="full frame: the page's Size value (1: the "
-                   "model's resolution, 2: twice, 4)")
-    p.add_argument("--quality", default="exact", help="full frame quality preset (default exact)")
-    p.add_argument("--preview-quality", default="fast", help="preview preset in mode 'preview'")
-    p.add_argument("--preview-size", default="0.5", help="preview size as a fraction of the "
-                   "model's resolution (0.5 or 1)")
+    p.add_argument("--view-px", type=int, default=256,
+                   help="CSS px of the page's (square) view; device scale 1, so the full frame "
+                   "at the view's size is this many pixels (default 256; 0: the page's layout)")
+    p.add_argument("--size", default=None, help="full frame: the page's Size value (default "
+                   "'view': the view's displayed size; 1, 2, 4, 8: multiples of the model's)")
+    p.add_argument("--quality", default=None, help="full frame quality preset (default: none "
+                   "sent, the server's default, 'auto' for explicit-colour models)")
+    p.add_argument("--preview-quality", default=None, help="preview preset in mode 'preview' "
+                   "(default: the page's, 'fast')")
+    p.add_argument("--preview-size", default=None, help="preview size as a multiple of the "
+                   "model's resolution: 0.5, 1, 2, 2.5, 4 (default: the page's, 2.5 with 'fast' "
+                   "on an explicit-colour model)")
     p.add_argument("--modes", default="preview,off", help="comma-separated: preview, off")
     p.add_argument("--workers", type=int, default=2, help="iris-serve --workers (default 2)")
     p.add_argument("--threads", type=int, default=1, help="iris-serve --threads (default 1)")
@@ -302,15 +347,21 @@ def main(argv=None) -> int:
     try:
         driver = start_browser()
         scene = open_scene(driver, server.url, PHOTOS[:args.photos], args.timeout,
-                           quality=args.quality, size=args.size)
-        Select(driver.find_element(By.ID, "preview-size")).select_by_value(args.preview_size)
+                           quality=args.quality, size=args.size, view_px=args.view_px or None)
+        if args.preview_size is not None:
+            Select(driver.find_element(By.ID, "preview-size")).select_by_value(args.preview_size)
+        preview_quality = args.preview_quality or driver.execute_script(
+            "return document.getElementById('preview-quality').value")
         sweep = float(driver.execute_script("return document.getElementById('view').dataset"
                                             ".sweepDeg"))
         width = float(driver.execute_script("return document.getElementById('view')"
                                             ".clientWidth"))
+        page = {}
         for mode in modes:
             Select(driver.find_element(By.ID, "preview-quality")).select_by_value(
-                args.preview_quality if mode == "preview" else "")
+                preview_quality if mode == "preview" else "")
+            page[mode] = driver.execute_script(PAGE_SETTINGS)
+            print(f"{mode}: page settings {json.dumps(page[mode])}", file=sys.stderr)
             superseded0 = server.metric("iris_jobs_rejected_total", 'reason="superseded"')
             drags = []
             for i in range(args.drags):
@@ -320,6 +371,7 @@ def main(argv=None) -> int:
                                           args.hz, args.timeout))
                 print(f"{mode} drag {i}: {json.dumps(drags[-1])}", file=sys.stderr)
             results[mode] = {
+                "page_settings": page[mode],
                 "summary": summary(drags),
                 "server_superseded_409": server.metric("iris_jobs_rejected_total",
                                                        'reason="superseded"') - superseded0,
@@ -346,8 +398,10 @@ def main(argv=None) -> int:
         "server": {"workers": args.workers, "threads": args.threads},
         "scene": {"photos": args.photos, "views": scene["views"],
                   "camera_source": scene["camera_source"]},
-        "page": {"full_size": args.size, "full_quality": args.quality,
-                 "preview_quality": args.preview_quality, "preview_size": args.preview_size,
+        "page": {"view_px": args.view_px, "full_size": args.size or "view (page default)",
+                 "full_quality": args.quality or "server default",
+                 "preview_quality": preview_quality,
+                 "preview_size": args.preview_size or "page default",
                  "drag_sweep_deg_per_view_width": sweep, "view_width_css_px": width,
                  "drag_px": [args.dx, args.dy], "drag_seconds": args.drag_seconds,
                  "mouse_hz": args.hz},

@@ -1,10 +1,15 @@
 """The viewer page at / in a real headless browser (Debian's chromium + chromium-driver, driven by
 selenium) against a real iris-serve process: upload photos, wait for the solved cameras and a
-rendered view, check its pixels against the API's render of the same pose, drag to orbit; a
-scripted drag (real mouse events through Chrome DevTools, benchmarks/viewer_drag.py's) shows
-quick previews with one render request in flight and the full frame once the camera stops, turns
-the camera by an angle scaled to the photos' spread and stops outside their views, flagged; the
-page's layout, favicon and orbit-frames limit.
+rendered view at the view's displayed size, check its pixels against the API's render of the
+same pose and size, drag to orbit, resize the view; a scripted drag (real mouse events through
+Chrome DevTools, benchmarks/viewer_drag.py's) shows quick previews drawn scaled to the view with
+one render request in flight and the full frame at the view's size and the server's default
+quality once the camera stops, turns the camera by an angle scaled to the photos' spread and
+stops outside their views, flagged; the page's layout, favicon and orbit-frames limit.
+
+Full frames are rendered at the view's displayed size; the tests size the view to 64-128 CSS
+pixels (``set_view_px``) so that a render stays quick on a loaded machine whatever the model
+(the random model CI uses renders "exact" by default, and "fast"/"auto" not at all).
 
 Skipped, with the reason, only where no browser (or selenium) is installed. With
 ``IRIS_VIEWER_SCREENSHOT=PATH`` the test also saves a screenshot of the page there (how
@@ -30,7 +35,8 @@ from selenium.webdriver.common.by import By  # noqa: E402
 from selenium.webdriver.common.keys import Keys  # noqa: E402
 from selenium.webdriver.support.ui import Select, WebDriverWait  # noqa: E402
 
-from benchmarks.viewer_drag import FETCH_PROBE, cdp_drag, open_scene, wait_for  # noqa: E402
+from benchmarks.viewer_drag import (FETCH_PROBE, PAGE_SETTINGS, cdp_drag, open_scene,  # noqa: E402
+                                    set_view_px, wait_for)
 from tests.test_serve import PHOTOS, IrisServer  # noqa: E402
 
 BROWSER = next((shutil.which(n) for n in ("chromium", "chromium-browser", "google-chrome")
@@ -40,6 +46,9 @@ pytestmark = pytest.mark.skipif(
     BROWSER is None or DRIVER is None,
     reason="no headless browser: apt-get install chromium chromium-driver")
 WAIT = 180.0
+#: CSS px of the view in the tests (device scale 1): the full frame's size at "view".
+VIEW_PX = 64
+DRAG_VIEW_PX = 128
 
 
 @pytest.fixture(scope="module")
@@ -83,12 +92,25 @@ def renders(driver) -> int:
     return int(driver.execute_script("return document.getElementById('view').dataset.renders"))
 
 
-def api_render(url: str, scene_id: str, pose, height: int, width: int, quality: str):
-    r = httpx.post(f"{url}/scenes/{scene_id}/render", timeout=120,
-                   json={"world_from_cam": pose, "height": height, "width": width,
-                         "quality": quality})
+def api_render(url: str, scene_id: str, pose, height: int, width: int, quality: str | None):
+    """The API's render (``quality`` None or "": none sent, the server's default)."""
+    body = {"world_from_cam": pose, "height": height, "width": width}
+    if quality:
+        body["quality"] = quality
+    r = httpx.post(f"{url}/scenes/{scene_id}/render", timeout=120, json=body)
     assert r.status_code == 200, r.text
     return np.asarray(Image.open(io.BytesIO(r.content)).convert("RGB"))
+
+
+def model_info(url: str) -> dict:
+    return httpx.get(f"{url}/healthz", timeout=30).json()["model"]
+
+
+def quick_quality(url: str) -> str:
+    """A quick preset this server renders for its model: "fast" (explicit-colour models), else
+    "adaptive"."""
+    presets = model_info(url)["quality_presets"]
+    return "fast" if "fast" in presets else "adaptive"
 
 
 def full_frame_of_current_pose(driver) -> bool:
@@ -108,9 +130,26 @@ def test_viewer_uploads_shows_cameras_renders_and_orbits(browser, server):
     d.get(server.url + "/")
     wait.until(lambda d: d.find_element(By.ID, "model").text.startswith("model "))
     assert not d.find_element(By.ID, "encode").is_enabled()
+    # By default the full frame is rendered at the view's displayed size, in device pixels, and
+    # at the server's default quality (the menu's first entry).
+    model = model_info(server.url)
+    size, quality = Select(d.find_element(By.ID, "size")), Select(d.find_element(By.ID, "quality"))
+    css = d.execute_script("const c = document.getElementById('view');"
+                           "return [c.clientHeight, c.clientWidth, window.devicePixelRatio];")
+    view = [round(css[0] * css[2]), round(css[1] * css[2])]
+    assert size.first_selected_option.get_attribute("value") == "view"
+    assert size.first_selected_option.text == f"view ({view[1]}×{view[0]})"
+    assert quality.options[0].get_attribute("value") == ""
+    assert quality.first_selected_option.get_attribute("value") == ""
+    assert quality.options[0].text == f"default (model's: {model['default_quality']})"
+    assert [o.get_attribute("value") for o in quality.options[1:]] == model["quality_presets"]
+    page = d.execute_script(PAGE_SETTINGS)
+    assert page["full_size"] == view and page["full_quality"] == ""
+    # A small view (quick renders on a loaded machine) and a quick preset.
+    assert set_view_px(d, VIEW_PX) == [VIEW_PX, VIEW_PX]
     photos = PHOTOS[:4]
     d.find_element(By.ID, "photos").send_keys("\n".join(str(p) for p in photos))
-    Select(d.find_element(By.ID, "quality")).select_by_value("fast")   # quick renders
+    quality.select_by_value(quick_quality(server.url))
     assert len(d.find_elements(By.CSS_SELECTOR, "#thumbs img")) == 4
     d.find_element(By.ID, "encode").click()
 
@@ -128,14 +167,14 @@ def test_viewer_uploads_shows_cameras_renders_and_orbits(browser, server):
     scene = httpx.get(f"{server.url}/scenes/{scene_id}", timeout=30).json()
     assert scene["views"] == 4
 
-    # The page shows exactly what the API renders for that pose and size.
+    # The page shows exactly what the API renders for that pose and the view's size.
     ds = d.execute_script("return Object.assign({}, document.getElementById('view').dataset)")
     pose = json.loads(ds["pose"])
     np.testing.assert_allclose(pose, scene["world_from_cam"][0], atol=1e-12)
     shown = canvas_pixels(d)
     expected = api_render(server.url, scene_id, pose, int(ds["height"]), int(ds["width"]),
                           ds["quality"])
-    assert shown.shape == expected.shape == (*scene["image_size"], 3)
+    assert shown.shape == expected.shape == (VIEW_PX, VIEW_PX, 3)
     assert np.abs(shown.astype(int) - expected.astype(int)).max() <= 1
     assert shown.std() > 1.0                                      # a picture, not a blank
 
@@ -157,6 +196,15 @@ def test_viewer_uploads_shows_cameras_renders_and_orbits(browser, server):
     expected = api_render(server.url, scene_id, moved.tolist(), int(ds["height"]),
                           int(ds["width"]), ds["quality"])
     assert np.abs(after.astype(int) - expected.astype(int)).max() <= 1
+
+    # The view resized: the full frame follows it (once the size settles), same pose.
+    before = renders(d)
+    assert set_view_px(d, VIEW_PX + 16) == [VIEW_PX + 16] * 2
+    wait.until(lambda d: renders(d) > before and full_frame_of_current_pose(d))
+    ds = d.execute_script("return Object.assign({}, document.getElementById('view').dataset)")
+    assert (int(ds["height"]), int(ds["width"])) == (VIEW_PX + 16, VIEW_PX + 16)
+    np.testing.assert_allclose(json.loads(ds["pose"]), moved, atol=1e-12)
+    assert canvas_pixels(d).shape == (VIEW_PX + 16, VIEW_PX + 16, 3)
 
     # Play orbit renders the orbit's frames in turn, ending on the last one.
     frames = d.find_element(By.ID, "frames")
@@ -194,9 +242,9 @@ def test_viewer_uploads_shows_cameras_renders_and_orbits(browser, server):
 
     shot = os.environ.get("IRIS_VIEWER_SCREENSHOT")
     if shot:                               # docs/images/viewer.png (docs/SERVING.md says how)
-        Select(d.find_element(By.ID, "size")).select_by_value("2")      # twice the model's
-        Select(d.find_element(By.ID, "quality")).select_by_value("exact")
-        n = renders(d)
+        set_view_px(d, None)                                  # the page's own layout, and its
+        quality.select_by_value("")                           # defaults: the view's size, the
+        n = renders(d)                                        # server's default quality
         buttons[1].click()
         wait.until(lambda d: renders(d) > n and full_frame_of_current_pose(d))
         d.set_window_size(1440, 1000)                                   # the whole view card
@@ -239,15 +287,32 @@ def angle_about(centre, a, b) -> float:
 
 
 def test_drag_previews_with_one_request_in_flight_then_the_full_frame(browser, server):
-    """A scripted drag (real mouse events): only previews (half the model's size, "fast") are
-    asked for while the mouse moves, never more than one render request in flight; holding still
-    asks for the full frame SETTLE_MS later; after the release the full frame of the final pose
-    is shown, equal to the API's render. The drag turns the camera about the scene centre by
-    the angle the scene's camera spread gives, not half a circle per view width."""
+    """A scripted drag (real mouse events): only previews (the page's default: "fast" at 2.5x the
+    model's size for an explicit-colour model) are asked for while the mouse moves, drawn scaled
+    to the view, never more than one render request in flight; holding still asks for the full
+    frame SETTLE_MS later, at the view's displayed size and (explicit-colour models) the server's
+    default quality, no "quality" sent; after the release that frame of the final pose is shown,
+    equal bit for bit to the API's render of that pose at that size. The drag turns the camera
+    about the scene centre by the angle the scene's camera spread gives, not half a circle per
+    view width."""
     d = browser
+    model = model_info(server.url)
+    H, W = model["image_size"]
+    # The server's default quality ("auto": two scales) where it is quick; the random model CI
+    # uses has "exact" as its default, too slow at the view's size on a loaded machine.
+    quality = None if model["explicit_rgb"] else "adaptive"
     # Cameras solved from the photos: the same geometry whatever model the server runs.
-    scene = open_scene(d, server.url, PHOTOS[:4], WAIT, quality="adaptive", cameras="epipolar")
-    H, W = scene["image_size"]
+    scene = open_scene(d, server.url, PHOTOS[:4], WAIT, quality=quality, cameras="epipolar",
+                       view_px=DRAG_VIEW_PX)
+    page = d.execute_script(PAGE_SETTINGS)
+    vh, vw = page["view_size"]
+    assert [vh, vw] == [DRAG_VIEW_PX, DRAG_VIEW_PX] and page["full_size"] == [vh, vw]
+    assert page["full_quality"] == (quality or "")
+    ph, pw = page["preview_size"]
+    if model["explicit_rgb"]:                    # the page's default previews
+        assert (page["preview_quality"], ph, pw) == ("fast", round(2.5 * H), round(2.5 * W))
+    else:
+        assert (page["preview_quality"], ph, pw) == ("adaptive", round(H / 2), round(W / 2))
     centre = np.array(d.execute_script("return state.centre"))
     start = np.array(scene["world_from_cam"][0])
     sweep = float(d.execute_script("return document.getElementById('view').dataset.sweepDeg"))
@@ -266,21 +331,23 @@ def test_drag_previews_with_one_request_in_flight_then_the_full_frame(browser, s
     drag = st["drags"][-1]
     assert probe["max"] == 1 and st["maxInflight"] == 1          # never two renders in flight
     moving = [r for r in probe["log"] if drag["start"] < r["t"] <= drag["lastMove"]]
-    assert moving and all((r["width"], r["height"], r["quality"]) == (W // 2, H // 2, "fast")
-                          for r in moving), moving
+    assert moving and all((r["width"], r["height"], r["quality"])
+                          == (pw, ph, page["preview_quality"]) for r in moving), moving
     drawn = [f for f in st["frames"] if drag["start"] < f["t"] <= drag["end"]
              and f["kind"] == "preview"]
-    assert drawn and all((f["width"], f["height"]) == (W // 2, H // 2) for f in drawn)
+    # Drawn scaled to the view: the canvas keeps the full frame's size.
+    assert drawn and all((f["width"], f["height"], *f["canvas"]) == (pw, ph, vw, vh)
+                         for f in drawn), drawn
     # Held still: the full frame was asked for SETTLE_MS (150 ms) after the last move, before
     # the release; before it at most the preview of the last pose, which waited behind the one
     # in flight; then nothing (the release finds the full frame on its way).
     after = [(r["width"], r["height"], r["quality"], r["t"]) for r in probe["log"]
              if r["t"] > drag["lastMove"]]
-    fulls = [r for r in after if r[:3] == (W, H, "adaptive")]
+    fulls = [r for r in after if r[:3] == (vw, vh, quality)]        # quality None: not sent
     assert len(fulls) == 1 and len(after) <= 2 and after[-1] == fulls[0], after
     assert 130 <= fulls[0][3] - drag["lastMove"] and fulls[0][3] < drag["end"]
     ds = d.execute_script("return Object.assign({}, document.getElementById('view').dataset)")
-    assert (int(ds["height"]), int(ds["width"]), ds["quality"]) == (H, W, "adaptive")
+    assert (int(ds["height"]), int(ds["width"]), ds["quality"]) == (vh, vw, quality or "")
     moved = np.array(json.loads(ds["pose"]))
     assert np.abs(moved[:3, :3].T @ moved[:3, :3] - np.eye(3)).max() < 1e-9
     assert np.isclose(np.linalg.norm(moved[:3, 3] - centre), np.linalg.norm(start[:3, 3] - centre))
@@ -288,8 +355,9 @@ def test_drag_previews_with_one_request_in_flight_then_the_full_frame(browser, s
         dx * sweep / width, rel=0.03)
     assert ds["coverage"] == "inside" and not d.find_element(By.ID, "outside").is_displayed()
     shown = canvas_pixels(d)
-    expected_pixels = api_render(server.url, scene["scene_id"], moved.tolist(), H, W, "adaptive")
-    assert np.abs(shown.astype(int) - expected_pixels.astype(int)).max() <= 1
+    expected_pixels = api_render(server.url, scene["scene_id"], moved.tolist(), vh, vw, quality)
+    assert shown.shape == (vh, vw, 3)
+    np.testing.assert_array_equal(shown, expected_pixels)             # bit for bit
 
     # Far past the photos: the orbit stops at their arc plus the margin, and says it is outside.
     turned = angle_about(centre, start[:3, 3], moved[:3, 3])
@@ -340,7 +408,8 @@ def test_layout_favicon_and_orbit_frames_limit(browser, server):
     assert Image.open(io.BytesIO(r.content)).size[0] >= 16
     assert httpx.get(server.url + "/static/favicon.svg", timeout=30).status_code == 200
     d.get_log("browser")                                          # start from an empty log
-    open_scene(d, server.url, PHOTOS[:3], WAIT, quality="fast")
+    # The model's size, not the view's: resizing the window re-renders nothing.
+    open_scene(d, server.url, PHOTOS[:3], WAIT, quality=quick_quality(server.url), size="1")
     assert d.execute_script("return document.querySelector('link[rel=icon]').href")
     Select(d.find_element(By.ID, "cameras")).select_by_value("refined")   # its longest option
     try:

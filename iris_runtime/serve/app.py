@@ -191,6 +191,10 @@ def create_app(runtime: IrisRuntime, config: ServeConfig = ServeConfig()) -> Fas
     metrics.bind(pool, store)
     max_photos = min(config.max_photos, rt.max_views)
     precisions = [p for p, graph in PRECISIONS.items() if graph in rt.manifest.graphs]
+    # The presets this model renders: two scales (field_scale: "auto", "fast") take the colour
+    # from the photos, which only explicit-colour models do (the runtime refuses them otherwise).
+    presets = [q for q, s in QUALITY_PRESETS.items()
+               if s.field_scale is None or rt.manifest.explicit_rgb]
     source = rt.manifest.raw.get("source") or {}
     model_name = Path(str(source.get("checkpoint") or rt.model_dir.name)).stem
 
@@ -340,7 +344,7 @@ def create_app(runtime: IrisRuntime, config: ServeConfig = ServeConfig()) -> Fas
                           "version": rt.manifest.version, "image_size": [H, W],
                           "default_cameras": rt.default_cameras, "max_views": rt.max_views,
                           "explicit_rgb": rt.manifest.explicit_rgb, "precisions": precisions,
-                          "quality_presets": list(QUALITY_PRESETS),
+                          "quality_presets": presets, "default_quality": rt.default_quality,
                           "providers": list(rt.providers)},
                 "limits": {**config.public(), "max_photos": max_photos},
                 "auth": config.token is not None, "scenes": len(store)}

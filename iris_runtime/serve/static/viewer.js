@@ -8,13 +8,26 @@ const ctx = canvas.getContext("2d");
 const state = { model: null, files: [], scene: null, pose: null, centre: null, up: null,
                 frame: null, playing: false };
 
-// While the camera moves the page asks for quick frames ("preview": a small size and a quick
-// quality preset); SETTLE_MS after the last move it asks for the full frame (the chosen size and
-// quality). One render request is in flight at a time and at most one pose waits behind it (the
+// The full frame is rendered at the view's displayed size (the canvas's box in device pixels,
+// at the model's aspect, at most the server's --max-output-pixels; or a size chosen in the menu)
+// with the server's default quality (no "quality" sent unless one is chosen), and drawn pixel
+// for pixel. While the camera moves the page asks for quick frames ("preview": a quick preset at
+// a small size, drawn scaled to the view); SETTLE_MS after the last move it asks for the full
+// frame. One render request is in flight at a time and at most one pose waits behind it (the
 // latest); a full frame made stale by a newer pose is aborted. Every request carries this page's
 // render stream and a growing seq, so the server drops a request of ours still waiting in its
 // queue when a newer one arrives (409 "superseded", docs/SERVING.md).
 const SETTLE_MS = 150;
+// Previews: the first of these presets the server offers for this model ...
+const PREVIEW_PRESETS = ["fast", "adaptive", "balanced"];
+// ... at these multiples of the model's size. The default is 2.5 (160x160 for a 64x64 model)
+// where the preview is "fast" on an explicit-colour model. "fast" marches half the output's
+// rows and columns, and a march above the model's resolution takes two scales
+// (iris_runtime.quality): at 160x160 a 20x20 field and 80x80 colours from the photos, at 128x128
+// the model's full 64x64 grid, several times slower and no sharper. Other models preview at half
+// the model's size.
+const PREVIEW_SIZES = [0.5, 1, 2, 2.5, 4];
+const RESIZE_MS = 250;            // the view's size settled: re-render the full frame at it
 const STREAM = "viewer-" + Array.from(crypto.getRandomValues(new Uint8Array(8)),
   (b) => b.toString(16).padStart(2, "0")).join("");
 
@@ -190,6 +203,7 @@ function drawMap(a, out) {                 // azimuth across, elevation up; degr
 const render = { seq: 0, wanted: null, inflight: null, shown: null };
 let pumping = null;
 
+// quality "": the server's default (the request carries no "quality").
 const fullSettings = () => ({ size: outputSize(), quality: $("quality").value });
 function previewSettings() {
   const q = $("preview-quality").value;
@@ -197,6 +211,8 @@ function previewSettings() {
   const k = Number($("preview-size").value || 1), [H, W] = state.model.image_size;
   return { size: [Math.max(1, Math.round(H * k)), Math.max(1, Math.round(W * k))], quality: q };
 }
+const qualityName = (q) => q || (state.model.default_quality
+  ? `default (model's: ${state.model.default_quality})` : "default (model's)");
 const sameSettings = (a, b) => a.quality === b.quality && a.size[0] === b.size[0] && a.size[1] === b.size[1];
 
 // Ask for `pose` as a "full" frame or a "preview"; `moving`: the camera is being dragged (more
@@ -239,14 +255,48 @@ async function pump() {
   }
 }
 
+// The full frame's size: the menu's multiple of the model's, or ("view") the view's size.
 function outputSize() {
-  const k = Number($("size").value || 1), [H, W] = state.model.image_size;
+  const [H, W] = state.model.image_size, v = $("size").value;
+  if (v === "view" || v === "") return viewSize() || [H, W];
+  const k = Number(v);
   return [H * k, W * k];
+}
+
+// The view's displayed size in device pixels at the model's aspect (the canvas box, which
+// letterboxes a frame of another aspect), at most the server's output limit: [H, W], or null
+// while the canvas is not laid out.
+function viewSize() {
+  const [H, W] = state.model.image_size, dpr = window.devicePixelRatio || 1;
+  const bw = canvas.clientWidth * dpr, bh = canvas.clientHeight * dpr;
+  if (!(bw > 0 && bh > 0)) return null;
+  const max = state.model.limits.max_output_pixels;
+  const s = Math.min(bw / W, bh / H, Math.sqrt(max / (H * W)));
+  let h = Math.max(1, Math.round(H * s)), w = Math.max(1, Math.round(W * s));
+  if (h * w > max) { h = Math.max(1, Math.floor(H * s)); w = Math.max(1, Math.floor(W * s)); }
+  return [h, w];
+}
+
+// The Size menu's first entry names the view's current size; when the view is resized (window,
+// zoom, device pixel ratio) and that entry is chosen, the full frame follows once it settles.
+let resizeTimer = null;
+function viewResized() {
+  const option = $("size").querySelector("option[value='view']");
+  const size = state.model && viewSize();
+  if (option && size) option.textContent = `view (${size[1]}×${size[0]})`;
+  clearTimeout(resizeTimer);
+  resizeTimer = setTimeout(() => {
+    if ($("size").value === "view" && state.scene && state.pose && !drag && !state.playing) {
+      show(state.pose);                              // nothing is sent when the size is unchanged
+    }
+  }, RESIZE_MS);
 }
 
 async function renderOnce(job) {
   const { pose, kind, settings } = job;
   const [height, width] = settings.size, quality = settings.quality;
+  const body = { world_from_cam: pose, height, width, stream: STREAM };
+  if (quality) body.quality = quality;                 // else the server's default
   const seq = ++render.seq;
   const controller = new AbortController();
   render.inflight = { ...job, seq, controller };
@@ -257,14 +307,26 @@ async function renderOnce(job) {
   try {
     const res = await api(`/scenes/${state.scene.scene_id}/render`, {
       method: "POST", headers: { "Content-Type": "application/json" }, signal: controller.signal,
-      body: JSON.stringify({ world_from_cam: pose, height, width, quality, stream: STREAM, seq }),
+      body: JSON.stringify({ ...body, seq }),
     });
     const bitmap = await createImageBitmap(await res.blob(),
       { colorSpaceConversion: "none", premultiplyAlpha: "none" });
-    if (render.shown && seq <= render.shown.seq) return;      // a newer frame is on screen
-    canvas.width = bitmap.width;
-    canvas.height = bitmap.height;
-    ctx.drawImage(bitmap, 0, 0);
+    if (render.shown && seq <= render.shown.seq) {            // a newer frame is on screen
+      bitmap.close();
+      return;
+    }
+    if (kind === "full") {                   // pixel for pixel: the canvas takes the frame's size
+      canvas.width = bitmap.width;
+      canvas.height = bitmap.height;
+      ctx.drawImage(bitmap, 0, 0);
+    } else {                                 // a preview, scaled to the full frame's size
+      const [fh, fw] = fullSettings().size;
+      if (canvas.width !== fw || canvas.height !== fh) { canvas.width = fw; canvas.height = fh; }
+      ctx.imageSmoothingEnabled = true;
+      ctx.imageSmoothingQuality = "high";
+      ctx.drawImage(bitmap, 0, 0, fw, fh);
+    }
+    bitmap.close();
     render.shown = { ...job, seq };
     $("stage-hint").hidden = true;
     Object.assign(canvas.dataset, {
@@ -272,9 +334,10 @@ async function renderOnce(job) {
       height: String(height), width: String(width), quality, kind, seq: String(seq),
     });
     const ms = performance.now() - t0;
-    keep(stats.frames, { t: performance.now(), kind, seq, width, height, quality, ms });
+    keep(stats.frames, { t: performance.now(), kind, seq, width, height, quality, ms,
+                         canvas: [canvas.width, canvas.height] });
     showCoverage(pose);
-    $("render-info").textContent = `${width}×${height} ${quality}` +
+    $("render-info").textContent = `${width}×${height} ${qualityName(quality)}` +
       (kind === "preview" ? " (moving)" : "") + ` · ${ms.toFixed(0)} ms round trip`;
   } catch (err) {
     if (err.name === "AbortError") stats.aborted++;          // a newer pose made it stale
@@ -439,14 +502,16 @@ async function play() {
 async function download() {
   const n = checkFrames();
   if (n === null) return;
-  const [height, width] = outputSize();
+  // The frames' size, made even: the mp4v encoder drops an odd row or column.
+  const [height, width] = outputSize().map((x) => Math.max(2, x - (x % 2)));
   const button = $("download");
   button.disabled = true;
   button.textContent = "Rendering video…";
   try {
+    const body = { frames: n, height, width };
+    if ($("quality").value) body.quality = $("quality").value;     // else the server's default
     const res = await api(`/scenes/${state.scene.scene_id}/orbit.mp4`, {
-      method: "POST", headers: { "Content-Type": "application/json" },
-      body: JSON.stringify({ frames: n, height, width, quality: $("quality").value }),
+      method: "POST", headers: { "Content-Type": "application/json" }, body: JSON.stringify(body),
     });
     const a = document.createElement("a");
     a.href = URL.createObjectURL(await res.blob());
@@ -523,23 +588,32 @@ async function start() {
   for (const id of ["size", "quality"]) {
     $(id).addEventListener("change", () => { if (state.pose && state.scene) show(state.pose); });
   }
+  new ResizeObserver(viewResized).observe(canvas);
   try {
     const health = await (await fetch("/healthz")).json();
     state.model = { ...health.model, limits: health.limits };
-    const [H, W] = health.model.image_size;
+    const [H, W] = health.model.image_size, maxPixels = health.limits.max_output_pixels;
     $("model").textContent = `model ${health.model.name} · ${W}×${H} · cameras ` +
       `${health.model.default_cameras}` + (health.auth ? " · token required" : "");
     $("token-row").hidden = !health.auth;
-    $("size").replaceChildren(...[1, 2, 4].filter((k) => k * k * H * W <= health.limits.max_output_pixels)
-      .map((k) => new Option(`${W * k}×${H * k}`, String(k))));
-    // The server's presets (iris_runtime.quality.QUALITY_PRESETS), in its order.
+    // Size: the view's displayed size first (the default), then multiples of the model's.
+    $("size").replaceChildren(new Option("view", "view"),
+      ...[1, 2, 4, 8].filter((k) => k * k * H * W <= maxPixels)
+        .map((k) => new Option(`${W * k}×${H * k}`, String(k))));
+    viewResized();
+    // The presets this server renders for this model (/healthz), in its order, after its default.
     const presets = health.model.quality_presets;
-    $("quality").replaceChildren(...presets.map((q) => new Option(q, q)));
+    $("quality").replaceChildren(new Option(qualityName(""), ""),
+      ...presets.map((q) => new Option(q, q)));
     $("preview-quality").replaceChildren(...presets.map((q) => new Option(q, q)),
       new Option("off (full frames)", ""));
-    $("preview-quality").value = presets.includes("fast") ? "fast" : "";
-    $("preview-size").replaceChildren(...[0.5, 1].map((k) =>
-      new Option(`${Math.round(W * k)}×${Math.round(H * k)}`, String(k))));
+    const preview = PREVIEW_PRESETS.find((q) => presets.includes(q)) || "";
+    $("preview-quality").value = preview;
+    $("preview-size").replaceChildren(...PREVIEW_SIZES
+      .filter((k) => Math.round(H * k) * Math.round(W * k) <= maxPixels)
+      .map((k) => new Option(`${Math.round(W * k)}×${Math.round(H * k)}`, String(k))));
+    $("preview-size").value = preview === "fast" && health.model.explicit_rgb ? "2.5" : "0.5";
+    if (!$("preview-size").value) $("preview-size").selectedIndex = 0;
     const max = health.limits.max_orbit_frames;
     $("frames").max = String(max);
     $("frames-limit").textContent = `2–${max}`;
