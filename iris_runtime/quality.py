@@ -82,12 +82,14 @@ class RenderSettings:
                mode's bin alone); None: every sample
     depth_mass:    ... unless the coarse rays carried less than this fraction of their weight in
                their windows: every sample then (the exact fallback of spread-out rays)
-    field_scale:   two scales (explicit-colour models, ``iris_runtime.detail``), for renders
-               that march more pixels than the model's resolution: march the field at this
-               fraction of the rows and columns and take the colour of every pixel from the
-               photos through the coarse rays' geometry. A render no larger than the model's
-               resolution is marched exactly (its colours are the model-resolution images: the
-               photos have nothing finer to give it). None: off
+    field_scale:   two scales (explicit-colour models, ``iris_runtime.detail``), for outputs
+               larger than the model's resolution: march the field at this fraction of the
+               output's rows and columns and take the colour of every output pixel from the
+               photos through the coarse rays' geometry (``scale`` then does not apply). An
+               output no larger than the model's resolution is marched as without it (its
+               colours are the model-resolution images: the photos have nothing finer to give
+               it). In a preset it applies to explicit-colour models only; asked for by name
+               on another model it is an ``InputError``. None: off
     colour_samples: with ``field_scale``, depth bins of each coarse ray the colour is read at
                (its heaviest, rescaled to its total weight)
     """
@@ -131,11 +133,12 @@ class RenderSettings:
                              f"{self.precision!r}")
 
 
-    def two_scales(self, march_size: tuple[int, int], model_size: tuple[int, int]) -> bool:
-        """Whether a render marching ``march_size`` pixels takes two scales: ``field_scale`` is
-        set and the march is larger than ``model_size`` on a side."""
-        return self.field_scale is not None and (march_size[0] > model_size[0]
-                                                 or march_size[1] > model_size[1])
+    def two_scales(self, size: tuple[int, int], model_size: tuple[int, int]) -> bool:
+        """Whether a render of ``size`` pixels takes two scales: ``field_scale`` is set and the
+        output is larger than ``model_size`` on a side. Two scales compose the colour at the
+        output's size (``scale`` then does not apply: the field's grid is ``field_scale``'s)."""
+        return self.field_scale is not None and (size[0] > model_size[0]
+                                                 or size[1] > model_size[1])
 
     def march_size(self, height: int, width: int) -> tuple[int, int]:
         """The pixels a render of ``height`` x ``width`` marches before its resize: ``scale`` x
@@ -167,7 +170,8 @@ def _check_fraction(name: str, x, expected: str, ok) -> None:
 #:               time per frame that grows much slower than the full render's with the views.
 #: - "fast":     16 samples, 2 views per ray, half resolution + bicubic upsampling: over an order
 #:               of magnitude faster, at a visible but small error against the full render;
-#:               where the half resolution is above the model's, two scales at a quarter of it.
+#:               above the model's resolution two scales instead: the field at a quarter of
+#:               the output, the colour at the output's size through 4 depth windows.
 #: - "adaptive": a quarter-resolution coarse pass, bicubic upsampling, and the 12 % least trusted
 #:               pixels (colour or depth range >= 0.1 over their coarse neighbourhood) rendered
 #:               again exactly: a coarse pass costs 1/16 of the full render and the budget
@@ -186,7 +190,8 @@ QUALITY_PRESETS: dict[str, RenderSettings] = {
 }
 
 
-#: The presets that take two scales (``field_scale``), which only explicit-colour models have.
+#: The presets that take two scales (``field_scale``) on explicit-colour models; on other
+#: models they render without it ("auto" is then "exact").
 TWO_SCALE_PRESETS = tuple(k for k, v in QUALITY_PRESETS.items() if v.field_scale is not None)
 
 

@@ -27,6 +27,7 @@ intrinsics in pixels with pixel centres at (j + 0.5, i + 0.5).
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import functools
 import os
 import threading
@@ -153,9 +154,9 @@ class IrisRuntime:
 
     @property
     def default_quality(self) -> str:
-        """``render``'s preset when none is asked for: "auto" for explicit-colour models (two
-        scales above the model's resolution, the full render up to it), "exact" otherwise."""
-        return "auto" if self.manifest.explicit_rgb else "exact"
+        """``render``'s preset when none is asked for: "auto" (two scales above the model's
+        resolution on explicit-colour models, the full render up to it and on other models)."""
+        return "auto"
 
     @property
     def max_views(self) -> int:
@@ -520,11 +521,17 @@ class IrisRuntime:
         """
         t_start = time.perf_counter()
         timings: dict[str, float] = {}
-        job = self._render_job(images_or_scene, pose,
-                               Q.resolve_settings(quality, self.default_quality, **knobs),
+        settings = Q.resolve_settings(quality, self.default_quality, **knobs)
+        if settings.field_scale is not None and not self.manifest.explicit_rgb:
+            if knobs.get("field_scale") is not None or isinstance(quality, RenderSettings):
+                raise InputError("field_scale: two scales need an explicit-colour model (the "
+                                 "colour from the photos); this model's colour comes from its "
+                                 "field")
+            settings = dataclasses.replace(settings, field_scale=None)   # a preset: adapts
+        job = self._render_job(images_or_scene, pose, settings,
                                height, width, intrinsics, chunk_rays, progress, timings)
         march = functools.partial(self._march_at, job)
-        if job.settings.two_scales(job.march_size, self.image_size):
+        if job.settings.two_scales(job.size, self.image_size):
             marched, work = self._two_scales(job, progress, timings)
         elif job.settings.refine is None and job.settings.depth_window is None:
             marched, work = march(*job.march_size, progress=progress), {}
@@ -556,10 +563,6 @@ class IrisRuntime:
             self._check_scene(scene)
         else:
             scene = self._encode(images_or_scene, timings, self.default_cameras)
-        if settings.field_scale is not None and not self.manifest.explicit_rgb:
-            raise InputError(f"field_scale: two scales (presets {Q.TWO_SCALE_PRESETS}) need an "
-                             f"explicit-colour model (the colour from the photos); this model's "
-                             f"colour comes from its field: use another quality")
         photos = self._view_images(scene)             # explicit colour: the photos are there
         kept_photos = (None if photos is None or scene.photos is None
                        else tuple(scene.photos[i] for i in scene.image_index.tolist()))
@@ -577,7 +580,9 @@ class IrisRuntime:
         chunk_rays = L.chunk_rays_for(chunk_rays, pixels=size[0] * size[1], samples=samples,
                                       num_views=V,
                                       views_per_call=min(V, settings.top_k) if shrinks else V)
-        march_size = settings.march_size(*size)
+        # Two scales compose the colour at the output's size; the field's grid is their own.
+        march_size = (size if settings.two_scales(size, self.image_size)
+                      else settings.march_size(*size))
         if march_size != size:
             K = G.scale_intrinsics(K, size, march_size)
         return RenderJob(scene=scene, world_from_cam=world_from_cam, K=K, size=size,

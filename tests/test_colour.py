@@ -168,7 +168,7 @@ def test_large_renders_read_the_photos(rt, scenes):
 def test_two_scales_at_full_scale_with_every_bin_is_the_exact_march(rt, scenes):
     large, _ = scenes
     pose = large.world_from_cam[1]
-    exact = rt.render(large, pose, height=72, width=72, depth=True)
+    exact = rt.render(large, pose, height=72, width=72, depth=True, quality="exact")
     two = rt.render(large, pose, height=72, width=72, depth=True, field_scale=1.0,
                     colour_samples=rt.samples)
     assert two.work["coarse_rays"] == 72 * 72            # marched at two scales
@@ -181,7 +181,7 @@ def test_two_scales_at_full_scale_with_every_bin_is_the_exact_march(rt, scenes):
 def test_two_scales_are_close_and_finite(rt, scenes):
     large, _ = scenes
     pose = large.world_from_cam[2]
-    exact = rt.render(large, pose, height=80, width=80, depth=True)
+    exact = rt.render(large, pose, height=80, width=80, depth=True, quality="exact")
     two = rt.render(large, pose, height=80, width=80, depth=True, field_scale=0.5,
                     colour_samples=8)
     assert two.image.shape == (80, 80, 3) and np.isfinite(two.depth).all()
@@ -194,10 +194,19 @@ def test_two_scales_are_close_and_finite(rt, scenes):
 
 
 def test_two_scales_need_explicit_colour(model_dir):
+    """Asked for by name on a model whose colour comes from its field: an error. In a preset:
+    the preset without it ("auto" is then "exact")."""
     rt = IrisRuntime(model_dir, threads=1)
     scene = rt.encode(_photos(2, 64), cameras="model")
     with pytest.raises(InputError, match="field_scale"):
         rt.render(scene, 0, field_scale=0.5)
+    with pytest.raises(InputError, match="field_scale"):
+        rt.render(scene, 0, quality=RenderSettings(field_scale=0.5))
+    kw = dict(height=72, width=72, depth=True)
+    auto = rt.render(scene, 0, **kw)
+    assert auto.settings.field_scale is None
+    np.testing.assert_array_equal(auto.image, rt.render(scene, 0, quality="exact", **kw).image)
+    assert rt.render(scene, 0, quality="fast", **kw).settings.field_scale is None
 
 
 def test_scene_photos_are_checked(scenes):

@@ -191,10 +191,8 @@ def create_app(runtime: IrisRuntime, config: ServeConfig = ServeConfig()) -> Fas
     metrics.bind(pool, store)
     max_photos = min(config.max_photos, rt.max_views)
     precisions = [p for p, graph in PRECISIONS.items() if graph in rt.manifest.graphs]
-    # The presets this model renders: two scales (field_scale: "auto", "fast") take the colour
-    # from the photos, which only explicit-colour models do (the runtime refuses them otherwise).
-    presets = [q for q, s in QUALITY_PRESETS.items()
-               if s.field_scale is None or rt.manifest.explicit_rgb]
+    # Every preset renders on every model (two scales apply to explicit-colour models only).
+    presets = list(QUALITY_PRESETS)
     source = rt.manifest.raw.get("source") or {}
     model_name = Path(str(source.get("checkpoint") or rt.model_dir.name)).stem
 
