@@ -11,7 +11,8 @@ The random ``tiny`` model of conftest's ``torch_export`` (exported once per sess
   within 1e-4, for V' in {1, 2, 5} and several (R, S) (dynamic axes, exported once);
 * masking: points masked in every view and rays with every sample masked stay finite and match;
 * isolated references: the encoder graph's ``is_reference`` input; the references' field maps and
-  cameras equal within 1e-6 (measured: bitwise) whether queries are present, changed or absent,
+  cameras equal up to the encoder's float32 rounding (tests/tolerances.py; measured: bitwise)
+  whether queries are present, changed or absent,
   and the queries' poses match ``IrisModel.locate``; validation reports probes with queries and
   the isolation check;
 * the wrappers compute exactly what the model computes;
@@ -56,6 +57,8 @@ from export.manifest import FORMAT, MANIFEST_NAME, VERSION, read_manifest, sha25
 from export.pipeline import export_model                                    # noqa: E402
 from export.validate import renderer_inputs, scene_images, scene_rays      # noqa: E402
 from iris_train.geometry import sample_bilinear_dense as sample_dense        # noqa: E402
+
+from .tolerances import encoder_tol, f32_tol, render_tol, renderer_terms     # noqa: E402
 
 pytestmark = pytest.mark.torch
 
@@ -188,7 +191,8 @@ def test_manifest_content(exported, model, checkpoint):
     enc = m["validation"]["encoder"]
     assert {p["queries"] for p in enc["probes"]} >= {0, 1, 2, 3}
     assert enc["isolation"]["passed"] and enc["isolation"]["tolerance"] == 1e-6
-    assert all(0 <= e <= 1e-6 for e in enc["isolation"]["max_abs_error"].values())
+    assert all(0 <= e <= enc["isolation"]["tolerance"]
+               for e in enc["isolation"]["max_abs_error"].values())
     # Probes covered the edge cases and the view counts.
     probes = m["validation"]["renderer"]["probes"]
     assert {p["V"] for p in probes} == {1, 3, 8} and 1 in {p["R"] for p in probes}
@@ -283,9 +287,11 @@ def test_round_trip_against_torch_render_rays(model_and_sessions, V, R, S):
 
 
 def test_encoder_graph_isolates_references(model, sessions):
-    """ONNX Runtime: the references' field maps and cameras do not change (within 1e-6; measured
-    bitwise) when queries are added, changed or removed, and the queries' poses match torch's
-    ``IrisModel.locate``."""
+    """ONNX Runtime: the references' field maps and cameras do not change (up to the encoder's
+    float32 rounding: other batches may take other kernels; tests/tolerances.py, ~3e-5 for poses,
+    ~6e-5 for field maps of magnitude ~2; measured bitwise) when queries are added, changed or
+    removed, and the queries' poses match torch's ``IrisModel.locate``. A query leaking into the
+    references moves them by 1e-2 to 1e-1 (tests/test_model.py)."""
     enc = sessions["encoder"]
     g = torch.Generator().manual_seed(11)
     refs, queries = scene_images(4, H, W, g).numpy(), scene_images(3, H, W, g).numpy()
@@ -296,15 +302,19 @@ def test_encoder_graph_isolates_references(model, sessions):
 
     alone = run(queries[:0])
     present, changed, fewer = run(queries), run(1.0 - queries), run(queries[:1])
+    views = len(refs) + len(queries)
     for out in (present, changed, fewer):
         for name, a, b in zip(("field_maps", "world_from_cam", "focal"), out, alone):
             rows = slice(None) if name == "focal" else slice(0, len(refs))
-            assert np.abs(a[rows] - b).max() <= 1e-6, name
+            output = {"world_from_cam": "cameras"}.get(name, name)
+            tol = encoder_tol(CFG, views, output, max(1.0, float(np.abs(b).max())))
+            assert np.abs(a[rows] - b).max() <= tol, name
     with torch.no_grad():
         located = model.locate(torch.from_numpy(refs), torch.from_numpy(queries)).numpy()
     assert np.abs(present[1][len(refs):] - located).max() <= 1e-5
     assert np.abs(present[1][len(refs):] - changed[1][len(refs):]).max() > 0   # queries' own poses
-    assert np.abs(fewer[1][len(refs)] - present[1][len(refs)]).max() <= 1e-6   # queries independent
+    # Queries independent: a query's pose with the other queries present or absent.
+    assert np.abs(fewer[1][len(refs)] - present[1][len(refs)]).max() <= encoder_tol(CFG, views)
 
 
 def test_encoder_cross_view_mask_is_an_additive_bias(exported):
@@ -364,21 +374,28 @@ def test_wrappers_compute_what_the_model_computes(model):
         maps, world_from_cam, focal = EncoderGraph(model)(images, torch.ones(3, dtype=torch.bool))
         assert torch.equal(maps, scene.field_maps) and torch.equal(world_from_cam, scene.world_from_cam)
         assert torch.equal(focal, scene.focal)
-        # With queries after the references: the references' rows are encode's (float32 rounding
-        # of longer attention rows aside), the queries' poses are locate's.
+        # With queries after the references: the references' rows are encode's (the encoder's
+        # float32 rounding of longer attention rows aside, tests/tolerances.py), the queries'
+        # poses are locate's.
         queries = scene_images(2, H, W, g)
         maps_q, poses_q, focal_q = EncoderGraph(model)(torch.cat([images, queries]),
                                                        torch.arange(5) < 3)
         scale = max(1.0, float(scene.field_maps.abs().max()))
-        torch.testing.assert_close(maps_q[:3], scene.field_maps, atol=1e-6 * scale, rtol=0)
-        torch.testing.assert_close(poses_q[:3], scene.world_from_cam, atol=1e-6, rtol=0)
+        torch.testing.assert_close(maps_q[:3], scene.field_maps, rtol=0,
+                                   atol=encoder_tol(CFG, 5, "field_maps", scale))
+        torch.testing.assert_close(poses_q[:3], scene.world_from_cam, rtol=0,
+                                   atol=encoder_tol(CFG, 5, "cameras"))
         assert torch.equal(poses_q[3:], model.locate(images, queries))
         origins, directions, depths = scene_rays(model, scene, 24, g)
         rgb, weights = RendererGraph(model)(**renderer_inputs(scene, origins, directions, depths))
         rgb_ref, w_ref = model.render_rays(scene, origins, directions, depths)
-    # The wrapper is render_samples itself: the same sampler as render_rays.
-    torch.testing.assert_close(rgb, rgb_ref, rtol=0, atol=1e-6)
-    torch.testing.assert_close(weights, w_ref, rtol=0, atol=1e-6)
+    # The wrapper is render_samples itself: the same sampler as render_rays; its inputs (grid,
+    # cues, mask) are computed by export.validate's helpers, so the two differ by the float32
+    # rounding of those inputs and of the renderer (tests/tolerances.py: 1.6e-5; rgb and
+    # weights in [0, 1]).
+    tol = render_tol(CFG, 3)
+    torch.testing.assert_close(rgb, rgb_ref, rtol=0, atol=tol)
+    torch.testing.assert_close(weights, w_ref, rtol=0, atol=tol)
 
 
 def test_explicit_rgb_contract(torch_export_rgb, torch_export, rgb_sessions, sessions):
@@ -425,8 +442,9 @@ def test_explicit_rgb_wrapper_computes_what_the_model_computes(torch_export_rgb)
         assert inputs["colours"].shape == (3, 24, CFG.samples, 3)
         rgb, weights = RendererGraph(model)(**inputs)
         rgb_ref, w_ref = model.render_rays(scene, origins, directions, depths)
-        torch.testing.assert_close(rgb, rgb_ref, rtol=0, atol=1e-6)
-        torch.testing.assert_close(weights, w_ref, rtol=0, atol=1e-6)
+        tol = render_tol(model.cfg, 3)                   # as in the test above
+        torch.testing.assert_close(rgb, rgb_ref, rtol=0, atol=tol)
+        torch.testing.assert_close(weights, w_ref, rtol=0, atol=tol)
         # the residual head is live (random weights): the colour is not the blend alone
         f, points, mask, colours = model.field_at(scene, origins, directions, depths)
         blend = (w_ref[..., None] * colours).sum(1)
@@ -444,13 +462,24 @@ def test_dense_sampler_equals_grid_sample(model, seed):
     grid[0, :4] = torch.tensor([[-1.0, -1.0], [1.0, 1.0], [2.0, -2.0], [0.0, 0.0]])
     ref = F.grid_sample(maps, grid[:, None], mode="bilinear", padding_mode="border",
                         align_corners=False)[:, :, 0].transpose(1, 2)
-    torch.testing.assert_close(sample_dense(maps, grid), ref, rtol=1e-5, atol=1e-6)
+    # Two float32 bilinear samplers: the sample position ((g + 1) * w - 1) / 2 (3 roundings of
+    # values <= 2 max(h, w) cells) times the maps' slope (<= 2 max|maps| per cell), plus the
+    # interpolation (8 roundings of values <= max|maps|). A tap off by one cell moves samples
+    # by O(max|maps|) = O(3).
+    m = float(maps.abs().max())
+    tol = f32_tol(3, 2 * max(maps.shape[-2:])) * 2 * m + f32_tol(8, m)
+    torch.testing.assert_close(sample_dense(maps, grid), ref, rtol=0, atol=tol)
     feed = _random_feed(2, 5, 6, seed)
     with torch.no_grad():
         dense = RendererGraph(model, "dense")(**feed)
         gs = RendererGraph(model, "grid_sample")(**feed)
+    # The renderer's rounding (rgb and weights in [0, 1]) plus the samplers' difference (above)
+    # carried through it with a gain of order one relative to the maps' magnitude: 3 position
+    # roundings of values <= 2 max(h, w) cells (6 max(h, w) unit terms) and 8 of the
+    # interpolation.
+    tol = f32_tol(renderer_terms(CFG, 2) + 6 * max(CFG.feature_grid) + 8)
     for a, b in zip(dense, gs):
-        torch.testing.assert_close(a, b, rtol=0, atol=1e-6)
+        torch.testing.assert_close(a, b, rtol=0, atol=tol)
 
 
 # -- failure paths -------------------------------------------------------------------------------
