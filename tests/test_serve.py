@@ -33,6 +33,8 @@ from PIL import Image  # noqa: E402
 from iris_runtime import IrisRuntime  # noqa: E402
 from iris_runtime.errors import InputError  # noqa: E402
 
+from .tolerances import encoder_tol  # noqa: E402
+
 REPO = Path(__file__).resolve().parents[1]
 PHOTOS = sorted((REPO / "samples" / "heldout-1000003").glob("frame_*.png"))
 START_TIMEOUT = 120.0
@@ -161,8 +163,14 @@ def test_scene_json_matches_runtime_encode(scene, rt, client):
                          "camera_source", "image_size"}
     ref = rt.encode(paths)
     assert body["views"] == 3 and body["camera_source"] == ref.camera_source
-    np.testing.assert_allclose(body["world_from_cam"], ref.world_from_cam, atol=1e-5)
-    np.testing.assert_allclose(body["intrinsics"], ref.K, rtol=1e-6)
+    # The server's runtime has CPUs // workers threads, this one 1: on a machine with more than
+    # two CPUs a thread split may change the encoder's float32 rounding (tests/tolerances.py:
+    # ~3e-5 on poses, focal relative). Another scene's cameras are off by > 1e-2.
+    config = rt.manifest.config
+    np.testing.assert_allclose(body["world_from_cam"], ref.world_from_cam, rtol=0,
+                               atol=encoder_tol(config, 3, "cameras",
+                                                max(1.0, float(np.abs(ref.world_from_cam).max()))))
+    np.testing.assert_allclose(body["intrinsics"], ref.K, rtol=encoder_tol(config, 3, "focal"))
     assert client.get(f"/scenes/{body['scene_id']}").json() == body
 
 
