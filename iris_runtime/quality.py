@@ -198,7 +198,8 @@ TWO_SCALE_PRESETS = tuple(k for k, v in QUALITY_PRESETS.items() if v.field_scale
 def resolve_settings(quality: str | RenderSettings | None = None, default: str = "exact",
                      **overrides) -> RenderSettings:
     """The settings of preset ``quality`` (None: preset ``default``) with the non-None
-    ``overrides``."""
+    ``overrides``; ``refine`` or ``depth_window`` among them replace the preset's two scales
+    (``field_scale``) unless that is given too."""
     if quality is None:
         base = QUALITY_PRESETS[default]
     elif isinstance(quality, RenderSettings):
@@ -212,6 +213,10 @@ def resolve_settings(quality: str | RenderSettings | None = None, default: str =
     unknown = set(changes) - {f.name for f in dataclasses.fields(RenderSettings)}
     if unknown:
         raise InputError(f"unknown render settings {sorted(unknown)}")
+    if (("refine" in changes or "depth_window" in changes) and "field_scale" not in changes
+            and base.field_scale is not None):
+        # The coarse-to-fine march asked for replaces the preset's two scales.
+        changes["field_scale"] = None
     return dataclasses.replace(base, **changes) if changes else base
 
 
