@@ -3,6 +3,7 @@
     python benchmarks/two_scale.py out/model --json benchmarks/results/two_scale.json
     python benchmarks/two_scale.py out/model --sets synthetic:heldout --scenes 2 --sizes 128
                                                   # a quick look, not the recorded run
+    python benchmarks/two_scale.py out/model --sets --json speed.json   # the speed bars only
 
 For every scene of every set: the references (frames 0 2 3 5 7, the protocol of ``iris-eval``)
 are encoded at their own resolution with the model's default cameras, the first target (frame
@@ -175,7 +176,7 @@ def summarise(sets: dict) -> dict:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("model_dir")
-    ap.add_argument("--sets", nargs="+",
+    ap.add_argument("--sets", nargs="*",
                     default=["synthetic:heldout", "data/real/castle", "data/real/cube",
                              "data/real/castel"])
     ap.add_argument("--scenes", type=int, default=4, help="scenes per set (default 4)")

@@ -85,8 +85,17 @@ class Scene:
         return self.field_maps.shape[0]
 
     def intrinsics(self, height: int | None = None, width: int | None = None) -> torch.Tensor:
+        """``K [3, 3]`` for an image of (height, width) pixels, as the runtime's
+        ``Scene.intrinsics``: another aspect than the model's keeps the focal in pixels of the
+        model's image scaled to the shorter side and widens the view."""
         H, W = self.image_size
-        return G.intrinsics_from_focal(self.focal, height or H, width or W)
+        h, w = height or H, width or W
+        if h * W == w * H:
+            return G.intrinsics_from_focal(self.focal, h, w)
+        scale = min(h / H, w / W)
+        K = G.intrinsics_from_focal(self.focal, H * scale, W * scale).clone()
+        K[0, 2], K[1, 2] = w / 2.0, h / 2.0
+        return K
 
     def subset(self, indices) -> "Scene":
         """Keep only these views as references, in the same camera frame."""
