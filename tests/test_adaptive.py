@@ -4,10 +4,10 @@ iris_runtime.adaptive) and of the subset march they rest on (``MarchPlan.pixel_i
 
 The contract: what is rendered is rendered exactly. The pixels ``refine`` marches again equal
 the same pixels of the render without it (up to float32 rounding: they share renderer calls with
-other pixels; ``TOL`` below), ``refine=0`` equals the full render, a depth-guided ray that keeps every sample equals
-the full render's ray, and a windowed ray is the renderer's answer to its window's samples alone
-(the same as masking the others: ``cull=False``). The pixels ``refine`` leaves are the coarse
-pass, upsampled.
+other pixels; the ``tol`` fixture below), ``refine=0`` equals the full render, a depth-guided
+ray that keeps every sample equals the full render's ray, and a windowed ray is the renderer's
+answer to its window's samples alone (the same as masking the others: ``cull=False``). The
+pixels ``refine`` leaves are the coarse pass, upsampled.
 
 Same models as tests/test_speed_knobs.py (a random tiny and a random explicit-colour export, or
 ``IRIS_TEST_MODEL_DIR`` / ``IRIS_TEST_RGB_MODEL_DIR``); renders of at most 24 x 20 pixels.
