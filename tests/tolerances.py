@@ -32,8 +32,8 @@ the magnitude of the compared output: their blocks are LayerNorm'd and residual,
 in one layer reaches the output with a gain of order one (an assumption, not a theorem). Checked
 on an AMD EPYC with AVX2 kernels and with the SSE ones (``ATEN_CPU_CAPABILITY=default
 MKL_ENABLE_INSTRUCTIONS=SSE4_2 ONEDNN_MAX_CPU_ISA=SSE41 OPENBLAS_CORETYPE=Prescott``), at 1 and 2
-threads: the largest measured difference was 16% of its network tolerance (view permutation's
-field maps), most were below 5%; the strict short-chain bounds were met at up to 52% (a single
+threads: the largest measured difference was 16% of its network tolerance (the depth rendered
+from view-permuted scenes), most were below 5%; the strict short-chain bounds were met at up to 52% (a single
 rounding), as they must be. Transcendental functions (exp, log, erf in GELU, sqrt) are counted as a few
 terms each: their vectorised implementations are within a few ulp, not half of one.
 
