@@ -847,6 +847,7 @@ def test_trained_model_runtime_matches_torch(shipped_pair):
     sample is held-out scene 1000003, the ill-conditioned one of ``benchmarks/pose_sensitivity.py``:
     torch float32 there is 7.4e-5 from float64)."""
     import copy
+    import dataclasses
 
     import torch
     runtime, scene, model, tscene = shipped_pair
@@ -866,8 +867,17 @@ def test_trained_model_runtime_matches_torch(shipped_pair):
                                         *runtime.image_size)
             rgb32, _ = model.render(t32.subset(refs), t32.world_from_cam[[target]],
                                     *runtime.image_size)
+            # The same float64 render from the runtime's cameras: how much the cameras' float32
+            # difference moves this ill-conditioned scene (a slope of the validity fade near a
+            # reference camera), measured rather than assumed from one CPU's run.
+            rc = dataclasses.replace(t64, world_from_cam=torch.from_numpy(scene.world_from_cam),
+                                     focal=torch.from_numpy(scene.focal))
+            rgb_rc, _ = model64.render(rc.subset(refs), rc.world_from_cam[[target]],
+                                       *runtime.image_size)
         float32_err = np.abs(rgb32[0].double().numpy() - rgb[0].numpy()).max()
-        assert np.abs(res.image_float - rgb[0].numpy()).max() <= 1e-5 + 2 * float32_err
+        camera_err = np.abs(rgb_rc[0].numpy() - rgb[0].numpy()).max()
+        assert np.abs(res.image_float - rgb[0].numpy()).max() <= (1e-5 + 2 * float32_err
+                                                                  + 2 * camera_err)
         assert np.abs(res.depth - depth[0].numpy()).max() <= 1e-4
 
 

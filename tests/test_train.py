@@ -15,7 +15,8 @@ torch = pytest.importorskip("torch")
 pytestmark = pytest.mark.torch
 
 from iris_train import load_model, read_checkpoint  # noqa: E402
-from iris_train.train import TrainConfig, draw_batch, lr_factor, train  # noqa: E402
+from iris_train.model import build_model  # noqa: E402
+from iris_train.train import PhotometricLoss, TrainConfig, draw_batch, lr_factor, train  # noqa: E402
 from iris_train.config import preset  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
@@ -46,15 +47,41 @@ def test_lr_schedule_warms_up_then_decays():
 
 def test_draw_batch_splits_views_into_disjoint_reference_and_target_sets():
     cfg = TrainConfig(**SMALL)
-    images, ref, tgt, pixels, depths, teacher, pose_batch, solved = draw_batch(
+    images, ref, tgt, pixels, depths, teacher, pose_batch, solved, colour = draw_batch(
         fake_scenes(), cfg, preset("tiny"), np.random.default_rng(0))
-    assert teacher is None and pose_batch is None and solved is None
+    assert teacher is None and pose_batch is None and solved is None and colour is None
     assert images.dtype == torch.float32 and 0 <= float(images.min()) and float(images.max()) <= 1
     for r, t, p, d in zip(ref, tgt, pixels, depths):
         assert len(r) >= 1 and len(t) >= 1 and not set(r.tolist()) & set(t.tolist())
         assert len(r) + len(t) == images.shape[1]
         assert d.shape == (p.numel(), 64)
         assert bool(((d >= 0.1) & (d <= 1.0)).all())
+
+
+def test_draw_batch_at_a_colour_size_shrinks_the_encoders_images_from_it():
+    """``colour_size``: the rendered scenes' views come from the larger set, the model's images
+    are their INTER_AREA copies (as the runtime brings a photo to the model), target pixels
+    index the larger grid, and a step trains on them."""
+    import cv2
+    cfg = TrainConfig(colour_size=256, **SMALL)
+    rng = np.random.default_rng(3)
+    large = [FakeScene(rng.integers(0, 256, (8, 256, 256, 3), dtype=np.uint8)) for _ in range(2)]
+    small = [FakeScene(np.zeros((8, 64, 64, 3), np.uint8)) for _ in range(2)]
+    images, ref, tgt, pixels, depths, _, _, _, colour = draw_batch(
+        small, cfg, preset("tiny-rgb"), np.random.default_rng(0), colour_scenes=large)
+    assert colour.shape[-2:] == (256, 256) and images.shape[-2:] == (64, 64)
+    for b in range(images.shape[0]):
+        for v in range(images.shape[1]):
+            big = (colour[b, v].permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)
+            want = cv2.resize(big, (64, 64), interpolation=cv2.INTER_AREA)
+            got = (images[b, v].permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)
+            np.testing.assert_array_equal(got, want)
+    assert all(int(p.max()) < 256 * 256 for p in pixels) and any(int(p.max()) >= 64 * 64
+                                                                   for p in pixels)
+    model = build_model(preset("tiny-rgb"))
+    loss, terms = PhotometricLoss(model, cfg)(images, ref, tgt, pixels, depths,
+                                              colour_images=colour)
+    assert torch.isfinite(loss) and terms["render"] > 0
 
 
 def test_train_logs_checkpoints_and_resumes_exactly(tmp_path):
@@ -148,7 +175,7 @@ def test_draw_batch_with_solutions_draws_only_solved_views():
     sc = SolvedCameras(np.where(solved[:, None, None], T, np.nan), 1.2, solved)
     cfg = TrainConfig(**{**SMALL, "views_min": 5, "views_max": 6, "scenes_per_step": 2})
     for seed in range(5):
-        images, _, _, _, _, _, _, cams = draw_batch(scenes, cfg, preset("tiny"),
+        images, _, _, _, _, _, _, cams, _ = draw_batch(scenes, cfg, preset("tiny"),
                                                     np.random.default_rng(seed), solutions=lambda i: sc)
         for b, (world_from_cam, focal) in enumerate(cams):
             views = (images[b, :, 0, 0, 0] * 255 / 20).round().long().numpy()
