@@ -107,8 +107,8 @@ def model_info(url: str) -> dict:
 
 
 def quick_quality(url: str) -> str:
-    """A quick preset this server renders for its model: "fast" (explicit-colour models), else
-    "adaptive"."""
+    """A quick preset this server renders for its model: "fast" (every model renders it; its
+    two scales apply to explicit-colour models only), else "adaptive"."""
     presets = model_info(url)["quality_presets"]
     return "fast" if "fast" in presets else "adaptive"
 
@@ -312,7 +312,9 @@ def test_drag_previews_with_one_request_in_flight_then_the_full_frame(browser, s
     if model["explicit_rgb"]:                    # the page's default previews
         assert (page["preview_quality"], ph, pw) == ("fast", round(2.5 * H), round(2.5 * W))
     else:
-        assert (page["preview_quality"], ph, pw) == ("adaptive", round(H / 2), round(W / 2))
+        # Every model renders "fast" (its two scales apply to explicit colour only): the
+        # first preview preset, at half the model's size.
+        assert (page["preview_quality"], ph, pw) == ("fast", round(H / 2), round(W / 2))
     centre = np.array(d.execute_script("return state.centre"))
     start = np.array(scene["world_from_cam"][0])
     sweep = float(d.execute_script("return document.getElementById('view').dataset.sweepDeg"))
