@@ -1,4 +1,4 @@
-"""Export wrappers: IRIS split into the two graphs of DESIGN.md, and their ONNX export.
+"""Export wrappers: IRIS split into the two graphs of docs/ARCHITECTURE.md, and their ONNX export.
 
 ``EncoderGraph`` and ``RendererGraph`` are thin ``nn.Module`` views of a built ``IrisModel``. They
 are used only for ONNX export (and as the torch reference of the graphs in validation); the model

@@ -1,4 +1,4 @@
-"""Camera geometry in numpy: the one convention of DESIGN.md, used by the runtime.
+"""Camera geometry in numpy: the one convention of docs/ARCHITECTURE.md, used by the runtime.
 
 Convention (everywhere in IRIS): OpenCV camera axes (x right, y down, z forward). Poses are
 ``world_from_cam`` 4x4 (camera-to-world): rotation columns are the camera axes in world, the last

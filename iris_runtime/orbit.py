@@ -1,7 +1,7 @@
 """A smooth closed camera path through and around a set of cameras, looking at the scene centre.
 
 Used by ``iris-render --orbit N`` on the predicted cameras of the input views. Conventions of
-DESIGN.md: OpenCV camera axes (x right, y down, z forward), ``world_from_cam`` 4x4.
+docs/ARCHITECTURE.md: OpenCV camera axes (x right, y down, z forward), ``world_from_cam`` 4x4.
 
 The path, in three steps:
 

@@ -21,7 +21,7 @@ tokens attend to references only, a query's to the references and itself, so the
 features and cameras are those of the scene (bitwise, in ONNX Runtime) and the query's pose comes
 out in the scene's frame. The scene is not changed and queries never see each other.
 
-Cameras follow DESIGN.md: OpenCV axes, ``world_from_cam`` 4x4, canonical frame = view 0's camera,
+Cameras follow docs/ARCHITECTURE.md: OpenCV axes, ``world_from_cam`` 4x4, canonical frame = view 0's camera,
 intrinsics in pixels with pixel centres at (j + 0.5, i + 0.5).
 """
 from __future__ import annotations
@@ -206,7 +206,7 @@ class IrisRuntime:
             opts.intra_op_num_threads = max(1, total // self.workers)
         opts.inter_op_num_threads = 1
         opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
-        # Optimise in memory at load; never write the optimised graph (ONNX-NOTES: optimised files
+        # Optimise in memory at load; never write the optimised graph (optimised files
         # are tied to the machine and ORT version that made them).
         opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
         opts.log_severity_level = 3

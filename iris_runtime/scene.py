@@ -1,7 +1,7 @@
 """The runtime's value types: ``Scene`` (what the encoder leaves for rendering) and
 ``RenderResult`` (one rendered view), with the pose check a Scene applies to its cameras.
 
-Cameras follow DESIGN.md: OpenCV axes, ``world_from_cam`` 4x4, canonical frame = view 0's camera,
+Cameras follow docs/ARCHITECTURE.md: OpenCV axes, ``world_from_cam`` 4x4, canonical frame = view 0's camera,
 intrinsics in pixels with pixel centres at (j + 0.5, i + 0.5).
 """
 from __future__ import annotations

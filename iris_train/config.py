@@ -58,7 +58,7 @@ class ModelConfig:
     # leaves the renderer's features as they were (as Monodepth2 gives its pose network its own
     # encoder). False: one encoder for both (what checkpoints without this field hold).
     camera_encoder: bool = False
-    # Ray sampling (DESIGN.md: camera depths in [0.1, 1.0], 64 samples).
+    # Ray sampling (docs/ARCHITECTURE.md: camera depths in [0.1, 1.0], 64 samples).
     near: float = 0.1
     far: float = 1.0
     samples: int = 64

@@ -1,6 +1,6 @@
 """Camera geometry in torch: the differentiable twin of ``iris_runtime.geometry``.
 
-Same convention, same names, same maths (see that module's docstring and DESIGN.md "Cameras"):
+Same convention, same names, same maths (see that module's docstring and docs/ARCHITECTURE.md, "Conventions"):
 OpenCV axes, ``world_from_cam`` poses, pixel centres at +0.5, ``d = R K^-1 [u, v, 1]``.
 Every function here is differentiable where its numpy twin is finite, and never produces inf or
 NaN for masked points (points behind a camera, far outside its image).

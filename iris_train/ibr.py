@@ -41,7 +41,7 @@ def sample_reference_rgb(ref_images: torch.Tensor, points: torch.Tensor, K: torc
                          world_from_cam: torch.Tensor):
     """Reference colours at ``points [R, S, 3]``: ``ref_images [V, 3, H, W]``, ``K [3, 3]`` in
     pixels of those images, ``world_from_cam [V, 4, 4]`` -> ``rgb [V, R, S, 3]``, ``valid [V, R, S]``.
-    Bilinear, align_corners=False, border-clamped (DESIGN.md's sampling rule)."""
+    Bilinear, align_corners=False, border-clamped (the sampling rule of docs/ARCHITECTURE.md)."""
     H, W = ref_images.shape[-2:]
     uv, _, valid = G.project_points(points, K, G.invert_pose(world_from_cam), H, W)
     rgb = G.sample_bilinear(ref_images, G.pixels_to_grid(uv, H, W))

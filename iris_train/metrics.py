@@ -4,7 +4,7 @@ numpy + OpenCV only (no torch), so that a model served by ``iris_runtime`` can b
 environment without torch.
 
 Images are float arrays ``[H, W, 3]`` in [0, 1]. Poses are ``world_from_cam`` 4x4 (camera-to-world,
-OpenCV axes; DESIGN.md). Angles are in degrees; RPA values are fractions in [0, 1].
+OpenCV axes; docs/ARCHITECTURE.md). Angles are in degrees; RPA values are fractions in [0, 1].
 
 Pose error (appendix "Definition of Pose Error" of the IRIS paper), for all pairs i < j::
 

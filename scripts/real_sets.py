@@ -262,7 +262,7 @@ def build(out: Path, root: Path = VISP_ROOT, sets=tuple(SETS), force: bool = Fal
 
 
 # ----------------------------------------------------------------------------------------------
-# Does the camera move over a still scene? (DESIGN.md "Evaluation protocol")
+# Does the camera move over a still scene? (docs/ARCHITECTURE.md, "Conventions")
 # ----------------------------------------------------------------------------------------------
 
 #: Width the frames are brought to for the check; share of the width that counts as border.

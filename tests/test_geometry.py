@@ -1,6 +1,6 @@
 """Camera geometry: the numpy runtime functions, their torch twins, and external oracles.
 
-What is checked (DESIGN.md "Cameras"):
+What is checked (docs/ARCHITECTURE.md, "Conventions"):
 
 * twins: every ``iris_runtime.geometry`` function (and the numpy twins the runtime does not need,
   tests/np_geometry.py) equals its ``iris_train.geometry`` twin in float64 to 1e-10 on random
@@ -628,7 +628,7 @@ def test_nearest_rotation_matches_scipy_and_keeps_det_one():
 
 # -- geometric cue ---------------------------------------------------------------------------
 def cue_by_hand(x, target, source):
-    """Float64 loop reference of DESIGN.md's cue for one point and one source view."""
+    """Float64 loop reference of docs/ARCHITECTURE.md's cue for one point and one source view."""
     x, target, source = (np.asarray(v, dtype=np.float64) for v in (x, target, source))
 
     def unit(v):

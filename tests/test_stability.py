@@ -6,7 +6,7 @@ Three layers, each against a float64 reference where one exists:
   reference, with tolerances derived from the conditioning of each quantity (below), not tuned;
 * ``IrisRuntime`` renders of hand-built scenes (camera planes, grazing rays, equal centres, image
   borders, extreme focal lengths and scales, poses far outside the depth range, 1 and 32 views):
-  the renderer's inputs are recorded and compared with a float64 reference of DESIGN.md's
+  the renderer's inputs are recorded and compared with a float64 reference of docs/ARCHITECTURE.md's
   formulas; outputs are finite, depth weights sum to 1 within 1e-5;
 * the ONNX graphs against the torch model run in float64 (``@pytest.mark.torch``): constant,
   black, white and noise images; large logits; every view masked; degenerate 6D rotations in the
@@ -167,7 +167,7 @@ def make_scene(maps, poses, focal=(1.0, 1.0), size=(64, 64), images=None) -> Sce
 
 
 # ----------------------------------------------------------------------------------------------
-# Float64 reference of one render's geometry (DESIGN.md "Cameras", computed differently)
+# Float64 reference of one render's geometry (docs/ARCHITECTURE.md, "Conventions", computed differently)
 # ----------------------------------------------------------------------------------------------
 
 def reference_geometry(scene: Scene, world_from_cam, K_out, height, width, near, far, S):
@@ -206,7 +206,7 @@ def reference_geometry(scene: Scene, world_from_cam, K_out, height, width, near,
         du.append(tol)
         dX_all.append(dX)
     Xs, uv, valid, du, dX_all = map(np.stack, (Xs, uv, valid, du, dX_all))
-    # Cues, DESIGN.md: t = unit(o - x), s = unit(c - x): [(t - s) / max(|t - s|, CUE_EPS), t.s].
+    # Cues, docs/ARCHITECTURE.md: t = unit(o - x), s = unit(c - x): [(t - s) / max(|t - s|, CUE_EPS), t.s].
     tv = o - x
     nt = np.linalg.norm(tv, axis=-1, keepdims=True)
     t = tv / np.maximum(nt, G.NORM_EPS)

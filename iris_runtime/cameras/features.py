@@ -2,7 +2,7 @@
 
 Sparse features, not dense flow, because a keypoint matched by its descriptor survives a wide gap
 between two views (docs/CAMERAS.md, "Matches"). Conventions: pixel coordinates with pixel (row i,
-col j) centred at (j + 0.5, i + 0.5) (DESIGN.md), OpenCV's keypoints shifted by +0.5 to it.
+col j) centred at (j + 0.5, i + 0.5) (docs/ARCHITECTURE.md), OpenCV's keypoints shifted by +0.5 to it.
 """
 from __future__ import annotations
 

@@ -5,7 +5,7 @@ part of the solve against its points, which stay fixed (``IrisRuntime.locate``, 
 ``iris-eval``). Matching a photo against every solved view's keypoints that see a point gives
 2D-3D correspondences; OpenCV's PnP RANSAC (SQPnP on minimal samples) then Levenberg-Marquardt
 on the inliers gives the pose. Conventions: OpenCV axes, ``cam_from_world`` (R, t) internally,
-pixels centred at +0.5 (DESIGN.md).
+pixels centred at +0.5 (docs/ARCHITECTURE.md).
 """
 from __future__ import annotations
 

@@ -6,7 +6,7 @@ as well as F sees a plane or a pure rotation, whose translation cannot be truste
 ("planar_or_panoramic"). The relative pose (essential matrix at the current focal, sign of the
 translation by cheirality) and the pair's triangulation angle let the mapper pick a pair to
 start from. Conventions: ``cam2_from_cam1`` maps camera 1's coordinates to camera 2's (OpenCV
-axes), the translation of unit length; pixels centred at +0.5 (DESIGN.md).
+axes), the translation of unit length; pixels centred at +0.5 (docs/ARCHITECTURE.md).
 """
 from __future__ import annotations
 

@@ -164,7 +164,7 @@ def _photo_pixels(data: bytes, name: str, limit: int) -> None:
 
 
 def scene_json(entry: StoredScene) -> dict:
-    """The scene as the API returns it (cameras in DESIGN.md's convention)."""
+    """The scene as the API returns it (cameras in the convention of docs/ARCHITECTURE.md)."""
     s = entry.scene
     return {"scene_id": entry.scene_id, "views": s.num_views, "image_size": list(s.image_size),
             "world_from_cam": s.world_from_cam.tolist(), "intrinsics": s.K.tolist(),

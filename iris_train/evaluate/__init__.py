@@ -18,7 +18,7 @@ The package, one file per stage: ``protocol`` (split, orders, photo baselines), 
 exported runtime behind one interface), ``cameras`` (where the references' and targets' cameras
 come from), ``evaluation`` (``evaluate``), ``report`` (tables, JSON, grid), ``cli``.
 
-Protocol (DESIGN.md "Evaluation protocol", the paper's appendix scaled down):
+Protocol (docs/ARCHITECTURE.md, "Conventions", the paper's appendix scaled down):
 
 - A scene has N = 8 frames (``--views``) in trajectory order. Scenes with more frames are
   subsampled evenly along the stored order; scenes with fewer are skipped.

@@ -15,7 +15,7 @@ it to ``"egl"`` (headless GPU-less rendering through Mesa's EGL + llvmpipe) unle
 set, so import it before anything that imports ``OpenGL`` or ``pyrender``; set
 ``PYOPENGL_PLATFORM=osmesa`` yourself to use OSMesa instead.
 
-**Conventions** (DESIGN.md): cameras are OpenCV (x right, y down, z forward), ``world_from_cam``
+**Conventions** (docs/ARCHITECTURE.md): cameras are OpenCV (x right, y down, z forward), ``world_from_cam``
 is camera-to-world with the camera axes as rotation columns; ``K`` is in pixels with pixel
 (row i, col j) centred at (j + 0.5, i + 0.5). OpenGL (and pyrender) cameras look down -z with y
 up: ``world_from_gl = world_from_cam @ diag(1, -1, -1, 1)``. The world frame is z-up; it is *not*
