@@ -29,7 +29,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import statistics
 import sys
 import time
 from pathlib import Path
@@ -41,6 +40,7 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
+from benchmarks.evt.measure import timed  # noqa: E402
 from iris_runtime import IrisRuntime  # noqa: E402
 from iris_runtime.fileio import atomic_write_json  # noqa: E402
 from iris_runtime.images import load_image  # noqa: E402
@@ -92,12 +92,9 @@ def load_set(name: str, limit: int | None) -> list[tuple[str, list[np.ndarray]]]
 
 
 def _timed(fn, runs: int):
-    times, out = [], None
-    for _ in range(runs):
-        t0 = time.perf_counter()
-        out = fn()
-        times.append(time.perf_counter() - t0)
-    return out, statistics.median(times)
+    """(last result, median seconds) of ``runs`` calls (``evt.measure.timed``)."""
+    median, _, out = timed(fn, runs)
+    return out, median
 
 
 def measure_scene(rt: IrisRuntime, photos: list[np.ndarray], sizes: list[int], runs: int,

@@ -58,7 +58,7 @@ import onnxruntime as ort
 import torch
 import torch.nn.functional as F
 
-from iris_runtime.raymarch import select_point_views
+from iris_runtime.point_views import select_point_views
 from iris_train import geometry as G
 from iris_train.model import IrisModel, Scene
 
@@ -145,7 +145,7 @@ def selected_view_inputs(inputs: dict[str, torch.Tensor], k: int, generator: tor
                          ) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
     """Per-point pre-selected views (``io_spec.RENDERER_VIEWS``) from view-major renderer
     ``inputs``: each point keeps at most ``k`` of its valid views, drawn at random. Returns
-    ``(selected, masked)``: the selected-views inputs (``raymarch.select_point_views``, the
+    ``(selected, masked)``: the selected-views inputs (``point_views.select_point_views``, the
     runtime's own builder) and ``inputs`` with the views not kept masked out, which the renderer
     must render to the same values."""
     V, R, S = inputs["mask"].shape

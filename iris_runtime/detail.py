@@ -126,9 +126,9 @@ def ray_windows(weights: np.ndarray, z_bins: np.ndarray, colour_samples: int):
     """Each ray's weights ``[N, S]`` pooled into windows of ``max(1, S // (2 M))`` consecutive
     bins (M = ``colour_samples``; the last window may be shorter): the summed weight and the
     centre of mass of each window (its bins' mean depth where it has no weight) ->
-    float32 [N, nW] each. The shipped model spreads its weights along the ray (the 8 heaviest
-    of 64 bins hold about 70 % of a ray's weight on the held-out and castle scenes, the 8
-    heaviest 4-bin windows about 97 %), so windows keep the weight that single bins drop."""
+    float32 [N, nW] each. A model that spreads its weights along the ray loses less of them to
+    the M heaviest windows than to the M heaviest bins (``benchmarks/two_scale.py`` measures
+    what either costs against the exact march)."""
     S = z_bins.shape[0]
     size = max(1, S // (2 * max(1, int(colour_samples))))
     starts = np.arange(0, S, size)

@@ -111,7 +111,7 @@ EXPLICIT_RGB_AXES = {COLOURS: {0: "V", 1: "R", 2: "S"}}
 #: (flat index p * G + g) with validity weight ``mask[k, r, s]`` (0: no pair). The result equals
 #: ``RENDERER`` fed every view with the pairs not kept masked, so the sampling shrinks to the kept
 #: pairs and the field's view axis to K. A point's slots must hold distinct views (a view held
-#: twice would count twice). Built by ``raymarch.select_point_views``.
+#: twice would count twice). Built by ``point_views.select_point_views``.
 RENDERER_VIEWS = {
     "file": "renderer_views.onnx",
     "inputs": {

@@ -162,8 +162,8 @@ def _check_fraction(name: str, x, expected: str, ok) -> None:
 #:               resolution; above it two scales (``field_scale``): the field marched at an
 #:               eighth of the output's rows and columns, each pixel's colour from the photos
 #:               through the 8 heaviest depth bins of the coarse rays around it (error and
-#:               time against the full render at 128, 256 and 512: docs/PERFORMANCE.md, "Two
-#:               scales").
+#:               time against the full render at 128, 256 and 512: benchmarks/two_scale.py,
+#:               docs/PERFORMANCE.md "Two scales").
 #: - "exact":    the full render (at every size: the field marched at every output pixel).
 #: - "balanced": 64 -> 32 samples and at most 8 views per ray: about half the time of the full
 #:               render at an error far below the model's own (ground-truth PSNR unchanged), and a

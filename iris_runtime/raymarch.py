@@ -5,16 +5,13 @@ Runtime; no torch).
     result = march(plan, session, workers=1, progress=None)      # rgb [N, 3], depth [N]
 
 ``MarchPlan`` holds what every block of pixels needs, computed once per render. The pixels (all
-of the render, or the subset ``plan.pixel_index``: a coarse-to-fine render marches only the pixels
-it refines, see ``iris_runtime.adaptive``) are marched in blocks of ``plan.block_rays``
-(``trace_block``): rays through the pixel centres
-(``geometry.rays_from_pixels``: per-ray origins and directions), sample points ``x = o + z d`` at
-the bin-centre depths ``plan.z_bins`` (or, with ``plan.sample_window``, each ray's run of them),
-their projection into every reference view
-(``cam_from_world = invert_pose(world_from_cam)``; pixel positions and the validity mask), the
-views that see the block and the geometric cue of every sample in those views (target centre =
-the ray origin). With ``top_k`` the views are chosen by the cue's t.s from the same direction
-vectors (``geometry.cue_vectors``; rules in ``iris_runtime.quality``). ``plan_calls`` splits a
+of the render, or the subset ``plan.pixel_index`` a coarse-to-fine render refines,
+``iris_runtime.adaptive``) are marched in blocks of ``plan.block_rays`` (``trace_block``): rays
+through the pixel centres (``geometry.rays_from_pixels``), samples ``x = o + z d`` at the
+bin-centre depths ``plan.z_bins`` (or each ray's ``plan.sample_window`` of them), their
+projection into every reference view (pixel positions and validity), the views that see the
+block and the geometric cue of every sample (target centre = the ray origin). With ``top_k`` the
+views are chosen by the cue's t.s (rules in ``iris_runtime.quality``). ``plan_calls`` splits a
 block into renderer calls by (rays, views); ``call_feed`` packs each call's inputs, which
 ``session.run`` turns into rgb and per-sample weights; depth = sum(weights * z). With
 ``plan.mode_radius`` the march also keeps, per ray, the depth of the largest weight (the soft
@@ -39,11 +36,9 @@ so dropping them changes nothing but the float rounding of sums. Each call is th
 the valid samples of each ray (in depth order, padded to the call's longest ray with masked
 samples), the views that see its rays, and the rays that see anything; an empty ray gets the
 renderer's answer to an empty ray (``plan.empty_rgb``: rgb = head(0), zero weights, depth 0).
-The rays whose every sample has full weight get calls of their own (``plan_calls``): the graph
-then skips its ray attentions' key-bias Add (export/fast_renderer.py), the same values.
-A sample window is the same masking: the samples outside a ray's window are dropped as if they
-projected nowhere, so a windowed ray renders what the renderer makes of its window's samples
-alone, and a ray whose window is every sample renders as without windows.
+Rays whose every sample has full weight get calls of their own (``plan_calls``), in which the
+graph skips its ray attentions' key-bias Add (export/fast_renderer.py). A sample window is the
+same masking: samples outside a ray's window are dropped as if they projected nowhere.
 """
 from __future__ import annotations
 
@@ -57,8 +52,8 @@ import numpy as np
 from . import geometry as G
 from . import quality as Q
 from .colour import ColourSource, blend_residual, mean_colour
-from .io_spec import (COLOURS, CUES, DIRECTIONS, FIELD_MAPS, GRID, GROUPS, MASK, PAIRS, POSITIONS,
-                      RGB, WEIGHTS)
+from .io_spec import COLOURS, CUES, DIRECTIONS, FIELD_MAPS, GRID, MASK, POSITIONS, RGB, WEIGHTS
+from .point_views import select_point_views
 from .scene import Scene
 
 __all__ = ["MarchPlan", "focal_ratio", "Block", "Call", "MarchStats", "MarchResult", "march",
@@ -489,62 +484,13 @@ def call_feed(plan: MarchPlan, block: Block, call: Call,
     return (select_point_views(feed) if plan.select_views else feed), z
 
 
-#: Pairs per group of the selected-views renderer feed (``select_point_views``): each view's
-#: kept pairs are padded to a multiple of this, not to the busiest view's count.
-PAIR_GROUP = 128
-
-
-def select_point_views(feed: dict[str, np.ndarray], group: int = PAIR_GROUP
-                       ) -> dict[str, np.ndarray]:
-    """The feed of the renderer on per-point pre-selected views (``io_spec.RENDERER_VIEWS``) from
-    a view-major ``feed`` whose validity weights ``mask [v, r, s]`` mark the (view, point) pairs
-    to keep (weight > 0): each view's kept pairs in groups of ``group`` (the last one padded), and
-    per point its kept views, in view order, in slots 0 .. K - 1 with their weights (K: the most
-    any point keeps; the rest weight 0). Same result as ``feed``: the renderer pools and attends
-    over the valid views of each point."""
-    mask = feed[MASK]
-    v = mask.shape[0]
-    weights = mask.reshape(v, -1)                                            # [v, r*s]
-    flat = weights > 0
-    counts = flat.sum(axis=1)
-    K = max(1, int(flat.sum(axis=0).max()))
-    n_groups = -(-counts // group)                                           # per view
-    groups = np.repeat(np.arange(v), n_groups)
-    if groups.size == 0:                                                     # nothing kept
-        groups = np.zeros(1, np.int64)
-    view, point = np.nonzero(flat)                                           # view-major
-    rank = np.arange(len(view)) - np.repeat(np.cumsum(counts) - counts, counts)
-    row = (np.cumsum(n_groups) - n_groups)[view] * group + rank              # in [0, P * G)
-    slot = (np.cumsum(flat, axis=0) - 1)[view, point]                        # k of the pair
-
-    def compact(x):
-        out = np.zeros((len(groups) * group, x.shape[-1]), x.dtype)
-        out[row] = x.reshape(v, -1, x.shape[-1])[view, point]
-        return out.reshape(len(groups), group, x.shape[-1])
-
-    pairs = np.zeros((K, flat.shape[1]), np.int64)
-    pairs[slot, point] = row
-    slots = np.zeros((K, flat.shape[1]), weights.dtype)
-    slots[slot, point] = weights[view, point]
-    out = {FIELD_MAPS: feed[FIELD_MAPS], GROUPS: groups.astype(np.int64),
-           GRID: compact(feed[GRID]), CUES: compact(feed[CUES]),
-           PAIRS: pairs.reshape(K, *mask.shape[1:]), MASK: slots.reshape(K, *mask.shape[1:]),
-           POSITIONS: feed[POSITIONS], DIRECTIONS: feed[DIRECTIONS]}
-    if COLOURS in feed:
-        out[COLOURS] = compact(feed[COLOURS])
-    return out
-
-
 def empty_ray_rgb(session, field_maps_shape: tuple[int, ...], explicit_rgb: bool) -> np.ndarray:
     """The renderer's colour for a ray with no valid sample, float32 [3], read-only (a constant
     of the model: every input is masked, so nothing of the scene reaches it)."""
     _, C, h, w = field_maps_shape
-    feed = {FIELD_MAPS: np.zeros((1, C, h, w), f32),
-            GRID: np.zeros((1, 1, 1, 2), f32),
-            CUES: np.zeros((1, 1, 1, 4), f32),
-            MASK: np.zeros((1, 1, 1), f32),
-            POSITIONS: np.zeros((1, 1, 3), f32),
-            DIRECTIONS: np.array([[0, 0, 1]], f32)}
+    feed = {FIELD_MAPS: np.zeros((1, C, h, w), f32), GRID: np.zeros((1, 1, 1, 2), f32),
+            CUES: np.zeros((1, 1, 1, 4), f32), MASK: np.zeros((1, 1, 1), f32),
+            POSITIONS: np.zeros((1, 1, 3), f32), DIRECTIONS: np.array([[0, 0, 1]], f32)}
     if explicit_rgb:                   # masked: the blend of nothing, whatever colour
         feed[COLOURS] = np.zeros((1, 1, 1, 3), f32)
     rgb = session.run([RGB], feed)[0][0]

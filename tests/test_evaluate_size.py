@@ -24,12 +24,8 @@ from iris_train.metrics import capped_psnr, ssim  # noqa: E402
 PAD = 16                 # columns added on each side: photos are H x (H + 2 PAD), not square
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_torch_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+# The autouse fixture that holds torch to one thread for this module, as for test_evaluate's.
+from .test_evaluate import one_torch_thread  # noqa: E402, F401
 
 
 def rot_y(deg):

@@ -233,10 +233,10 @@ def test_dropping_views_under_top_k_is_exact(model_dir, rt, scene, by, tol):
 
 
 def test_select_point_views_keeps_exactly_the_masked_pairs():
-    """raymarch.select_point_views: every kept (view, point) pair sits once in a group of its
+    """point_views.select_point_views: every kept (view, point) pair sits once in a group of its
     view, each point's kept views fill its first slots in view order, and nothing else is
     referenced."""
-    from iris_runtime.raymarch import select_point_views
+    from iris_runtime.point_views import select_point_views
     rng = np.random.default_rng(3)
     v, r, s = 5, 4, 7
     mask = rng.random((v, r, s)) < 0.5
