@@ -4,7 +4,7 @@
                                                              # (~12 min on 2 cores, with export,
                                                              # before the sizing part was added)
     python benchmarks/error_vs_time.py --checkpoint runs/tiny/last.pt --scenes 1 --parts knobs
-    python benchmarks/error_vs_time.py --quick --model-dir MODEL --out /tmp/evt
+    python benchmarks/error_vs_time.py --quick --model-dir MODEL --out OUT_DIR
                                          # every code path in ~1 min; not a measurement
 
 Parts (everything in one process; the tcmalloc torch anchor and the 512x512 memory measurement
@@ -107,6 +107,13 @@ def parse_args(argv=None) -> argparse.Namespace:
     return args
 
 
+def _shown(path: Path) -> str:
+    """``path`` as the results record it: relative to the repository where it lies inside it,
+    else its name alone (results name no machine's directories)."""
+    p = Path(path).resolve()
+    return p.relative_to(REPO).as_posix() if p.is_relative_to(REPO) else p.name
+
+
 def main(argv=None) -> int:
     args = parse_args(argv)
     parts = set(args.parts.split(","))
@@ -117,9 +124,10 @@ def main(argv=None) -> int:
 
     from iris_runtime import IrisRuntime
     results: dict = {"machine": machine_facts(args.threads),
-                     "args": {k: (str(v) if isinstance(v, Path) else v)
+                     "args": {k: (_shown(v) if isinstance(v, Path) else v)
                               for k, v in vars(args).items()}}
-    results["model"] = {"checkpoint": str(args.checkpoint), "sha256": sha256_file(args.checkpoint),
+    results["model"] = {"checkpoint": _shown(args.checkpoint),
+                        "sha256": sha256_file(args.checkpoint),
                         "note": args.note}
     tmp = None
     model_dir = args.model_dir

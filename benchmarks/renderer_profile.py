@@ -107,6 +107,13 @@ def call_times(paths: list[Path], feed: dict, threads: int, runs: int) -> list[l
     return times
 
 
+def _shown(path: Path) -> str:
+    """``path`` as the results record it: relative to the repository where it lies inside it,
+    else its name alone (results name no machine's directories)."""
+    p, root = Path(path).resolve(), Path(__file__).resolve().parents[1]
+    return p.relative_to(root).as_posix() if p.is_relative_to(root) else p.name
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("model_dirs", nargs=2, metavar="MODEL_DIR")
@@ -156,7 +163,7 @@ def main(argv: list[str] | None = None) -> int:
             "feed": {"views": args.views, "rays": args.rays, "samples": args.samples,
                      "valid": args.valid, "threads": args.threads},
             "max_abs_difference": diff,
-            "graphs": [{"model_dir": str(d), "renderer_graph": k, "call_s": t,
+            "graphs": [{"model_dir": _shown(d), "renderer_graph": k, "call_s": t,
                         "median_call_s": m, **p}
                        for d, k, t, m, p in zip(args.model_dirs, kinds, times, med, profiles)],
         }, indent=2))

@@ -145,10 +145,20 @@ async def run_level(client, make, n: int, concurrency: int, seconds: float) -> d
             "bad_p50_s": round(float(np.median([r[3] for r in bad])), 4) if bad else None}
 
 
+def _shown(arg: str) -> str:
+    """A command-line word as the results record it: an absolute path relative to the
+    repository where it lies inside it, else its name alone (results name no machine's
+    directories); other words as given."""
+    if not os.path.isabs(arg):
+        return arg
+    p = Path(arg).resolve()
+    return p.relative_to(REPO).as_posix() if p.is_relative_to(REPO) else p.name
+
+
 async def main_async(args) -> dict:
     import httpx
     proc, port = start_server(args.model_dir, args.workers, args.threads)
-    out = {"command": " ".join(sys.argv), "machine": {
+    out = {"command": " ".join(_shown(a) for a in sys.argv), "machine": {
         "cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version(),
         "load_avg_start": os.getloadavg()}, "server": {"workers": args.workers,
                                                       "threads": args.threads},

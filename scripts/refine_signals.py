@@ -3,7 +3,7 @@
 ``refine.MIN_AGREEMENT`` (docs/CAMERAS.md, "Telling a wrong refinement").
 
     python scripts/refine_signals.py MODEL_DIR out.json synthetic:heldout@64 \\
-        synthetic:capture-heldout /work/real/castle /work/real/castel /work/real/cube
+        synthetic:capture-heldout real/castle real/castel real/cube
 
 Each DATA is an iris-eval set (``@64``: the model's 64x64 images as the photos, as
 ``benchmarks/encode_cost.py --heldout`` gives them). All 8 frames of every scene are encoded
@@ -24,6 +24,7 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -97,6 +98,17 @@ def scene_signals(rt: IrisRuntime, photos, truth, solve: bool) -> dict:
     return row
 
 
+def _shown(data: str) -> str:
+    """A DATA argument as the results record it: a set name as given, a folder relative to the
+    repository where it lies inside it, else its parent's name and its own (``real/castle``:
+    results name no machine's directories)."""
+    if data.startswith("synthetic:"):
+        return data
+    p, root = Path(data).resolve(), Path(__file__).resolve().parents[1]
+    return (p.relative_to(root) if p.is_relative_to(root)
+            else Path(p.parent.name, p.name)).as_posix()
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("model_dir")
@@ -119,7 +131,7 @@ def main() -> None:
                                                       or scene.images))
             truth = getattr(scene, "world_from_cam", None)
             truth = None if truth is None else np.linalg.inv(truth[0]) @ truth
-            row = {"data": data, "scene": index} | scene_signals(rt, photos, truth,
+            row = {"data": _shown(data), "scene": index} | scene_signals(rt, photos, truth,
                                                                  not args.no_solve)
             rows.append(row)
             print(json.dumps(row), flush=True)
