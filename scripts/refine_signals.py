@@ -3,7 +3,7 @@
 ``refine.MIN_AGREEMENT`` (docs/CAMERAS.md, "Telling a wrong refinement").
 
     python scripts/refine_signals.py MODEL_DIR out.json synthetic:heldout@64 \\
-        synthetic:capture-heldout real/castle real/castel real/cube
+        synthetic:capture-heldout data/real/castle data/real/castel data/real/cube
 
 Each DATA is an iris-eval set (``@64``: the model's 64x64 images as the photos, as
 ``benchmarks/encode_cost.py --heldout`` gives them). All 8 frames of every scene are encoded
