@@ -12,8 +12,8 @@ from .validation import check_integer
 
 __all__ = ["RENDER_BUDGET", "MAX_CHUNK_RAYS", "MAX_OUTPUT_PIXELS", "MAX_ENCODER_TOKENS",
            "MAX_CHUNK_SAMPLES", "MAX_LOCATE_CALLS", "MAX_POSE_DISTANCE", "render_memory_bound",
-           "default_chunk_rays", "max_views", "check_output_size", "check_chunk_rays",
-           "chunk_rays_for"]
+           "default_chunk_rays", "max_views", "output_size", "check_output_size",
+           "check_chunk_rays", "chunk_rays_for"]
 
 #: Rays x samples x views per renderer call by default: ``default_chunk_rays`` gives
 #: ``min(MAX_CHUNK_RAYS, RENDER_BUDGET // (S * V))`` rays (256 for 1-2 views, 128 for 4, 64 for 8
@@ -69,21 +69,27 @@ def max_views(image_size: tuple[int, int], patch_size) -> int:
     return MAX_ENCODER_TOKENS // ((H // p) * (W // p) + 1)
 
 
-def check_output_size(image_size: tuple[int, int], height=None, width=None) -> tuple[int, int]:
+def output_size(image_size: tuple[int, int], height=None, width=None) -> tuple[int, int]:
     """The (height, width) a render of a model of resolution ``image_size`` produces (None: the
     model's, or the model's aspect for one given side), or ``InputError`` for non-positive /
-    non-integer sizes and for more than ``MAX_OUTPUT_PIXELS`` pixels. Allocates nothing."""
+    non-integer sizes; no limit on the pixels (``check_output_size`` adds it). A caller with a
+    lower limit of its own (iris-serve's ``--max-output-pixels``) states that one."""
     Hm, Wm = image_size
     height = check_integer(height, "height", allow_none=True)
     width = check_integer(width, "width", allow_none=True)
     if height is None and width is None:
-        h, w = Hm, Wm
-    elif height is None:
-        h, w = max(1, round(width * Hm / Wm)), int(width)
-    elif width is None:
-        h, w = int(height), max(1, round(height * Wm / Hm))
-    else:
-        h, w = int(height), int(width)
+        return Hm, Wm
+    if height is None:
+        return max(1, round(width * Hm / Wm)), int(width)
+    if width is None:
+        return int(height), max(1, round(height * Wm / Hm))
+    return int(height), int(width)
+
+
+def check_output_size(image_size: tuple[int, int], height=None, width=None) -> tuple[int, int]:
+    """``output_size``, or ``InputError`` also for more than ``MAX_OUTPUT_PIXELS`` pixels.
+    Allocates nothing."""
+    h, w = output_size(image_size, height, width)
     if h * w > MAX_OUTPUT_PIXELS:
         raise InputError(f"height, width: {h}x{w} = {h * w} output pixels exceeds "
                          f"MAX_OUTPUT_PIXELS = {MAX_OUTPUT_PIXELS} (the output is held in "
