@@ -150,10 +150,29 @@ def test_healthz(client, rt):
     assert body["model"]["image_size"] == list(rt.image_size)
     assert body["model"]["name"]
     assert body["limits"]["max_photos"] == 4
+    # FastAPI's own schema, from the routes' Pydantic models and File/Form declarations.
     spec = client.get("/openapi.json").json()
-    render_body = spec["paths"]["/scenes/{scene_id}/render"]["post"]["requestBody"]
-    assert "world_from_cam" in render_body["content"]["application/json"]["schema"]["properties"]
-    assert "images" in json.dumps(spec["paths"]["/scenes"]["post"]["requestBody"])
+    schemas = spec["components"]["schemas"]
+
+    def body_schema(path, method, ctype):
+        ref = spec["paths"][path][method]["requestBody"]["content"][ctype]["schema"]["$ref"]
+        return schemas[ref.rsplit("/", 1)[1]]
+
+    render_body = body_schema("/scenes/{scene_id}/render", "post", "application/json")
+    assert "world_from_cam" in render_body["properties"]
+    assert set(render_body["properties"]["quality"]["anyOf"][0]["enum"]) == \
+        set(body["model"]["quality_presets"])
+    scene_body = body_schema("/scenes", "post", "multipart/form-data")
+    assert scene_body["required"] == ["images"] and scene_body["properties"]["images"]["minItems"] == 2
+    assert "image" in body_schema("/scenes/{scene_id}/locate", "post",
+                                  "multipart/form-data")["properties"]
+    for path, methods in spec["paths"].items():
+        for method, op in methods.items():       # every error is the service's one error body
+            for status, answer in op["responses"].items():
+                if not status.startswith("2"):
+                    assert answer["content"]["application/json"]["schema"]["$ref"] == \
+                        "#/components/schemas/ErrorOut", (path, method, status)
+    assert "HTTPValidationError" not in schemas
     assert client.get("/docs").status_code == 404                 # no page that needs a CDN
 
 

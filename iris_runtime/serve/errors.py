@@ -10,8 +10,8 @@ only that.
 """
 from __future__ import annotations
 
+import json
 import logging
-import math
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
@@ -85,8 +85,11 @@ class Unsupported(ApiError):
 
 
 class _Overload(ApiError):
-    def __init__(self, message: str, retry_after: float):
-        super().__init__(message, {"Retry-After": str(max(1, math.ceil(retry_after)))})
+    """``retry_after``: whole seconds (``WorkerPool.retry_after``: the queue's measured wait)."""
+
+    def __init__(self, message: str, retry_after: int):
+        super().__init__(message, {"Retry-After": str(int(retry_after))})
+        self.retry_after = int(retry_after)
 
 
 class Busy(_Overload):
@@ -108,8 +111,9 @@ RUNTIME_ERRORS: tuple[tuple[type[IrisError], int, str], ...] = (
 )
 
 _STATUS_TYPES = {400: "bad_request", 401: "unauthorized", 404: "not_found",
-                 405: "method_not_allowed", 409: "superseded", 413: "too_large", 415: "unsupported_media_type",
-                 422: "invalid", 429: "busy", 503: "unavailable"}
+                 405: "method_not_allowed", 409: "superseded", 413: "too_large",
+                 415: "unsupported_media_type", 422: "invalid", 429: "busy", 501: "unsupported",
+                 503: "unavailable"}
 
 
 def error_response(status: int, type_: str, message: str,
@@ -120,7 +124,8 @@ def error_response(status: int, type_: str, message: str,
 
 
 def _loc(loc) -> str:
-    """A pydantic error location as a field path: ("world_from_cam", 1, 2) -> world_from_cam[1][2]."""
+    """A pydantic error location as a field path: ("world_from_cam", 1, 2) ->
+    world_from_cam[1][2]."""
     out = ""
     for part in loc:
         if part in ("body", "query", "path") and not out:
@@ -129,9 +134,25 @@ def _loc(loc) -> str:
     return out or "body"
 
 
+def _given(error: dict) -> str:
+    """", got <value>" for an error about a value the client sent, so that the message states
+    what was refused and not only the rule; nothing for a missing or an unknown field."""
+    if error.get("type") in ("missing", "extra_forbidden", "too_short", "too_long") \
+            or "input" not in error:                      # (a list's length is in the message)
+        return ""
+    value = error["input"]
+    if value is None or isinstance(value, (bool, int, float, str)):
+        text = json.dumps(value)
+        return f", got {text if len(text) <= 40 else text[:40] + '...'}"
+    kind = {list: "an array", dict: "an object"}.get(type(value), type(value).__name__)
+    return f", got {kind}"
+
+
 def field_message(errors) -> str:
-    """pydantic's errors as one line naming each field: ``height: Input should be ...``."""
-    parts = [f"{_loc(e.get('loc', ()))}: {e.get('msg', 'invalid')}" for e in errors[:5]]
+    """pydantic's errors as one line naming each field and the value refused:
+    ``height: Input should be greater than 0, got -4``."""
+    parts = [f"{_loc(e.get('loc', ()))}: {e.get('msg', 'invalid')}{_given(e)}"
+             for e in errors[:5]]
     more = f" (and {len(errors) - 5} more)" if len(errors) > 5 else ""
     return "; ".join(parts) + more
 
@@ -157,7 +178,11 @@ def install_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(RequestValidationError)
     async def _validation(request: Request, exc: RequestValidationError):
-        return error_response(422, "invalid", field_message(exc.errors()))
+        errors = exc.errors()
+        if errors and errors[0].get("type") == "json_invalid":     # FastAPI's own JSON parse
+            why = (errors[0].get("ctx") or {}).get("error", "JSON decode error")
+            return error_response(400, "bad_request", f"body: not valid JSON ({why})")
+        return error_response(422, "invalid", field_message(errors))
 
     @app.exception_handler(StarletteHTTPException)
     async def _http(request: Request, exc: StarletteHTTPException):

@@ -10,6 +10,8 @@ several apps in one process (tests) never share counters.
   superseded (409: a render of a stream made stale by a newer one, never rendered);
 - ``iris_queue_depth``, ``iris_jobs_running``, ``iris_scenes``, ``iris_scene_store_bytes``,
   ``iris_scene_evictions_total``: read from the pool and the store at scrape time;
+- ``iris_job_service_seconds``: the pool's exponentially weighted mean time of a job on a worker,
+  from which ``Retry-After`` is estimated (``pool.WorkerPool.retry_after``);
 - ``process_*`` (resident memory, CPU seconds, open files) and ``python_*``: the standard
   collectors.
 """
@@ -41,6 +43,9 @@ class Metrics:
                                 ["reason"], registry=r)
         self.queue_depth = Gauge("iris_queue_depth", "Jobs waiting for a worker", registry=r)
         self.running = Gauge("iris_jobs_running", "Jobs running on a worker", registry=r)
+        self.service_seconds = Gauge("iris_job_service_seconds", "Exponentially weighted mean "
+                                     "time of a job on a worker (Retry-After's estimate)",
+                                     registry=r)
         self.scenes = Gauge("iris_scenes", "Scenes held in the scene store", registry=r)
         self.store_bytes = Gauge("iris_scene_store_bytes", "Bytes of the scenes held", registry=r)
         self.evictions = Counter("iris_scene_evictions", "Scenes evicted from the store (LRU)",
@@ -50,6 +55,7 @@ class Metrics:
         """Read the gauges from ``pool`` and ``store`` at scrape time."""
         self.queue_depth.set_function(lambda: pool.waiting)
         self.running.set_function(lambda: pool.running)
+        self.service_seconds.set_function(lambda: pool.mean_seconds)
         self.scenes.set_function(lambda: len(store))
         self.store_bytes.set_function(lambda: store.nbytes)
 

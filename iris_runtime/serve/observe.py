@@ -16,6 +16,7 @@ import re
 import time
 import uuid
 from datetime import datetime, timezone
+from typing import Callable
 
 from .errors import PayloadTooLarge, error_response
 from .metrics import Metrics
@@ -56,14 +57,17 @@ def log_config(level: str = "info") -> dict:
 
 
 class RequestObserver:
-    """ASGI middleware around the app (see the module docstring). ``max_body_bytes``: a request
-    body over it is refused with 413, from its Content-Length before anything is read, or when
-    the streamed body passes it."""
+    """ASGI middleware around the app (see the module docstring). ``max_body_bytes``: a body
+    streamed past it is cut off with 413, a net under the routes' own limits (the routes check a
+    body's declared Content-Length against their limit before reading it: ``routing``);
+    ``retry_after()``: the ``Retry-After`` seconds of a request cut off by the shutdown."""
 
-    def __init__(self, app, *, metrics: Metrics, max_body_bytes: int):
+    def __init__(self, app, *, metrics: Metrics, max_body_bytes: int,
+                 retry_after: Callable[[], int] = lambda: 1):
         self.app = app
         self.metrics = metrics
         self.max_body_bytes = int(max_body_bytes)
+        self.retry_after = retry_after
 
     async def __call__(self, scope, receive, send):
         if scope["type"] != "http":
@@ -80,8 +84,8 @@ class RequestObserver:
             if message["type"] == "http.request":
                 state["in"] += len(message.get("body", b""))
                 if state["in"] > limit:
-                    raise PayloadTooLarge(f"request body: more than {limit} bytes "
-                                          f"(iris-serve --max-upload-mb)")
+                    raise PayloadTooLarge(f"request body: more than {limit} bytes, at most "
+                                          f"{limit} (iris-serve --max-upload-mb)")
             return message
 
         async def send_observed(message):
@@ -95,17 +99,9 @@ class RequestObserver:
 
         try:
             length = headers.get(b"content-length")
-            too_large = None
-            if length is not None:
-                if not length.isdigit():
-                    too_large = error_response(400, "bad_request",
-                                               "Content-Length: expected a byte count")
-                elif int(length) > limit:
-                    too_large = error_response(413, "too_large", f"request body: {int(length)} "
-                                               f"bytes, at most {limit} (iris-serve "
-                                               f"--max-upload-mb)")
-            if too_large is not None:
-                await too_large(scope, receive, send_observed)
+            if length is not None and not length.isdigit():
+                await error_response(400, "bad_request", "Content-Length: expected a byte "
+                                     "count")(scope, receive, send_observed)
             else:
                 await self.app(scope, receive_limited, send_observed)
         except asyncio.CancelledError:
@@ -113,7 +109,8 @@ class RequestObserver:
             if state["status"] is None:
                 with contextlib.suppress(Exception):
                     await error_response(503, "unavailable", "the server shut down before this "
-                                         "request finished; retry", {"Retry-After": "1"})(
+                                         "request finished; retry",
+                                         {"Retry-After": str(self.retry_after())})(
                         scope, receive, send_observed)
             raise
         finally:

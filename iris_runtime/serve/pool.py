@@ -15,14 +15,18 @@ worker. Admission is decided on the event loop, before any work:
 Waiting jobs take the workers in arrival order (a FIFO of waiters; a freed worker is handed to the
 first one still waiting).
 
-``Retry-After`` is the expected wait: jobs ahead of the caller times the mean job time (an
-exponential average) over the workers. A worker's slot is released when its thread finishes,
-not when the request that asked for it goes away, so the pool never runs more than ``workers``
-jobs whatever the clients do.
+``Retry-After`` (``retry_after``) is the wait the queue's own measurements predict for a request
+arriving now: its place in line (the jobs waiting, plus itself) times the service time of a job
+(an exponentially weighted mean of the jobs' measured times on a worker, the newest weighing
+``EWMA_WEIGHT``; ``FIRST_GUESS_S`` until a job has been timed), shared by the workers; rounded up
+to whole seconds and kept within ``RETRY_AFTER_MIN``..``RETRY_AFTER_MAX``. A worker's slot is
+released when its thread finishes, not when the request that asked for it goes away, so the pool
+never runs more than ``workers`` jobs whatever the clients do.
 """
 from __future__ import annotations
 
 import asyncio
+import math
 import time
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
@@ -30,9 +34,19 @@ from typing import Callable, TypeVar
 
 from .errors import Busy, Superseded, Unavailable
 
-__all__ = ["WorkerPool"]
+__all__ = ["WorkerPool", "EWMA_WEIGHT", "FIRST_GUESS_S", "RETRY_AFTER_MIN", "RETRY_AFTER_MAX"]
 
 T = TypeVar("T")
+
+#: Weight of the newest job in the mean service time: a job 10 jobs back weighs 0.2 x 0.8^10,
+#: 2 %, so the mean follows a change of load within some ten jobs.
+EWMA_WEIGHT = 0.2
+#: The mean service time before any job has been timed (seconds).
+FIRST_GUESS_S = 1.0
+#: ``Retry-After`` bounds (whole seconds): at least 1, so that no client is told to retry at once
+#: in a loop; at most 120, so that one outlier (a long orbit video) cannot send clients away for
+#: long.
+RETRY_AFTER_MIN, RETRY_AFTER_MAX = 1, 120
 
 
 class WorkerPool:
@@ -45,14 +59,15 @@ class WorkerPool:
                  on_reject: Callable[[str], None] | None = None):
         if workers < 1 or queue < 0 or not queue_timeout > 0:
             raise ValueError("workers >= 1, queue >= 0 and queue_timeout > 0 expected")
-        self.workers, self.queue, self.queue_timeout = int(workers), int(queue), float(queue_timeout)
+        self.workers, self.queue = int(workers), int(queue)
+        self.queue_timeout = float(queue_timeout)
         self._executor = ThreadPoolExecutor(self.workers, thread_name_prefix="iris-worker")
         self._free = self.workers                            # workers without a job
         self._waiters: deque[asyncio.Future] = deque()        # jobs waiting, first come first
         self._waiting = 0
         self._running = 0
         self._closed = False
-        self._mean_s = 1.0                                    # until a job has been timed
+        self._mean_s = FIRST_GUESS_S                          # until a job has been timed
         self._on_job = on_job or (lambda kind, s: None)
         self._on_reject = on_reject or (lambda reason: None)
 
@@ -65,12 +80,21 @@ class WorkerPool:
     def running(self) -> int:
         return self._running
 
-    def _retry_after(self) -> float:
-        return (self._waiting + 1) * self._mean_s / self.workers
+    @property
+    def mean_seconds(self) -> float:
+        """The mean service time of a job (exponentially weighted, see the module docstring)."""
+        return self._mean_s
+
+    def retry_after(self) -> int:
+        """Whole seconds until a request arriving now would get a worker, as the queue's
+        measured service time predicts: (jobs waiting + 1) x mean service time / workers, rounded
+        up, within ``RETRY_AFTER_MIN``..``RETRY_AFTER_MAX``."""
+        estimate = (self._waiting + 1) * self._mean_s / self.workers
+        return min(RETRY_AFTER_MAX, max(RETRY_AFTER_MIN, math.ceil(estimate)))
 
     def _reject(self, exc_type, reason: str, message: str):
         self._on_reject(reason)
-        return exc_type(message, retry_after=self._retry_after())
+        return exc_type(message, retry_after=self.retry_after())
 
     def _superseded(self, superseded: asyncio.Future) -> Superseded:
         self._on_reject("superseded")
@@ -89,8 +113,9 @@ class WorkerPool:
         if superseded is not None and superseded.done() and not superseded.cancelled():
             raise self._superseded(superseded)
         if self._running + self._waiting >= self.workers + self.queue:
-            raise self._reject(Busy, "busy", f"all {self.workers} workers are busy and "
-                               f"{self._waiting} requests wait; retry later")
+            raise self._reject(Busy, "busy", f"all {self.workers} worker(s) are busy and the "
+                               f"queue is full ({self._waiting} of {self.queue} places, "
+                               f"iris-serve --queue); retry after the Retry-After seconds")
         await self._acquire(superseded)
         if self._closed:
             self._hand_over()
@@ -126,7 +151,8 @@ class WorkerPool:
         if stale:
             raise self._superseded(superseded)
         raise self._reject(Unavailable, "timeout", f"waited {self.queue_timeout:g} s for a "
-                           f"worker (server overloaded); retry later")
+                           f"worker, the most a job may wait (iris-serve --queue-timeout): the "
+                           f"server is overloaded; retry after the Retry-After seconds")
 
     def _leave(self, slot: asyncio.Future) -> None:
         """A waiter gives up: out of the line, or, if a worker was already handed to it, the
@@ -155,7 +181,7 @@ class WorkerPool:
             return fn(*args)
         finally:
             seconds = time.perf_counter() - t0
-            self._mean_s = 0.8 * self._mean_s + 0.2 * seconds
+            self._mean_s += EWMA_WEIGHT * (seconds - self._mean_s)
             self._on_job(kind, seconds)
 
     def _release(self, _future) -> None:
