@@ -33,7 +33,6 @@ import os
 import sys
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -48,76 +47,8 @@ from iris_runtime.manifest import CAMERAS
 
 from . import geometry as G
 from . import ibr, pseudo_poses
-from .config import CAMERA_HEADS, ModelConfig, preset
+from .config import CAMERA_HEADS, ModelConfig, TrainConfig, preset
 from .model import IrisModel, Scene, build_model, read_checkpoint, save_checkpoint
-
-
-@dataclass(frozen=True)
-class TrainConfig:
-    preset: str = "tiny"
-    # The model's camera head (``config.CAMERA_HEADS``); "": the head of the checkpoint the run
-    # starts from (``--resume``, ``--init``), else the preset's (``model_config``).
-    camera_head: str = ""
-    steps: int = 20_000
-    scenes_per_step: int = 2          # per process
-    views_min: int = 4                # views drawn per scene (all predicted, split ref/target)
-    views_max: int = 7
-    targets_min: int = 1
-    targets_max: int = 2
-    rays_per_scene: int = 384         # random target rays per scene and step
-    train_samples: int = 0            # stratified samples per training ray (0: the model's S)
-    # Geometric signals for the cameras (docs/TRAINING.md has the runs that chose them):
-    aux_weight: float = 1.0           # explicit-warp (learned-logit blend of reference RGB) loss
-    aux_blur_weight: float = 1.0      # ... the same on blurred images (coarse to fine)
-    plane_sweep_weight: float = 0.0   # parameter-free plane-sweep loss
-    teacher_weight: float = 1.0       # epipolar pseudo-pose rotation loss (iris_train.pseudo_poses)
-    teacher_translation_weight: float = 0.5   # ... translation direction
-    teacher_focal_weight: float = 0.1         # ... log focal
-    teacher_scenes: int = 0           # extra scenes per step encoded (all views) for the teacher only
-    # Cameras the renderer is trained with: "model" (the camera head's, trained through the
-    # render), or "epipolar" (each scene's cached whole-scene epipolar solve,
-    # ``pseudo_poses.load_or_solve``: what ``IrisRuntime.encode(cameras="epipolar")`` gives the
-    # renderer at inference; views the solve cannot pose are not drawn). The camera head is then
-    # distilled on the same cameras (``solve_*_weight``); no label is read either way.
-    render_cameras: str = "model"
-    solve_rotation_weight: float = 0.0    # 1 - cos of each view's rotation vs the solve's
-    solve_translation_weight: float = 0.0 # squared error of each view's centre (view 0's frame)
-    solve_focal_weight: float = 0.0       # squared log focal error
-    lr: float = 1e-3                  # renderer (latent field + ray renderer)
-    encoder_lr_scale: float = 0.1     # encoder and camera head (paper: 0.1x)
-    weight_decay: float = 0.05
-    warmup: int = 500
-    min_lr_ratio: float = 0.1
-    grad_clip: float = 1.0
-    train_scenes: int = 3000          # synthetic training seeds 0 .. train_scenes-1
-    # Capture-like scenes (``iris_train.synthetic`` kind "capture": object walks, orbits,
-    # hand-held and indoor paths, 25-90 deg fields of view, photometric camera effects), seeds
-    # 0 .. capture_scenes-1, rendered at CAPTURE_RENDER_SIZE and brought to the model's size; drawn
-    # beside the classic scenes with equal probability per scene (docs/DATA.md).
-    capture_scenes: int = 0
-    # The classic scenes rendered at this square size (0: the model's) and brought to the
-    # model's by area averaging, so that the camera solve of ``render_cameras="epipolar"`` sees
-    # photos at a photo's resolution, as at inference, not the model's thumbnails.
-    classic_render_size: int = 0
-    # The renderer's reference colours and target pixels at this square size (0: the model's):
-    # the scenes are read at it (classic ones need ``classic_render_size`` equal to it, capture
-    # ones are rendered at CAPTURE_RENDER_SIZE) and the encoder sees them area-downsampled to the
-    # model's size, as the runtime brings a photo to the model. Features stay on the model's
-    # grid, so a ray costs what it costs at the model's size, and the blend learns from texture
-    # finer than the model's pixels (the runtime samples colours from the photos at the
-    # output's scale).
-    colour_size: int = 0
-    # Keep the camera head and its own encoder as they are (no gradient, no weight decay): a
-    # renderer fine-tune of a model whose head was distilled apart (``camera_encoder``).
-    freeze_cameras: bool = False
-    seed: int = 0
-    log_every: int = 10
-    ckpt_every: int = 250
-
-    @classmethod
-    def from_dict(cls, d: dict) -> "TrainConfig":
-        known = {f.name for f in dataclasses.fields(cls)}
-        return cls(**{k: v for k, v in d.items() if k in known})
 
 
 class PhotometricLoss(nn.Module):
