@@ -17,7 +17,7 @@ import math
 
 import numpy as np
 
-from .meshes import disc, place_discs, quad
+from .meshes import box_room_walls, disc, place_discs, quad
 from .paths import forward_path, object_walk
 from .scene import LightSpec, MeshSpec
 from .shapes import box_mesh, object_on_ground
@@ -143,14 +143,7 @@ def build_object(rng: np.random.Generator, n_views: int, yfov: float, path: str)
 
 def _box_room(rng: np.random.Generator, x0, x1, y0, y1, z1) -> list[MeshSpec]:
     """A closed box room (floor z = 0), faces pointing inwards, photo-textured."""
-    walls = {
-        "floor": [[x0, y0, 0], [x1, y0, 0], [x1, y1, 0], [x0, y1, 0]],
-        "ceiling": [[x0, y0, z1], [x0, y1, z1], [x1, y1, z1], [x1, y0, z1]],
-        "back": [[x0, y1, 0], [x1, y1, 0], [x1, y1, z1], [x0, y1, z1]],
-        "front": [[x1, y0, 0], [x0, y0, 0], [x0, y0, z1], [x1, y0, z1]],
-        "left": [[x0, y0, 0], [x0, y1, 0], [x0, y1, z1], [x0, y0, z1]],
-        "right": [[x1, y1, 0], [x1, y0, 0], [x1, y0, z1], [x1, y1, z1]],
-    }
+    walls = box_room_walls(x0, x1, y0, y1, z1)
     meshes = []
     for name, corners in walls.items():
         c = np.asarray(corners, dtype=np.float64)

@@ -7,7 +7,7 @@ import math
 import numpy as np
 
 from .cameras import arc_cameras
-from .meshes import disc, object_mesh, place_discs, quad
+from .meshes import box_room_walls, disc, object_mesh, place_discs, quad
 from .scene import LightSpec
 from .textures import make_texture, random_colour
 def lights_turntable(rng: np.random.Generator) -> list[LightSpec]:
@@ -46,15 +46,7 @@ def build_room(rng: np.random.Generator, n_views: int):
     y_front = -(0.65 + 0.25)                         # cameras (<= 0.65 away) stay inside
     height = rng.uniform(0.55, 0.8)
     x0, x1, y0, y1, z1 = -half_w, half_w, y_front, y_back, height
-    # Quads counter-clockwise as seen from inside the room (normals point inwards).
-    walls = {
-        "floor": [[x0, y0, 0], [x1, y0, 0], [x1, y1, 0], [x0, y1, 0]],
-        "ceiling": [[x0, y0, z1], [x0, y1, z1], [x1, y1, z1], [x1, y0, z1]],
-        "back": [[x0, y1, 0], [x1, y1, 0], [x1, y1, z1], [x0, y1, z1]],
-        "front": [[x1, y0, 0], [x0, y0, 0], [x0, y0, z1], [x1, y0, z1]],
-        "left": [[x0, y0, 0], [x0, y1, 0], [x0, y1, z1], [x0, y0, z1]],
-        "right": [[x1, y1, 0], [x1, y0, 0], [x1, y0, z1], [x1, y1, z1]],
-    }
+    walls = box_room_walls(x0, x1, y0, y1, z1)
     for name, corners in walls.items():
         c = np.asarray(corners, dtype=np.float64)
         w_len = np.linalg.norm(c[1] - c[0])

@@ -95,6 +95,19 @@ def object_mesh(rng: np.random.Generator, centre_xy: np.ndarray, radius: float,
                     roughness=float(rng.uniform(0.4, 1.0)), name=name)
 
 
+def box_room_walls(x0: float, x1: float, y0: float, y1: float, z1: float) -> dict[str, list]:
+    """The six quads of a box room over [x0, x1] x [y0, y1] x [0, z1] (floor z = 0), by name,
+    each counter-clockwise as seen from inside the room (normals point inwards)."""
+    return {
+        "floor": [[x0, y0, 0], [x1, y0, 0], [x1, y1, 0], [x0, y1, 0]],
+        "ceiling": [[x0, y0, z1], [x0, y1, z1], [x1, y1, z1], [x1, y0, z1]],
+        "back": [[x0, y1, 0], [x1, y1, 0], [x1, y1, z1], [x0, y1, z1]],
+        "front": [[x1, y0, 0], [x0, y0, 0], [x0, y0, z1], [x1, y0, z1]],
+        "left": [[x0, y0, 0], [x0, y1, 0], [x0, y1, z1], [x0, y0, z1]],
+        "right": [[x1, y1, 0], [x1, y0, 0], [x1, y0, z1], [x1, y1, z1]],
+    }
+
+
 def quad(corners: np.ndarray, tex: np.ndarray | None, uv_extent: tuple[float, float],
           color=(1.0, 1.0, 1.0), roughness=0.9, name="quad") -> MeshSpec:
     """A quad from 4 corners [4, 3] given counter-clockwise as seen from the front side."""
