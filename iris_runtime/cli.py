@@ -100,13 +100,13 @@ def _positive(text: str) -> int:
 
 
 def _non_negative(text: str) -> int:
+    """An argument that is an integer >= 0 (a view index, a port, a queue length)."""
     try:
         v = int(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a view index (int >= 0), got {text!r}") \
-            from None
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}") from None
     if v < 0:
-        raise argparse.ArgumentTypeError(f"expected a view index (int >= 0), got {text!r}")
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}")
     return v
 
 

@@ -17,21 +17,11 @@ import os
 import sys
 from pathlib import Path
 
-from ..cli import EXIT_ERROR, _Parser, _positive, providers_arg
+from ..cli import EXIT_ERROR, _Parser, _non_negative, _positive, providers_arg
 
 __all__ = ["build_parser", "main"]
 
 log = logging.getLogger("iris.serve")
-
-
-def _non_negative(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}")
-    return value
 
 
 def _seconds(text: str) -> float:
