@@ -43,10 +43,10 @@ START_TIMEOUT = 120.0
 class IrisServer:
     """A running ``iris-serve`` subprocess: ``url``, ``logs`` (its JSON lines), ``stop()``."""
 
-    def __init__(self, model_dir, *args: str):
+    def __init__(self, model_dir, *args: str, env: dict[str, str] | None = None):
         cmd = [sys.executable, "-m", "iris_runtime.serve.cli", str(model_dir), "--host",
                "127.0.0.1", "--port", "0", *args]
-        env = {**os.environ, "OMP_NUM_THREADS": "1"}
+        env = {**os.environ, "OMP_NUM_THREADS": "1", **(env or {})}
         self.proc = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=subprocess.DEVNULL,
                                      stderr=subprocess.PIPE, text=True)
         self.lines: list[str] = []
@@ -618,3 +618,267 @@ def test_scene_store_is_lru_and_bounded(rt):
     with pytest.raises(NotFound):
         store.delete(a.scene_id)
     assert store.nbytes == size
+
+
+# -- docs/SERVING.md's error table, row by row, against real servers -----------------------------
+
+SERVING_MD = REPO / "docs" / "SERVING.md"
+
+
+def documented_errors() -> list[dict]:
+    """The rows of docs/SERVING.md's "Errors" table: status, type, when, header."""
+    section = SERVING_MD.read_text(encoding="utf-8").split("### Errors", 1)[1]
+    section = section.split("\n#", 1)[0]
+    rows = []
+    for line in section.splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if line.startswith("|") and cells[0].isdigit():
+            assert len(cells) == 4, line
+            rows.append({"status": int(cells[0]), "type": cells[1].strip("`"), "when": cells[2],
+                         "header": cells[3].strip("`")})
+    return rows
+
+
+def multipart(files, fields=()) -> tuple[bytes, str]:
+    """(body, Content-Type) of a multipart request, as httpx makes it."""
+    req = httpx.Request("POST", "http://x/", files=files, data=dict(fields))
+    return req.read(), req.headers["content-type"]
+
+
+def png_header(width: int, height: int) -> bytes:
+    """A PNG whose header declares width x height (a decompression bomb when large)."""
+    import struct
+    import zlib
+
+    def chunk(kind, data):
+        return (struct.pack(">I", len(data)) + kind + data
+                + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF))
+    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", width, height, 8, 2, 0,
+                                                             0, 0))
+            + chunk(b"IDAT", zlib.compress(b"\0" * 64)) + chunk(b"IEND", b""))
+
+
+class Probe:
+    """One request that should get a row of the table: ``key`` is text of the row's "when"."""
+
+    def __init__(self, status, type_, key, send, *message):
+        self.status, self.type, self.key, self.send, self.message = status, type_, key, send, \
+            message
+
+    def matches(self, row) -> bool:
+        return (row["status"], row["type"]) == (self.status, self.type) and self.key in row["when"]
+
+    def check(self, r, row) -> None:
+        what = (self.status, self.type, self.key)
+        assert r.status_code == self.status, (what, r.status_code, r.text)
+        body = r.json()
+        assert set(body) == {"error"} and set(body["error"]) == {"type", "message"}, what
+        assert body["error"]["type"] == self.type, (what, body)
+        for text in self.message:
+            assert text in body["error"]["message"], (what, text, body)
+        assert "Traceback" not in r.text and 'File "' not in r.text, what
+        if row["header"]:
+            assert row["header"].split(":")[0].lower() in r.headers, (what, dict(r.headers))
+
+
+def _metric_value(client, name: str) -> float:
+    return next(float(line.split()[1]) for line in client.get("/metrics").text.splitlines()
+                if line.startswith(name + " "))
+
+
+def _expected_retry_after(client, waiting: int, workers: int = 1) -> int:
+    import math
+
+    from iris_runtime.serve.pool import RETRY_AFTER_MAX, RETRY_AFTER_MIN
+    mean = _metric_value(client, "iris_job_service_seconds")
+    return min(RETRY_AFTER_MAX, max(RETRY_AFTER_MIN, math.ceil((waiting + 1) * mean / workers)))
+
+
+def _request_probes(c, sid: str, photo: bytes) -> list[Probe]:
+    """Probes of rows a single request reaches (server of ``test_documented_error_table``)."""
+    eye = np.eye(4).tolist()
+    J = {"content-type": "application/json"}
+    tiny = _png_bytes(8, 8)
+
+    def scenes(*photos, **fields):
+        return c.post("/scenes", files=[("images", (f"p{i}.png", p, "image/png"))
+                                        for i, p in enumerate(photos)], data=fields)
+
+    def rnd(**fields):
+        return c.post(f"/scenes/{sid}/render", json={"world_from_cam": eye, **fields})
+
+    body, ctype = multipart([("images", ("a.png", photo, "image/png"))] * 2)
+    return [
+        Probe(400, "bad_request", "not valid JSON",
+              lambda: c.post(f"/scenes/{sid}/render", content=b"{not json", headers=J), "JSON"),
+        Probe(400, "bad_request", "cannot be parsed", lambda: c.post(
+            "/scenes", content=b"x", headers={"content-type": "multipart/form-data"}),
+              "boundary"),
+        Probe(400, "bad_request", "cut short", lambda: c.post(
+            "/scenes", content=body[:len(body) // 2], headers={"content-type": ctype}),
+              "closing boundary"),
+        Probe(400, "bad_image", "cannot decode", lambda: scenes(b"not an image", photo),
+              "images[0]"),
+        Probe(401, "unauthorized", "token missing", lambda: c.get(
+            f"/scenes/{sid}", headers={"Authorization": "Bearer wrong"}), "Authorization"),
+        Probe(404, "not_found", "unknown scene", lambda: c.get("/scenes/nope"), "'nope'"),
+        Probe(404, "not_found", "unknown route", lambda: c.get("/nowhere"), "/nowhere"),
+        Probe(405, "method_not_allowed", "does not take", lambda: c.put(f"/scenes/{sid}"), "PUT"),
+        Probe(413, "too_large", "multipart body over", lambda: scenes(os.urandom(1_100_000), photo),
+              "1048576", "--max-upload-mb"),
+        Probe(413, "too_large", "JSON body over", lambda: c.post(
+            f"/scenes/{sid}/render", content=b" " * 70_000 + b"{}", headers=J), "70002", "65536"),
+        Probe(413, "too_large", "more photos than", lambda: scenes(*[tiny] * 17),
+              "images", "at most 16", "--max-photos"),
+        Probe(413, "too_large", "more photos than", lambda: c.post(
+            f"/scenes/{sid}/locate", files=[("image", ("a.png", photo, "image/png"))] * 2),
+              "image", "at most 1", "one photo"),
+        Probe(413, "too_large", "more than 16 text fields", lambda: scenes(
+            photo, photo, **{f"f{i}": "x" for i in range(17)}), "16"),
+        Probe(413, "too_large", "header declares", lambda: scenes(png_header(40_000, 30_000), photo),
+              "images[0]", "40000x30000 = 1200000000", "100000", "--max-photo-pixels"),
+        Probe(413, "too_large", "output over", lambda: rnd(height=5000, width=5000),
+              "5000x5000 = 25000000", "at most 4096", "--max-output-pixels"),
+        Probe(413, "too_large", "orbit frames over", lambda: c.get(
+            f"/scenes/{sid}/orbit", params={"frames": 9}), "frames: 9", "at most 8"),
+        Probe(413, "too_large", "bigger than the whole store", lambda: scenes(*[tiny] * 12),
+              "--store-mb"),
+        Probe(415, "unsupported_media_type", "JSON where multipart",
+              lambda: c.post("/scenes", json={"images": []}), "multipart/form-data"),
+        Probe(415, "unsupported_media_type", "JSON where multipart",
+              lambda: c.post(f"/scenes/{sid}/render", data={"a": "1"}), "application/json"),
+        Probe(422, "invalid", "request model refuses", lambda: rnd(height=-4), "height", "-4"),
+        Probe(422, "invalid", "request model refuses", lambda: rnd(colour="red"), "colour"),
+        Probe(422, "invalid", "request model refuses", lambda: scenes(photo), "images", "2"),
+        Probe(422, "invalid", "does not take", lambda: c.post(
+            "/scenes", files=[("photos", ("a.png", photo, "image/png"))] * 2), "photos"),
+        Probe(422, "invalid", "runtime refuses", lambda: rnd(world_from_cam=(2 * np.eye(4))
+                                                             .tolist()), "world_from_cam"),
+        Probe(422, "invalid", "runtime refuses", lambda: rnd(world_from_cam=[
+            [1, 0, 0, 1e7], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]), "world_from_cam",
+              "1e+07", "MAX_POSE_DISTANCE"),
+        Probe(422, "invalid", "runtime refuses", lambda: scenes(photo, photo, cameras="magic"),
+              "cameras", "magic"),
+        Probe(422, "invalid", "`seq` without `stream`", lambda: rnd(seq=3), "stream"),
+        Probe(422, "invalid", "odd or 1-pixel", lambda: c.post(
+            f"/scenes/{sid}/orbit.mp4", json={"frames": 2, "height": 15, "width": 16}), "15x16"),
+    ]
+
+
+@pytest.mark.filterwarnings("ignore::DeprecationWarning")      # starlette's TestClient on httpx
+def test_documented_error_table(model_dir, tmp_path):
+    """Every row of docs/SERVING.md's error table is what a real server answers: a request per
+    row (several for some) gets the row's status, type and header, with a message naming the
+    field, the value and the limit; every probe matches a row. 500 model_error: the server's
+    int8 renderer file changed after start-up; 501: a server with OpenCV's FFMPEG back end off;
+    503 at shutdown: SIGTERM with a request waiting; 500 internal: in process (a bug cannot be
+    asked for)."""
+    import shutil
+    rows = documented_errors()
+    assert len(rows) >= 25
+    model = tmp_path / "model"
+    shutil.copytree(model_dir, model)
+    (tmp_path / "token").write_text("tok\n")
+    srv = IrisServer(model, "--workers", "1", "--queue", "1", "--queue-timeout", "1",
+                     "--shutdown-timeout", "0.5", "--token-file", str(tmp_path / "token"),
+                     "--max-photos", "16", "--max-upload-mb", "1", "--max-photo-pixels", "100000",
+                     "--max-output-pixels", "4096", "--max-orbit-frames", "8", "--store-mb", "1")
+    photo = PHOTOS[0].read_bytes()
+    probed = []
+    try:
+        with httpx.Client(base_url=srv.url, timeout=120.0,
+                          headers={"Authorization": "Bearer tok"}) as c, ThreadPoolExecutor(3) as ex:
+            r = c.post("/scenes", files=[("images", (p.name, p.read_bytes(), "image/png"))
+                                         for p in PHOTOS[:2]])
+            assert r.status_code == 201, r.text
+            sid = r.json()["scene_id"]
+            pose = novel_pose(r.json())
+            small = {"world_from_cam": pose, "height": 8, "width": 8}
+
+            def run(probe):
+                (row,) = [row for row in rows if probe.matches(row)]
+                r = probe.send()
+                probe.check(r, row)
+                probed.append(row["when"])
+                return r
+            for probe in _request_probes(c, sid, photo):
+                run(probe)
+            assert c.post(f"/scenes/{sid}/render", json={**small, "stream": "s", "seq": 5}) \
+                .status_code == 200
+            run(Probe(409, "superseded", "older than the stream's latest", lambda: c.post(
+                f"/scenes/{sid}/render", json={**small, "stream": "s", "seq": 4}), "seq 5"))
+            # A long render holds the only worker: one job waits (503 after the 1 s queue
+            # timeout), the next finds the queue full (429).
+            long_render = {"world_from_cam": pose, "height": 64, "width": 64, "quality": "exact"}
+            blocker = ex.submit(c.post, f"/scenes/{sid}/render", json=long_render)
+            _wait_metric(c, "iris_jobs_running", 1)
+            waiting = ex.submit(c.post, f"/scenes/{sid}/render", json=small)
+            _wait_metric(c, "iris_queue_depth", 1)
+            # Retry-After: (jobs waiting + 1) x the measured mean job time / workers.
+            expected = _expected_retry_after(c, waiting=1)
+            r = run(Probe(429, "busy", "queue full", lambda: c.post(
+                f"/scenes/{sid}/render", json=small), "--queue"))
+            assert int(r.headers["retry-after"]) == expected
+            expected = _expected_retry_after(c, waiting=0)
+            r = run(Probe(503, "unavailable", "--queue-timeout", lambda: waiting.result(60),
+                          "--queue-timeout"))
+            assert int(r.headers["retry-after"]) == expected
+            assert blocker.result(120).status_code == 200
+            assert int(c.post(f"/scenes/{sid}/render", json=small).status_code) == 200
+            # The model breaks after start-up: the int8 renderer is loaded at its first use.
+            with open(model / "renderer.int8.onnx", "r+b") as f:
+                f.seek(100)
+                f.write(b"tampered")
+            run(Probe(500, "model_error", "model failed", lambda: c.post(
+                f"/scenes/{sid}/render", json={**small, "precision": "int8"}), "model failed"))
+            # Shutdown: a request still waiting when --shutdown-timeout ends gets 503.
+            blocker = ex.submit(c.post, f"/scenes/{sid}/render", json=long_render)
+            _wait_metric(c, "iris_jobs_running", 1)
+            waiting = ex.submit(c.post, f"/scenes/{sid}/render", json=small)
+            _wait_metric(c, "iris_queue_depth", 1)
+            srv.proc.send_signal(signal.SIGTERM)
+            run(Probe(503, "unavailable", "shutting down", lambda: waiting.result(60), "shut down"))
+            blocker.result(120)
+        tracebacks = [line for line in srv.lines if "Traceback" in line]
+        assert not tracebacks, tracebacks[0][:3000]
+    finally:
+        srv.stop()
+    probed += _probe_unsupported_and_internal(model_dir, rows)
+    assert sorted(set(probed)) == sorted({row["when"] for row in rows}), \
+        "rows of docs/SERVING.md's error table that no request checked"
+
+
+def _probe_unsupported_and_internal(model_dir, rows) -> list[str]:
+    """501 on a real server without OpenCV's FFMPEG back end; 500 internal in process."""
+    from starlette.testclient import TestClient
+
+    from iris_runtime.serve.app import ServeConfig, create_app
+    done = []
+    srv = IrisServer(model_dir, "--workers", "1", env={"OPENCV_VIDEOIO_PRIORITY_FFMPEG": "0"})
+    try:
+        with httpx.Client(base_url=srv.url, timeout=120.0) as c:
+            sid = c.post("/scenes", files=[("images", (p.name, p.read_bytes(), "image/png"))
+                                           for p in PHOTOS[:2]]).json()["scene_id"]
+            probe = Probe(501, "unsupported", "no mp4v encoder", lambda: c.post(
+                f"/scenes/{sid}/orbit.mp4", json={"frames": 2, "height": 8, "width": 8}), "mp4v")
+            (row,) = [row for row in rows if probe.matches(row)]
+            probe.check(probe.send(), row)
+            done.append(row["when"])
+    finally:
+        srv.stop()
+    rt = IrisRuntime(model_dir, threads=1)
+
+    def broken_render(*args, **kwargs):
+        raise RuntimeError("a bug")
+    rt.render = broken_render
+    with TestClient(create_app(rt, ServeConfig()), raise_server_exceptions=False) as c:
+        sid = c.post("/scenes", files=[("images", (p.name, p.read_bytes(), "image/png"))
+                                       for p in PHOTOS[:2]]).json()["scene_id"]
+        probe = Probe(500, "internal", "a bug", lambda: c.post(
+            f"/scenes/{sid}/render", json={"world_from_cam": np.eye(4).tolist()}), "logged")
+        (row,) = [row for row in rows if probe.matches(row)]
+        r = probe.send()
+        probe.check(r, row)
+        assert "a bug" not in r.text
+        done.append(row["when"])
+    return done

@@ -24,6 +24,7 @@ from .metrics import Metrics
 __all__ = ["JsonFormatter", "log_config", "RequestObserver"]
 
 access_log = logging.getLogger("iris.access")
+log = logging.getLogger("iris.serve")
 _REQUEST_ID = re.compile(r"[A-Za-z0-9._-]{1,64}")
 
 
@@ -105,14 +106,18 @@ class RequestObserver:
             else:
                 await self.app(scope, receive_limited, send_observed)
         except asyncio.CancelledError:
-            # uvicorn cancels what outlives --shutdown-timeout: say so rather than a bare 500.
-            if state["status"] is None:
-                with contextlib.suppress(Exception):
-                    await error_response(503, "unavailable", "the server shut down before this "
-                                         "request finished; retry",
-                                         {"Retry-After": str(self.retry_after())})(
-                        scope, receive, send_observed)
-            raise
+            # uvicorn cancels what outlives --shutdown-timeout: say so rather than a bare 500,
+            # and end the request there (a cancellation that was answered is no error to log).
+            if state["status"] is not None:
+                raise
+            with contextlib.suppress(Exception):
+                await error_response(503, "unavailable", "the server shut down before this "
+                                     "request finished (iris-serve --shutdown-timeout); retry "
+                                     "after the Retry-After seconds",
+                                     {"Retry-After": str(self.retry_after())})(
+                    scope, receive, send_observed)
+            log.warning("request cut off by the shutdown", extra={"fields": {
+                "request_id": request_id, "path": scope["path"]}})
         finally:
             status = state["status"] or 500                 # nothing sent: the server failed
             seconds = time.perf_counter() - t0
