@@ -38,6 +38,11 @@ import numpy as np
 from iris_runtime.cameras import DEPTH_TARGET, solve_cameras  # noqa: F401 (DEPTH_TARGET: docs)
 from iris_runtime.images import plan_crop_resize
 
+from .config import preset
+from .data import HELDOUT_SEEDS, SyntheticScenes, kind_version
+from .scene_sets import CAPTURE_RENDER_SIZE
+from .synthetic import CAPTURE_KINDS
+
 #: Version of both caches (part of the file; another version is recomputed): raised whenever the
 #: solve's results change (docs/TRAINING.md lists which runs used which).
 TEACHER_VERSION = 13
@@ -225,8 +230,6 @@ def store_folder(scenes, train_size: tuple[int, int], store_dir: Path = STORE_DI
     kind = getattr(scenes, "kind", None)
     if render is None or kind_of is None or isinstance(kind, dict):
         return None
-    from .data import kind_version
-    from .synthetic import CAPTURE_KINDS
     # "capture" draws one of the capture kinds per seed: the folder carries the newest of their
     # versions, so that a change to any of them starts a new folder.
     kinds = CAPTURE_KINDS if kind == "capture" else (kind,)
@@ -316,7 +319,6 @@ def _work(args) -> int:
 
 
 def _scenes(seeds, kind=None, size=(64, 64), render_size=None):
-    from .data import SyntheticScenes
     return SyntheticScenes(seeds, size=size, kind=kind, render_size=render_size)
 
 
@@ -388,8 +390,6 @@ def main(argv=None) -> int:
                         help="compare with the true poses (held-out scenes): RPA of the teacher "
                              "over all pairs (pairs with an unposed view count as failures)")
     args = parser.parse_args(argv)
-    from .data import HELDOUT_SEEDS, SyntheticScenes
-    from .config import preset
     cfg = preset("tiny")
     size = (cfg.image_height, cfg.image_width)
     depth_range = (cfg.near, cfg.far) if args.solve else None
@@ -407,7 +407,6 @@ def main(argv=None) -> int:
             _report_pack(pack(SyntheticScenes(range(args.train), size=size,
                                               render_size=render_size), depth_range))
     if args.capture:
-        from .train import CAPTURE_RENDER_SIZE
         if not args.pack_only:
             pregenerate(range(args.capture), args.workers, depth_range, kind="capture",
                         size=size, render_size=CAPTURE_RENDER_SIZE)

@@ -32,7 +32,6 @@ import math
 import os
 import sys
 import time
-from collections.abc import Sequence
 from pathlib import Path
 
 import cv2
@@ -49,6 +48,7 @@ from . import geometry as G
 from . import ibr, pseudo_poses
 from .config import CAMERA_HEADS, ModelConfig, TrainConfig, preset
 from .model import IrisModel, Scene, build_model, read_checkpoint, save_checkpoint
+from .scene_sets import colour_size_scenes, per_scene, training_scenes
 
 
 class PhotometricLoss(nn.Module):
@@ -338,54 +338,6 @@ def draw_batch(scenes, cfg: TrainConfig, mcfg: ModelConfig, rng: np.random.Gener
             _as_batch(colour_images) if colour_scenes is not None else None)
 
 
-#: Render size of the capture-like training scenes: the teacher's solve sees them at this size,
-#: the model at its own (one 256 cache serves 64 and 128 models).
-CAPTURE_RENDER_SIZE = (256, 256)
-
-
-class SceneSets:
-    """Several scene sets drawn as one: index ``i`` runs through ``parts[0]``, then ``parts[1]``,
-    ... (so a uniform draw weights each part by its size). ``part_of(i)`` gives the set and the
-    index inside it, which is what the on-disk teacher caches are keyed by."""
-
-    def __init__(self, parts: Sequence):
-        self.parts = [p for p in parts if len(p)]
-        self._starts = np.cumsum([0] + [len(p) for p in self.parts])
-
-    def __len__(self) -> int:
-        return int(self._starts[-1])
-
-    def part_of(self, index: int) -> tuple:
-        if not 0 <= index < len(self):
-            raise IndexError(f"index {index} out of range for {len(self)} scenes")
-        k = int(np.searchsorted(self._starts, index, side="right")) - 1
-        return self.parts[k], index - int(self._starts[k])
-
-    def __getitem__(self, index: int):
-        part, local = self.part_of(int(index))
-        return part[local]
-
-
-def _per_scene(scenes, cached, compute):
-    """scene index -> ``cached(scenes, index)`` for a ``SyntheticScenes`` (read from beside its
-    cache, computed and written when missing), else ``compute(images)``; kept in memory. For
-    the pair teacher and the solved cameras alike; a ``SceneSets`` is looked up per part."""
-    memo: dict[int, object] = {}
-
-    def one(sets, index: int):
-        if isinstance(sets, SceneSets):
-            return one(*sets.part_of(index))
-        if hasattr(sets, "cache_dir") and hasattr(sets, "seeds"):
-            return cached(sets, index)
-        return compute(sets[index].images)
-
-    def lookup(index: int):
-        if index not in memo:
-            memo[index] = one(scenes, index)
-        return memo[index]
-    return lookup
-
-
 def _last_focal(model: IrisModel):
     """The focal bias of the camera head's output (what the focal is for a zero token): a cheap
     log line showing whether the focal drifts to a bound."""
@@ -453,27 +405,6 @@ def load_init_weights(model: IrisModel, payload: dict, what: str = "init") -> li
     return sorted(missing | reshaped)
 
 
-def _colour_scenes(cfg: TrainConfig):
-    """The training scenes at ``cfg.colour_size`` (square), indexed as ``train``'s scene sets:
-    the classic scenes (their cached renders: ``classic_render_size`` must be that size), then
-    the capture ones (CAPTURE_RENDER_SIZE). ``ValueError`` for a size no cache holds."""
-    from .data import SyntheticScenes
-    side = cfg.colour_size
-    if cfg.classic_render_size != side:
-        raise ValueError(f"colour_size: the classic scenes are cached at classic_render_size "
-                         f"({cfg.classic_render_size}); expected colour_size equal to it, got {side}")
-    if cfg.capture_scenes and CAPTURE_RENDER_SIZE != (side, side):
-        raise ValueError(f"colour_size: the capture scenes are rendered at {CAPTURE_RENDER_SIZE}; "
-                         f"expected colour_size {CAPTURE_RENDER_SIZE[0]}, got {side}")
-    size = (side, side)
-    scenes = SyntheticScenes(range(cfg.train_scenes), size=size, render_size=size)
-    if cfg.capture_scenes:
-        capture = SyntheticScenes(range(cfg.capture_scenes), size=size, kind="capture",
-                                  render_size=CAPTURE_RENDER_SIZE)
-        scenes = SceneSets([scenes, capture])
-    return scenes
-
-
 def _setup_distributed() -> tuple[int, int]:
     world = int(os.environ.get("WORLD_SIZE", "1"))
     if world > 1 and not dist.is_initialized():
@@ -524,33 +455,18 @@ def train(cfg: TrainConfig, out: Path, resume: bool = False, scenes=None, thread
         elapsed_before = float(payload.get("elapsed", 0.0))
     model.train()
     if scenes is None:
-        from .data import VALIDATION_SEEDS, SyntheticScenes
-        from .data import CAPTURE_VALIDATION_SEEDS
-        if cfg.capture_scenes > min(CAPTURE_VALIDATION_SEEDS):
-            raise ValueError(f"capture_scenes: at most {min(CAPTURE_VALIDATION_SEEDS)} (the capture "
-                             f"validation scenes start there), got {cfg.capture_scenes}")
-        if cfg.train_scenes > min(VALIDATION_SEEDS):
-            raise ValueError(f"train_scenes: at most {min(VALIDATION_SEEDS)} (the validation "
-                             f"scenes start there), got {cfg.train_scenes}")
-        size = (mcfg.image_height, mcfg.image_width)
-        side = cfg.classic_render_size
-        scenes = SyntheticScenes(range(cfg.train_scenes), size=size,
-                                 render_size=(side, side) if side else None)
-        if cfg.capture_scenes:
-            capture = SyntheticScenes(range(cfg.capture_scenes), size=size, kind="capture",
-                                      render_size=CAPTURE_RENDER_SIZE)
-            scenes = SceneSets([scenes, capture])
-    colour_scenes = _colour_scenes(cfg) if cfg.colour_size else None
+        scenes = training_scenes(cfg, mcfg)
+    colour_scenes = colour_size_scenes(cfg) if cfg.colour_size else None
     if cfg.render_cameras not in CAMERAS[:2]:        # "refined" needs a trained head first
         raise ValueError(f"render_cameras: expected one of {CAMERAS[:2]}, got "
                          f"{cfg.render_cameras!r}")
     teachers = solutions = None
     if cfg.render_cameras == "epipolar":
         depth_range = (mcfg.near, mcfg.far)
-        solutions = _per_scene(scenes, lambda sc, i: pseudo_poses.load_or_solve(sc, i, depth_range),
+        solutions = per_scene(scenes, lambda sc, i: pseudo_poses.load_or_solve(sc, i, depth_range),
                                lambda images: pseudo_poses.solve_scene(images, depth_range))
     elif cfg.teacher_weight or cfg.teacher_translation_weight or cfg.teacher_focal_weight:
-        teachers = _per_scene(scenes, pseudo_poses.load_or_estimate, pseudo_poses.estimate)
+        teachers = per_scene(scenes, pseudo_poses.load_or_estimate, pseudo_poses.estimate)
     step_module: nn.Module = loss_module
     if world > 1:
         step_module = nn.parallel.DistributedDataParallel(step_module)

@@ -60,7 +60,7 @@ def training_sets(classic: int, capture: int):
     """-> list of (SyntheticScenes, solutions: index -> SolvedCameras)."""
     from iris_train import pseudo_poses
     from iris_train.data import SyntheticScenes
-    from iris_train.train import CAPTURE_RENDER_SIZE
+    from iris_train.scene_sets import CAPTURE_RENDER_SIZE
     size, depth_range = (64, 64), pseudo_poses.DEFAULT_DEPTH_RANGE
     sets = []
     if classic:

@@ -212,7 +212,7 @@ def test_train_on_solved_cameras_from_an_init_checkpoint(tmp_path):
 
 
 def test_scene_sets_index_through_their_parts():
-    from iris_train.train import SceneSets, _per_scene
+    from iris_train.scene_sets import SceneSets, per_scene
     a, b = ["a0", "a1"], ["b0", "b1", "b2"]
     sets = SceneSets([a, [], b])
     assert len(sets) == 5
@@ -232,7 +232,7 @@ def test_scene_sets_index_through_their_parts():
             self.images = name
 
     seen = []
-    lookup = _per_scene(SceneSets([Cached(["c0", "c1"]), Plain([Data("p0")])]),
+    lookup = per_scene(SceneSets([Cached(["c0", "c1"]), Plain([Data("p0")])]),
                         lambda part, i: seen.append(("cached", part.seeds[i])) or part.seeds[i],
                         lambda images: seen.append(("computed", images)) or images)
     assert [lookup(i) for i in (1, 2, 1)] == [11, "p0", 11]
