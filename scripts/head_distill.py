@@ -7,7 +7,7 @@ Each step draws ``--batch`` training scenes with their cached solved cameras
 (``iris_train.pseudo_poses.load_or_solve``, the teacher of ``iris-train --render-cameras
 epipolar``; no camera label is read), 4-8 of their solved views in random order (view 0 of the
 order is the canonical frame), encodes them all as references and minimises
-``iris_train.train.solve_losses`` (rotation ``1 - cos``, squared centre distance, squared log
+``iris_train.losses.solve_losses`` (rotation ``1 - cos``, squared centre distance, squared log
 focal; weights 10, 10, 1 as in F1's distillation). Only the camera head and the encoder it reads
 train: the model's encoder, or with ``--separate-encoder`` (or an init that has one) the head's
 own, which leaves the renders as the init's.
@@ -275,7 +275,7 @@ def main(argv=None) -> int:
 
     from iris_train.data import HELDOUT_SEEDS, SyntheticScenes
     from iris_train.model import save_checkpoint
-    from iris_train.train import solve_losses
+    from iris_train.losses import solve_losses
     model, fresh, train_config = build(args)
     sets = training_sets(args.classic, args.capture)
     shares = ([1 - args.capture_share, args.capture_share]

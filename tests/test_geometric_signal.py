@@ -16,7 +16,7 @@ from iris_train import geometry as G  # noqa: E402
 from iris_train import ibr, pseudo_poses  # noqa: E402
 from iris_train.data import relative_to_first  # noqa: E402
 from iris_train.synthetic import render_scene  # noqa: E402
-from iris_train.train import teacher_losses  # noqa: E402
+from iris_train.losses import teacher_losses  # noqa: E402
 from iris_train.metrics import psnr  # noqa: E402
 
 

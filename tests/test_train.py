@@ -16,7 +16,9 @@ pytestmark = pytest.mark.torch
 
 from iris_train import load_model, read_checkpoint  # noqa: E402
 from iris_train.model import build_model  # noqa: E402
-from iris_train.train import PhotometricLoss, TrainConfig, draw_batch, lr_factor, train  # noqa: E402
+from iris_train.config import TrainConfig  # noqa: E402
+from iris_train.losses import PhotometricLoss  # noqa: E402
+from iris_train.train import draw_batch, lr_factor, train  # noqa: E402
 from iris_train.config import preset  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
@@ -148,7 +150,7 @@ def test_solved_cameras_rebase_to_the_drawn_first_view():
 
 
 def test_solve_losses_vanish_at_the_solve_and_pull_towards_it():
-    from iris_train.train import solve_losses
+    from iris_train.losses import solve_losses
     T = torch.as_tensor(_poses(np.random.default_rng(4), 5))
     T[0] = torch.eye(4, dtype=T.dtype)
     f = torch.tensor([0.9, 0.9], dtype=torch.float64)
