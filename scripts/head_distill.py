@@ -179,7 +179,7 @@ def draw(sets, batch: int, rng: np.random.Generator, max_roll_deg: float = 0.0,
     each scene ``augment_rotation``-ed with probability ``rotation_fraction``; ``zoomed``: those
     turned and zoomed, whose focal is not the scene's any more). Each scene comes from one of
     ``sets``, drawn with probabilities ``shares`` (None: alike)."""
-    from iris_train.train import _draw_solved
+    from iris_train.batches import draw_solved
     n_views = int(rng.integers(4, 9))
     images, cams, focals, zoomed = [], [], [], []
     for _ in range(batch):
@@ -187,7 +187,7 @@ def draw(sets, batch: int, rng: np.random.Generator, max_roll_deg: float = 0.0,
         # scenes.)
         k = rng.integers(len(sets)) if shares is None else rng.choice(len(sets), p=shares)
         scenes, solutions = sets[int(k)]
-        index, order, (T, f) = _draw_solved(scenes, solutions, rng, n_views)
+        index, order, (T, f) = draw_solved(scenes, solutions, rng, n_views)
         zoom = 1.0
         if max_rotation_deg > 0 and rng.random() < rotation_fraction:
             photos = scenes.cached(int(scenes.seeds[index])).images[order]

@@ -18,7 +18,8 @@ from iris_train import load_model, read_checkpoint  # noqa: E402
 from iris_train.model import build_model  # noqa: E402
 from iris_train.config import TrainConfig  # noqa: E402
 from iris_train.losses import PhotometricLoss  # noqa: E402
-from iris_train.train import draw_batch, lr_factor, train  # noqa: E402
+from iris_train.batches import draw_batch  # noqa: E402
+from iris_train.train import lr_factor, train  # noqa: E402
 from iris_train.config import preset  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
