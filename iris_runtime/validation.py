@@ -71,10 +71,14 @@ def rigidity_error(T: np.ndarray) -> np.ndarray:
     ``[...]`` float64 (0 for an exact rigid transform, 2 for a mirror, >= 1 when singular)."""
     T = np.asarray(T, dtype=np.float64)
     R = T[..., :3, :3]
-    ortho = np.abs(np.swapaxes(R, -1, -2) @ R - np.eye(3)).max(axis=(-2, -1))
-    det = np.abs(np.linalg.det(R) - 1.0)
-    bottom = np.abs(T[..., 3, :] - [0.0, 0.0, 0.0, 1.0]).max(axis=-1)
-    return np.maximum(np.maximum(ortho, det), bottom)
+    # Entries near the float64 limit overflow R^T R and det R: such a matrix is as far from
+    # rigid as can be, so inf (never NaN, which no comparison would refuse) and no warning.
+    with np.errstate(over="ignore", invalid="ignore"):
+        ortho = np.abs(np.swapaxes(R, -1, -2) @ R - np.eye(3)).max(axis=(-2, -1))
+        det = np.abs(np.linalg.det(R) - 1.0)
+        bottom = np.abs(T[..., 3, :] - [0.0, 0.0, 0.0, 1.0]).max(axis=-1)
+        err = np.maximum(np.maximum(ortho, det), bottom)
+    return np.where(np.isnan(err), np.inf, err)
 
 
 def nearest_rotation(M: np.ndarray) -> np.ndarray:
@@ -116,7 +120,9 @@ def _pose_array(value, name: str, batch: bool) -> np.ndarray:
 def _not_rigid(T: np.ndarray, name: str, atol: float) -> InputError:
     """The error for one finite ``T [4, 4]`` whose rigidity error exceeds ``atol``: what is wrong."""
     R = T[:3, :3]
-    det = float(np.linalg.det(R))
+    with np.errstate(over="ignore", invalid="ignore"):      # huge entries: det inf or NaN
+        det = float(np.linalg.det(R))
+        err = float(np.abs(R.T @ R - np.eye(3)).max())
     if abs(det) <= atol:
         why = f"its rotation block is singular (det {det:.2g})"
     elif det < 0:
@@ -124,7 +130,6 @@ def _not_rigid(T: np.ndarray, name: str, atol: float) -> InputError:
     elif np.abs(T[3] - [0.0, 0.0, 0.0, 1.0]).max() > atol:
         why = f"its last row is {T[3].tolist()}, expected [0, 0, 0, 1]"
     else:
-        err = float(np.abs(R.T @ R - np.eye(3)).max())
         why = f"its rotation block is not orthonormal (max |R^T R - I| = {err:.2g}, det {det:.4g})"
     return InputError(f"{name}: expected a rigid camera-to-world transform (orthonormal rotation "
                       f"with det +1, last row [0, 0, 0, 1], to within {atol:g}), but {why}")
