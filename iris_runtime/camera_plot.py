@@ -22,10 +22,13 @@ true ones (a note gives their spread as a fraction of the true one), coordinates
 non-orthonormal rotations (drawn with their nearest rotation), non-finite cameras (left out, with
 a note).
 
-``align_similarity`` is Umeyama's least-squares similarity (1991) between camera centres, with
-the degenerate cases made well-defined (see there); ``apply_similarity`` / ``align_poses`` move
-predicted poses into the true frame, so that a picture compares like with like (pose-free
-predictions have their own frame and scale).
+``align_similarity``, ``apply_similarity`` and ``align_poses`` (Umeyama's similarity between
+camera centres, which moves predicted poses into the true frame: pose-free predictions have their
+own frame and scale) are ``iris_runtime.camera_align``'s, importable from here too.
+
+``draw_cameras``' steps: the sets checked (``_camera_sets``), their finite cameras
+(``_finite_cameras``), a frame centred on them in units of their spread (``_frame``), their
+frustums (``_frusta``), the canvas fitted to those (``_fit``), then the drawing (``_draw_*``).
 """
 from __future__ import annotations
 
@@ -36,6 +39,7 @@ from typing import Sequence
 import cv2
 import numpy as np
 
+from .camera_align import align_poses, align_similarity, apply_similarity
 from .errors import InputError
 from .geometry import nearest_rotation
 
@@ -55,141 +59,6 @@ _COLLAPSE_RTOL = 1e-9            # spread <= this x coordinate magnitude: "all a
 _PRED_COLLAPSE_FRACTION = 0.01   # predicted spread < 1 % of the true spread: "collapsed" note
 _MAX_HALF_FOV = 5.0              # tan of the half field of view drawn is clamped to [0.02, 5]
 _MIN_HALF_FOV = 0.02
-
-
-# ----------------------------------------------------------------------------------------------
-# Similarity alignment
-# ----------------------------------------------------------------------------------------------
-
-def _skew(a: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
-
-
-def _rodrigues(axis: np.ndarray, theta: float) -> np.ndarray:
-    """Rotation by ``theta`` about the unit ``axis``."""
-    return (math.cos(theta) * np.eye(3) + math.sin(theta) * _skew(axis)
-            + (1.0 - math.cos(theta)) * np.outer(axis, axis))
-
-
-def _check_rotation(R, name: str) -> np.ndarray | None:
-    if R is None:
-        return None
-    R = np.asarray(R, dtype=np.float64)
-    if R.shape == (4, 4):
-        R = R[:3, :3]
-    if R.shape != (3, 3) or not np.isfinite(R).all():
-        raise InputError(f"{name}: expected a finite 3x3 rotation (or 4x4 pose), got shape "
-                         f"{R.shape}")
-    return nearest_rotation(R)
-
-
-def align_similarity(pred_centres, true_centres, *, pred_rotation=None, true_rotation=None
-                     ) -> tuple[float, np.ndarray, np.ndarray]:
-    """Least-squares similarity from predicted to true camera centres (Umeyama 1991).
-
-    ``pred_centres, true_centres [N, 3]`` (row k of one is camera k of the other) -> ``(s, R, t)``
-    with ``s >= 0``, ``R [3, 3]`` a rotation (det +1) and ``t [3]`` minimising
-    ``sum_k |true_k - (s R pred_k + t)|^2``. Computed in float64.
-
-    The minimiser is not unique in three degenerate cases; the result is then defined as follows
-    (``pred_rotation`` / ``true_rotation``: rotation of the *first* camera, 3x3 or a 4x4 pose,
-    optional; "R0" below is ``true_rotation @ pred_rotation.T``, the rotation that turns the first
-    predicted camera into the first true one, or the identity when they are not given):
-
-    - **the predicted centres are all equal** (a collapsed prediction; also N = 1), or the true ones
-      are, or the two sets are exactly uncorrelated: the optimal scale is 0, every predicted centre
-      maps to the true centroid (``t``), and R does not change the residual at all: ``s = 0``,
-      ``R = R0``, ``t = mean(true_centres)``. So a collapsed prediction is drawn at the true
-      centroid with its orientations turned by the first camera's rotation offset;
-    - **the centres are collinear** (N = 2, cameras on a line): rotations about the line are free;
-      of those, R is the one closest to R0 (closed form);
-    - otherwise (planar or general position) the result is Umeyama's, unique.
-
-    "All equal" means a spread (RMS distance from the centroid) of at most 1e-12 times the largest
-    coordinate magnitude (so float rounding of large coordinates counts as collapsed).
-    """
-    P = np.asarray(pred_centres, dtype=np.float64)
-    Q = np.asarray(true_centres, dtype=np.float64)
-    if P.ndim != 2 or P.shape[1] != 3 or P.shape != Q.shape or P.shape[0] < 1:
-        raise InputError(f"pred_centres, true_centres: expected two [N, 3] arrays with N >= 1, got "
-                         f"shapes {P.shape} and {Q.shape}")
-    if not (np.isfinite(P).all() and np.isfinite(Q).all()):
-        raise InputError("pred_centres, true_centres: contain NaN or inf")
-    Rp = _check_rotation(pred_rotation, "pred_rotation")
-    Rq = _check_rotation(true_rotation, "true_rotation")
-    R0 = np.eye(3) if Rp is None or Rq is None else Rq @ Rp.T
-
-    # Umeyama is equivariant under scaling each set: solve for P / a, Q / b (a, b powers of two
-    # near their magnitudes: exact, no overflow in the squares), then s = s' b / a, t = t' b.
-    a = _power_of_two_scale(P)
-    b = _power_of_two_scale(Q)
-    s, R, t = _umeyama(P / a, Q / b, R0)
-    return s * b / a, R, t * b
-
-
-def _power_of_two_scale(X: np.ndarray) -> float:
-    m = float(np.abs(X).max())
-    return 2.0 ** math.ceil(math.log2(m)) if m > 0 else 1.0
-
-
-def _umeyama(P: np.ndarray, Q: np.ndarray, R0: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    N = P.shape[0]
-    mu_p, mu_q = P.mean(0), Q.mean(0)
-    Pc, Qc = P - mu_p, Q - mu_q
-    var_p = float(np.mean(np.sum(Pc * Pc, axis=1)))
-    var_q = float(np.mean(np.sum(Qc * Qc, axis=1)))
-
-    def collapsed(var, X):
-        return not math.sqrt(var) > 1e-12 * max(float(np.abs(X).max()), 1e-300)
-
-    Sigma = Qc.T @ Pc / N
-    U, D, Vt = np.linalg.svd(Sigma)
-    if collapsed(var_p, P) or collapsed(var_q, Q) or not D[0] > 0:
-        return 0.0, R0, mu_q
-    S = np.ones(3)
-    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
-        S[2] = -1.0
-    R = (U * S) @ Vt
-    s = float(np.sum(D * S) / var_p)
-    if D[1] <= 1e-9 * D[0]:
-        # Rank 1 (collinear centres): any rotation about the line's image is as good; take the
-        # one closest to R0: maximise tr(Rot(a, th) M) with M = R R0^T over th.
-        a = R @ Vt[0]
-        a = a / np.linalg.norm(a)
-        M = R @ R0.T
-        c = float(np.trace(M) - a @ M @ a)
-        b = float(np.trace(_skew(a) @ M))
-        if abs(b) + abs(c) > 0:
-            R = _rodrigues(a, math.atan2(b, c)) @ R
-            R = nearest_rotation(R)
-    t = mu_q - s * R @ mu_p
-    return s, R, t
-
-
-def apply_similarity(world_from_cam, s: float, R, t) -> np.ndarray:
-    """Move poses ``world_from_cam [..., 4, 4]`` by ``x -> s R x + t``: rotations become
-    ``R @ R_k``, centres ``s R c_k + t`` (a camera stays a rigid pose; its size is not scaled)."""
-    T = np.array(world_from_cam, dtype=np.float64)
-    R = np.asarray(R, dtype=np.float64)
-    t = np.asarray(t, dtype=np.float64)
-    T[..., :3, :3] = R @ T[..., :3, :3]
-    T[..., :3, 3] = s * T[..., :3, 3] @ R.T + t
-    T[..., 3, :] = (0.0, 0.0, 0.0, 1.0)
-    return T
-
-
-def align_poses(pred_world_from_cam, true_world_from_cam):
-    """Predicted poses ``[N, 4, 4]`` moved into the frame of the true ones ``[N, 4, 4]`` by
-    ``align_similarity`` of their centres (first cameras' rotations for the degenerate cases)
-    -> ``(aligned [N, 4, 4], (s, R, t))``."""
-    P = np.asarray(pred_world_from_cam, dtype=np.float64)
-    Q = np.asarray(true_world_from_cam, dtype=np.float64)
-    if P.ndim != 3 or P.shape[1:] != (4, 4) or P.shape != Q.shape or P.shape[0] < 1:
-        raise InputError(f"pred_world_from_cam, true_world_from_cam: expected two [N, 4, 4] arrays "
-                         f"with N >= 1, got shapes {P.shape} and {Q.shape}")
-    s, R, t = align_similarity(P[:, :3, 3], Q[:, :3, 3], pred_rotation=P[0, :3, :3],
-                               true_rotation=Q[0, :3, :3])
-    return apply_similarity(P, s, R, t), (s, R, t)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -316,7 +185,6 @@ class CameraSet:
     colour: tuple[int, int, int] = OTHER_COLOUR
     labels: Sequence[int] | None = None
 
-
 def draw_cameras(world_from_cam, focal=None, *, reference=None, reference_focal=None,
                  colours: Sequence[Sequence[int]] | None = None, size: tuple[int, int] = (360, 480),
                  labels: bool = True, title: str | None = None,
@@ -340,6 +208,36 @@ def draw_cameras(world_from_cam, focal=None, *, reference=None, reference_focal=
     H, W = (int(v) for v in size)
     if H < 32 or W < 32:
         raise InputError(f"size: expected (H, W) of at least 32x32, got {tuple(size)}")
+    sets, style = _camera_sets(world_from_cam, focal, reference, reference_focal, colours, names,
+                               others)
+    notes: list[str] = []
+    kept, coord_scale = _finite_cameras(sets, notes)
+    origin, unit, all_collapsed = _frame(kept, style, names, notes)
+    frusta = _frusta(kept, origin, unit, all_collapsed)
+
+    view_set = kept["ref"][1] if "ref" in kept and len(kept["ref"][1]) else kept["pred"][1]
+    rots = view_set[:, :3, :3] if len(view_set) else np.eye(3)[None]
+    # The legend: the two sets' entries, then the further sets'.
+    entries = [style["pred"][:2]] + ([style["ref"][:2]] if "ref" in kept else []) \
+        + [style[key][:2] for key in style if key.startswith("other")]
+    canvas, legend = _fit(H, W, frusta, _view_axes(rots), entries, title, len(notes))
+
+    img = np.full((H, W, 3), 255, dtype=np.uint8)
+    _draw_correspondences(img, canvas, kept, frusta)
+    _draw_frusta(img, canvas, kept, frusta, style)
+    if labels:
+        _draw_labels(img, canvas, kept, frusta, style)
+    _draw_legend(img, canvas, legend, title)
+    _draw_scale_bar_and_notes(img, canvas, notes, None if all_collapsed else unit * coord_scale)
+    return img
+
+
+# -- the sets, their cameras and their frame ---------------------------------------------------
+def _camera_sets(world_from_cam, focal, reference, reference_focal, colours, names, others):
+    """``draw_cameras``' sets checked -> ``(sets, style)``: ``sets`` a list of ``(key,
+    world_from_cam [n, 4, 4], half extents [n, 2, 2])``, the reference ("ref") first, then the
+    further sets ("other0", ...), then the cameras ("pred"); ``style[key]``: (legend name,
+    colour, labels or None, drawing rank: reference under the others under pred)."""
     pred = _check_cameras(world_from_cam, "world_from_cam")
     ref = None if reference is None else _check_cameras(reference, "reference")
     colour_pred, colour_ref = (tuple(int(c) for c in col) for col in
@@ -348,7 +246,6 @@ def draw_cameras(world_from_cam, focal=None, *, reference=None, reference_focal=
     if ref is not None:
         sets.insert(0, ("ref", ref, _half_extents(focal if reference_focal is None else
                                                   reference_focal, len(ref), "reference_focal")))
-    # Per set: legend name, colour, labels, drawing rank (reference under the others under pred).
     style = {"pred": (names[0], colour_pred, None, 2), "ref": (names[1], colour_ref, None, 0)}
     if isinstance(others, CameraSet):
         others = (others,)
@@ -366,7 +263,13 @@ def draw_cameras(world_from_cam, focal=None, *, reference=None, reference_focal=
         sets.insert(1 + k if ref is not None else k,
                     (key, T, _half_extents(other.focal, len(T), f"others[{k}].focal")))
         style[key] = (str(other.name), tuple(int(c) for c in other.colour), tags, 1)
-    notes = []
+    return sets, style
+
+
+def _finite_cameras(sets, notes: list[str]) -> tuple[dict, float]:
+    """Each set's finite cameras -> ``(kept, coord_scale)``: ``kept[key] = (their indices, poses
+    [n, 4, 4] with the nearest rotations and the centres divided by coord_scale, half extents
+    [n, 2, 2])``; a note for the cameras left out."""
     kept = {}
     for key, T, half in sets:
         finite = np.isfinite(T).all(axis=(1, 2))
@@ -389,8 +292,13 @@ def draw_cameras(world_from_cam, focal=None, *, reference=None, reference_focal=
     coord_scale = 2.0 ** math.ceil(math.log2(magnitude)) if magnitude > 0 else 1.0
     for _, p, _ in kept.values():
         p[:, :3, 3] /= coord_scale
+    return kept, coord_scale
 
-    # Normalised coordinates: centred on all cameras, in units of their spread.
+
+def _frame(kept: dict, style: dict, names, notes: list[str]) -> tuple[np.ndarray, float, bool]:
+    """Normalised coordinates: centred on all cameras, in units of their spread -> ``(origin [3],
+    unit, all_collapsed)``; notes for cameras all at one point and for a set collapsed next to
+    the reference."""
     centres = np.concatenate([p[:, :3, 3] for _, p, _ in kept.values()]) if kept else np.zeros((0, 3))
     all_collapsed = _is_collapsed(centres)
     if len(centres) == 0:
@@ -403,33 +311,69 @@ def draw_cameras(world_from_cam, focal=None, *, reference=None, reference_focal=
     else:
         origin = centres.mean(0)
         unit = _spread(centres)
-    for key in [k for k in kept if k != "ref"] if ref is not None and not all_collapsed else ():
+    for key in [k for k in kept if k != "ref"] if "ref" in kept and not all_collapsed else ():
         if len(kept[key][0]) > 1 and len(kept["ref"][0]) > 1:
             sp, sr = _spread(kept[key][1][:, :3, 3]), _spread(kept["ref"][1][:, :3, 3])
             if sr > 0 and sp < _PRED_COLLAPSE_FRACTION * sr:
                 notes.append(f"{style[key][0]} cameras collapsed (spread {100 * sp / sr:.2g} % "
                              f"of {names[1]})")
-    length = 1.0 if all_collapsed else 2.0 * _FRUSTUM_FRACTION     # extent = 2 x spread
+    return origin, unit, all_collapsed
 
+
+def _frusta(kept: dict, origin: np.ndarray, unit: float, all_collapsed: bool) -> dict:
+    """Each set's frustums ``[n, 8, 3]`` (``_frustum``) in the normalised coordinates."""
+    length = 1.0 if all_collapsed else 2.0 * _FRUSTUM_FRACTION     # extent = 2 x spread
     frusta = {}
     for key, (idx, poses, half) in kept.items():
         local = poses.copy()
         local[:, :3, 3] = 0.0 if all_collapsed else (poses[:, :3, 3] - origin) / unit
         frusta[key] = np.stack([_frustum(T, h, length) for T, h in zip(local, half)]) \
             if len(idx) else np.zeros((0, 8, 3))
+    return frusta
 
-    view_set = kept["ref"][1] if "ref" in kept and len(kept["ref"][1]) else kept["pred"][1]
-    rots = view_set[:, :3, :3] if len(view_set) else np.eye(3)[None]
-    axes = _view_axes(rots)
 
-    # Fit to the canvas (orthographic), with bands for the legend (top) and scale bar (bottom).
-    font = cv2.FONT_HERSHEY_SIMPLEX
+# -- the canvas ---------------------------------------------------------------------------------
+_SHIFT = 4                      # OpenCV's fractional bits of the points drawn
+_FONT = cv2.FONT_HERSHEY_SIMPLEX
+
+
+def _ipt(p) -> tuple[int, int]:
+    return (int(round(p[0] * (1 << _SHIFT))), int(round(p[1] * (1 << _SHIFT))))
+
+
+@dataclass(frozen=True)
+class _Canvas:
+    """Where things go in an H x W picture: text size ``fs`` and line height, the bands of the
+    legend (``top``) and of the scale bar and notes (``bottom``), and the orthographic fit of the
+    frustums (``axes``: screen right, up, into the picture; ``mid``, ``scale``, ``centre_px``)."""
+    H: int
+    W: int
+    fs: float
+    line_h: int
+    top: int
+    bottom: int
+    margin: int
+    axes: np.ndarray
+    mid: np.ndarray
+    scale: float
+    centre_px: np.ndarray
+
+    def to_px(self, p3):
+        """Points ``[..., 3]`` -> pixels ``[..., 2]`` (clipped, finite)."""
+        H, W = self.H, self.W
+        q = (p3 @ self.axes[:2].T - self.mid) * self.scale
+        out = np.stack([self.centre_px[0] + q[..., 0], self.centre_px[1] - q[..., 1]], -1)
+        return np.clip(np.nan_to_num(out), -4 * max(H, W), 4 * max(H, W))
+
+
+def _fit(H: int, W: int, frusta: dict, axes: np.ndarray, entries, title, n_notes: int):
+    """The canvas fitted to the frustums (orthographic), with bands for the legend (top) and the
+    scale bar and notes (bottom) -> ``(canvas, legend)``, ``legend`` a list of ``(x, line, text,
+    colour)``. A further set's entry starts a new line when it would cross the right edge (the
+    first two stay on one line whatever the width)."""
+    font = _FONT
     fs = max(0.3, min(H, W) / 900.0)
     line_h = int(round(26 * fs)) + 4
-    # Legend: (x, line, text, colour) per entry. A further set's entry starts a new line when it
-    # would cross the right edge (the first two stay on one line whatever the width).
-    entries = [(names[0], colour_pred)] + ([(names[1], colour_ref)] if ref is not None else []) \
-        + [style[key][:2] for key in style if key.startswith("other")]
     legend, x, line = [], 6, 0
     for k, (text, colour) in enumerate(entries):
         width = int(24 * fs * 2) + cv2.getTextSize(text, font, fs, 1)[0][0]
@@ -438,7 +382,7 @@ def draw_cameras(world_from_cam, focal=None, *, reference=None, reference_focal=
         legend.append((x, line, text, colour))
         x += width + int(16 * fs * 2)
     top = line_h * (1 + line + (title is not None)) + 4
-    bottom = line_h * (1 + len(notes)) + 6
+    bottom = line_h * (1 + n_notes) + 6
     margin = max(8, W // 25)
     pts = np.concatenate([f.reshape(-1, 3) for f in frusta.values()]) if frusta else np.zeros((0, 3))
     if len(pts) == 0:
@@ -448,68 +392,71 @@ def draw_cameras(world_from_cam, focal=None, *, reference=None, reference_focal=
     span = np.maximum(hi - lo, 1e-9)
     avail = np.array([W - 2 * margin, max(H - top - bottom - 2 * margin, 8)], dtype=np.float64)
     scale = float(np.min(avail / span))
-    mid = (lo + hi) / 2.0
     centre_px = np.array([W / 2.0, top + margin + avail[1] / 2.0])
+    return _Canvas(H, W, fs, line_h, top, bottom, margin, axes, (lo + hi) / 2.0, scale,
+                   centre_px), legend
 
-    def to_px(p3):
-        q = (p3 @ axes[:2].T - mid) * scale
-        out = np.stack([centre_px[0] + q[..., 0], centre_px[1] - q[..., 1]], -1)
-        return np.clip(np.nan_to_num(out), -4 * max(H, W), 4 * max(H, W))
 
-    SHIFT = 4
-
-    def ipt(p):
-        return (int(round(p[0] * (1 << SHIFT))), int(round(p[1] * (1 << SHIFT))))
-
-    img = np.full((H, W, 3), 255, dtype=np.uint8)
-    thick = 1 if min(H, W) < 400 else 2
-
-    # Correspondence lines camera k <-> reference k.
+# -- drawing ------------------------------------------------------------------------------------
+def _draw_correspondences(img: np.ndarray, canvas: _Canvas, kept: dict, frusta: dict) -> None:
+    """Thin grey lines joining camera k and reference k (when both sets keep the same cameras)."""
     if "ref" in frusta and len(kept["ref"][0]) == len(kept["pred"][0]) > 0 \
             and np.array_equal(kept["ref"][0], kept["pred"][0]):
-        a, b = to_px(frusta["ref"][:, 0]), to_px(frusta["pred"][:, 0])
+        a, b = canvas.to_px(frusta["ref"][:, 0]), canvas.to_px(frusta["pred"][:, 0])
         for p, q in zip(a, b):
-            cv2.line(img, ipt(p), ipt(q), (170, 170, 170), 1, cv2.LINE_AA, SHIFT)
+            cv2.line(img, _ipt(p), _ipt(q), (170, 170, 170), 1, cv2.LINE_AA, _SHIFT)
 
-    # Frustums of all sets, far to near (painter's order).
+
+def _draw_frusta(img: np.ndarray, canvas: _Canvas, kept: dict, frusta: dict,
+                 style: dict) -> None:
+    """Frustums of all sets, far to near (painter's order; at one depth, by the sets' rank)."""
+    thick = 1 if min(canvas.H, canvas.W) < 400 else 2
     items = []
     for key, F in frusta.items():
         colour = style[key][1]
         for k, f in enumerate(F):
-            items.append((float(f[0] @ axes[2]), key, kept[key][0][k], f, colour))
+            items.append((float(f[0] @ canvas.axes[2]), key, kept[key][0][k], f, colour))
     items.sort(key=lambda it: (-it[0], style[it[1]][3]))
     for _, key, index, f, colour in items:
-        p = to_px(f)
+        p = canvas.to_px(f)
         tk = thick
         for i in range(1, 5):
-            cv2.line(img, ipt(p[0]), ipt(p[i]), colour, tk, cv2.LINE_AA, SHIFT)
-            cv2.line(img, ipt(p[i]), ipt(p[1 + i % 4]), colour, tk, cv2.LINE_AA, SHIFT)
-        tri = np.array([ipt(q) for q in p[5:8]], dtype=np.int32)
-        cv2.fillConvexPoly(img, tri, colour, cv2.LINE_AA, SHIFT)
-        cv2.circle(img, ipt(p[0]), (tk + 1) << SHIFT, colour, -1, cv2.LINE_AA, SHIFT)
-    if labels:
-        for key in sorted(frusta, key=lambda k: style[k][3]):
-            _, colour, tags, _ = style[key]
-            # Cameras drawn at the same spot (a collapsed set) share one label "0-7" / "1,4".
-            groups: dict[tuple[int, int], list] = {}
-            for index, f in zip(kept[key][0], frusta[key]):
-                c = to_px(f[0])
-                label = int(index) if tags is None else int(tags[index])
-                groups.setdefault((int(c[0] // 4), int(c[1] // 4)), []).append((label, f, c))
-            for members in groups.values():
-                _, f, c = members[0]
-                text = _index_label([m[0] for m in members])
-                (tw, th), _ = cv2.getTextSize(text, font, fs, 1)
-                # Beside the centre, on the side away from the frustum's image rectangle.
-                away = c - to_px(f[1:5]).mean(0)
-                n = np.linalg.norm(away)
-                away = away / n if n > 1e-6 else np.array([-1.0, 0.0])
-                at = c + away * (6 + 0.6 * max(tw, th)) + np.array([-tw / 2, th / 2])
-                org = np.clip(at, [0, top + th], [max(W - tw, 0), H - bottom])
-                cv2.putText(img, text, (int(org[0]), int(org[1])), font, fs, colour, 1,
-                            cv2.LINE_AA)
+            cv2.line(img, _ipt(p[0]), _ipt(p[i]), colour, tk, cv2.LINE_AA, _SHIFT)
+            cv2.line(img, _ipt(p[i]), _ipt(p[1 + i % 4]), colour, tk, cv2.LINE_AA, _SHIFT)
+        tri = np.array([_ipt(q) for q in p[5:8]], dtype=np.int32)
+        cv2.fillConvexPoly(img, tri, colour, cv2.LINE_AA, _SHIFT)
+        cv2.circle(img, _ipt(p[0]), (tk + 1) << _SHIFT, colour, -1, cv2.LINE_AA, _SHIFT)
 
-    # Legend and title.
+
+def _draw_labels(img: np.ndarray, canvas: _Canvas, kept: dict, frusta: dict, style: dict) -> None:
+    """Each camera's index (or its set's label) beside its centre."""
+    font, fs, to_px = _FONT, canvas.fs, canvas.to_px
+    for key in sorted(frusta, key=lambda k: style[k][3]):
+        _, colour, tags, _ = style[key]
+        # Cameras drawn at the same spot (a collapsed set) share one label "0-7" / "1,4".
+        groups: dict[tuple[int, int], list] = {}
+        for index, f in zip(kept[key][0], frusta[key]):
+            c = to_px(f[0])
+            label = int(index) if tags is None else int(tags[index])
+            groups.setdefault((int(c[0] // 4), int(c[1] // 4)), []).append((label, f, c))
+        for members in groups.values():
+            _, f, c = members[0]
+            text = _index_label([m[0] for m in members])
+            (tw, th), _ = cv2.getTextSize(text, font, fs, 1)
+            # Beside the centre, on the side away from the frustum's image rectangle.
+            away = c - to_px(f[1:5]).mean(0)
+            n = np.linalg.norm(away)
+            away = away / n if n > 1e-6 else np.array([-1.0, 0.0])
+            at = c + away * (6 + 0.6 * max(tw, th)) + np.array([-tw / 2, th / 2])
+            org = np.clip(at, [0, canvas.top + th], [max(canvas.W - tw, 0),
+                                                     canvas.H - canvas.bottom])
+            cv2.putText(img, text, (int(org[0]), int(org[1])), font, fs, colour, 1,
+                        cv2.LINE_AA)
+
+
+def _draw_legend(img: np.ndarray, canvas: _Canvas, legend, title) -> None:
+    """The title (one line) and the legend's entries below it."""
+    font, fs, line_h = _FONT, canvas.fs, canvas.line_h
     y = line_h
     if title is not None:
         cv2.putText(img, title, (6, y), font, fs, (0, 0, 0), 1, cv2.LINE_AA)
@@ -520,13 +467,18 @@ def draw_cameras(world_from_cam, focal=None, *, reference=None, reference_focal=
                       colour, -1)
         cv2.putText(img, text, (x + int(24 * fs * 2), yl), font, fs, (0, 0, 0), 1, cv2.LINE_AA)
 
-    # Scale bar (scene units) and notes.
+
+def _draw_scale_bar_and_notes(img: np.ndarray, canvas: _Canvas, notes: list[str],
+                              unit: float | None) -> None:
+    """A scale bar in scene units (``unit``: the scene units of one normalised unit; None: no
+    scale, the cameras are all at one point) and the notes under it."""
+    font, fs, line_h, H = _FONT, canvas.fs, canvas.line_h, canvas.H
     y = H - 6 - line_h * len(notes)
-    if not all_collapsed:
-        per_px = unit * coord_scale / scale        # scene units per pixel
-        bar = _nice_length(0.2 * W * per_px)
+    if unit is not None:
+        per_px = unit / canvas.scale               # scene units per pixel
+        bar = _nice_length(0.2 * canvas.W * per_px)
         bar_px = bar / per_px
-        x0 = margin
+        x0 = canvas.margin
         cv2.line(img, (x0, y - 4), (int(x0 + bar_px), y - 4), (0, 0, 0), 2)
         for xe in (x0, int(x0 + bar_px)):
             cv2.line(img, (xe, y - 9), (xe, y + 1), (0, 0, 0), 1)
@@ -535,4 +487,3 @@ def draw_cameras(world_from_cam, focal=None, *, reference=None, reference_focal=
     for k, text in enumerate(notes):
         cv2.putText(img, text, (6, H - 6 - line_h * (len(notes) - 1 - k)), font, fs, (120, 0, 0), 1,
                     cv2.LINE_AA)
-    return img
