@@ -46,7 +46,7 @@ def recorded_problems(model_dir: str, scenes: str) -> list:
     import cv2
 
     import iris_runtime.cameras.mapper as mapper
-    import iris_runtime.cameras.refine as refine
+    import iris_runtime.cameras.refine.rounds as refine
     from benchmarks.camera_solve import SETS_64
     from iris_runtime import IrisRuntime
     cv2.setNumThreads(1)

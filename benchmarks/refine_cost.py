@@ -6,7 +6,7 @@ the refinement and of the whole encode (one run, one thread: a ranking, not a ti
 ``encode_cost.py`` times).
 
     python benchmarks/refine_cost.py MODEL_DIR
-    python benchmarks/refine_cost.py MODEL_DIR --set refine.REFINE_TOLERANCE=1e-6 --json out.json
+    python benchmarks/refine_cost.py MODEL_DIR --set refine.adjust.tolerance=1e-6 --json out.json
     python benchmarks/refine_cost.py MODEL_DIR --profile      # + the refinement's time by step
     python benchmarks/refine_cost.py MODEL_DIR --adjustment solve   # the solve's adjustment
 
@@ -15,7 +15,8 @@ refinement's steps (SIFT, matching, essential matrices, tracks, bundle adjustmen
 triangulation, the witness mapping) and their shares over the set.
 
 ``--set`` takes ``scripts/camera_study.py``'s settings (a scalar or flat-tuple constant of a
-module of ``iris_runtime.cameras``). Needs the [train] extra (the held-out scenes).
+module of ``iris_runtime.cameras``, or ``refine.STAGE.FIELD``, a field of the refinement's
+``RefineOptions``). Needs the [train] extra (the held-out scenes).
 """
 from __future__ import annotations
 
@@ -37,7 +38,7 @@ sys.path.insert(0, str(REPO))
 STEPS = {"scene_features": "SIFT", "match_features": "matching",
          "essential_pose": "essential matrices", "build_tracks": "tracks",
          "fast_bundle_adjust": "bundle adjustment", "bundle_adjust": "bundle adjustment",
-         "triangulate": "triangulation", "_witness": "witness mapping"}
+         "triangulate": "triangulation", "witness_mapping": "witness mapping"}
 
 
 def step_seconds(profile) -> tuple[dict, float]:
@@ -52,7 +53,8 @@ def step_seconds(profile) -> tuple[dict, float]:
         elif name in STEPS:
             # Only the calls made inside the refinement (the solve calls some of them too).
             inside = sum(c[3] for (_, _, caller), c in callers.items()
-                         if caller in ("refine_cameras", "_round", "_start", "counted"))
+                         if caller in ("refine_cameras", "adjust_round", "start_adjustment",
+                                         "counted"))
             steps[STEPS[name]] = steps.get(STEPS[name], 0.0) + inside
     return dict(sorted(steps.items(), key=lambda kv: -kv[1])), total
 
@@ -64,7 +66,7 @@ def measure(model_dir: str, settings: list[str], profile: bool = False,
     import cv2
     import numpy as np
 
-    import iris_runtime.cameras.refine as refine
+    import iris_runtime.cameras.refine.rounds as refine
     import iris_runtime.cameras.replace as replace
     from benchmarks.camera_solve import SETS_64, pair_errors
     from iris_runtime import IrisRuntime

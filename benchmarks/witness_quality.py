@@ -1,9 +1,9 @@
-"""How good the refinement's witness mapping (``refine._witness``) is, on every scene rather than
-on the few that reach it: each scene's refinement runs to its first question to the witness
+"""How good the refinement's witness mapping (``refine.witness.witness_mapping``) is, on every
+scene rather than on the few that reach it: each scene's refinement runs to its first question to the witness
 with no start confirmed and no salvage on the starts, and there the witness maps the scene once
 per setting. Per setting and scene set: the views it registers, its RPA@5 and RPA@15 against the
 true cameras over the pairs it poses (the witness's cameras are judged at 5 degrees,
-``refine.AGREEMENT_DEGREES``), the scenes on which it is worse or better at 5 degrees than the
+``AgreementOptions.degrees``), the scenes on which it is worse or better at 5 degrees than the
 first setting, and its seconds (one thread, summed over the set).
 
     python benchmarks/witness_quality.py MODEL_DIR \
@@ -11,7 +11,7 @@ first setting, and its seconds (one thread, summed over the set).
         --witness ba_iterations=5,final_ba_iterations=20 --json out.json
 
 ``--witness`` takes ``MapperOptions`` fields that replace the witness's own (those
-``refine._witness`` sets, ``WITNESS_ITERATIONS`` among them); the first is the reference. The
+``witness_mapping`` sets, ``WitnessOptions.iterations`` among them); the first is the reference. The
 scenes: all four sets of ``refine_cost.py`` (validation 0-23 and 24-47 to choose on, the held-out
 scenes as made and as iris-eval resizes them to check). Needs the [train] extra.
 """
@@ -48,27 +48,29 @@ def measure(model_dir: str, settings: list[dict]) -> dict:
     import cv2
     import numpy as np
 
-    import iris_runtime.cameras.refine as refine
     from benchmarks.camera_solve import SETS_64, pair_errors
+    from iris_runtime.cameras.refine import ladder, witness as witness_stage
     from iris_runtime import IrisRuntime
     cv2.setNumThreads(1)
     # No start confirms and none is salvaged, so every scene asks the witness.
-    refine.MIN_AGREEMENT, refine.MIN_CORE_VIEWS = 1.01, 10 ** 6
-    witness, canonical_order = refine._witness, refine.canonical_order
-    incremental_mapping = refine.incremental_mapping
+    shipped = ladder.DEFAULTS
+    ladder.DEFAULTS = dataclasses.replace(
+        shipped, agreement=dataclasses.replace(shipped.agreement, min_share=1.01),
+        salvage=dataclasses.replace(shipped.salvage, min_core_views=10 ** 6))
+    witness, canonical_order = witness_stage.witness_mapping, ladder.canonical_order
+    incremental_mapping = witness_stage.incremental_mapping
     scene = {}
 
     def ordered(photos):
         scene["perm"] = canonical_order(photos)
         return scene["perm"]
 
-    def asked(features, tracks, inliers, relative, focal, image_size, opts, useful):
+    def asked(evidence, focal, opts, useful, stages):
         truth = scene["truth"][scene["perm"]]
         for k, setting in enumerate(settings):
             t0 = time.perf_counter()
             scene["setting"] = setting
-            mapped = witness(features, tracks, inliers, relative, focal, image_size, opts,
-                             useful)
+            mapped = witness(evidence, focal, opts, useful, stages)
             seconds = time.perf_counter() - t0
             row = {"registered": 0, "rpa@5": 0.0, "rpa@15": 0.0, "seconds": seconds}
             if mapped is not None:
@@ -87,8 +89,8 @@ def measure(model_dir: str, settings: list[dict]) -> dict:
         *head, opts = args
         return incremental_mapping(*head, dataclasses.replace(opts, **scene["setting"]))
 
-    refine._witness, refine.canonical_order = asked, ordered
-    refine.incremental_mapping = mapping
+    witness_stage.witness_mapping, ladder.canonical_order = asked, ordered
+    witness_stage.incremental_mapping = mapping
     rt = IrisRuntime(model_dir, threads=1)
     out = {"settings": settings, "load_before": list(os.getloadavg()), "sets": {}}
     for name in SETS:

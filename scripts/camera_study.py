@@ -7,8 +7,10 @@ the study behind the choices in docs/CAMERAS.md ("Choices").
     python scripts/camera_study.py --set solve.FOCAL_PRIORS=1.2,0.8,1.8 --datasets heldout
 
 ``--set MODULE.NAME=VALUE`` changes a constant of ``iris_runtime.cameras.MODULE`` (in every
-module of the package that holds that name, as imported names are copies); ``--set FIELD=VALUE``
-a field of ``MapperOptions``. Prints, per dataset and protocol, the means of RPA@5/15/30 over the
+module of the package that holds that name, as imported names are copies); ``--set
+refine.STAGE.FIELD=VALUE`` a field of one stage of the refinement's settings
+(``refine.RefineOptions``, e.g. ``refine.adjust.tolerance=1e-6``); ``--set FIELD=VALUE`` a field
+of ``MapperOptions``. Prints, per dataset and protocol, the means of RPA@5/15/30 over the
 scenes and the median seconds.
 """
 from __future__ import annotations
@@ -41,7 +43,16 @@ def apply(settings: list[str]):
     fields = {}
     for item in settings:
         key, text = item.split("=", 1)
-        if "." in key:
+        if key.startswith("refine.") and key.count(".") == 2:
+            # A field of one stage of the refinement: refine.STAGE.FIELD (RefineOptions).
+            import dataclasses
+
+            from iris_runtime.cameras.refine import ladder
+            _, stage, name = key.split(".")
+            group = getattr(ladder.DEFAULTS, stage)
+            group = dataclasses.replace(group, **{name: _value(text, getattr(group, name))})
+            ladder.DEFAULTS = dataclasses.replace(ladder.DEFAULTS, **{stage: group})
+        elif "." in key:
             mod, name = key.rsplit(".", 1)
             value = _value(text, getattr(importlib.import_module(f"iris_runtime.cameras.{mod}"),
                                          name))

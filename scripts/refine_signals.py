@@ -1,6 +1,6 @@
 """Can a refinement tell when it went wrong? The agreement between the starts of
 ``cameras="refined"`` per scene, each start's RPA, beside the solve: the evidence behind
-``refine.MIN_AGREEMENT`` (docs/CAMERAS.md, "Telling a wrong refinement").
+``AgreementOptions.min_share`` (docs/CAMERAS.md, "Telling a wrong refinement").
 
     python scripts/refine_signals.py MODEL_DIR out.json synthetic:heldout@64 \\
         synthetic:capture-heldout data/real/castle data/real/castel data/real/cube
@@ -8,13 +8,13 @@
 Each DATA is an iris-eval set (``@64``: the model's 64x64 images as the photos, as
 ``benchmarks/encode_cost.py --heldout`` gives them). All 8 frames of every scene are encoded
 with ``cameras="refined"`` through the runtime's public entry point: as shipped, recording the
-values ``refine.agreement`` returns to the check (the best-ranked start's cameras against each
-other start's, until one reaches ``MIN_AGREEMENT``), where none does, the salvage (``"core"``:
+values ``refine.confirm.agreement`` returns to the check (the best-ranked start's cameras against
+each other start's, until one reaches ``min_share``), where none does, the salvage (``"core"``:
 the views of the largest set another start agrees with it on; ``"salvaged"``: the views it
 posed, 0 where the set was too small), where that failed too, what the witness mapping did
 (``"witness"``: "confirmed a start", "salvaged N views", "none" or "no mapping"), the source and
-the seconds; then with ``MIN_AGREEMENT = 0`` (the chosen
-start's cameras, whatever the check says) and with ``STARTS`` one start at a time (each start's
+the seconds; then with ``min_share = 0`` (the chosen
+start's cameras, whatever the check says) and with ``StartOptions.kinds`` one start at a time (each start's
 own end; a start that leaves view 0 unposed is handed to the solve by the runtime and has no
 RPA of its own). Where the set has true cameras: RPA@15 of each, of the cameras as shipped and
 of the solve (``"epipolar"``, unless ``--no-solve``).
@@ -24,48 +24,52 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
 import numpy as np
 
 from iris_runtime import IrisRuntime
-from iris_runtime.cameras import refine as R
+from iris_runtime.cameras.refine import confirm as C
+from iris_runtime.cameras.refine import ladder as L
+from iris_runtime.cameras.refine import salvage as S
+from iris_runtime.cameras.refine import witness as W
 from iris_train.evaluate.scenes import load_scenes
 from refine_probe import rpa15 as rpa
 
 
 def scene_signals(rt: IrisRuntime, photos, truth, solve: bool) -> dict:
-    shipped = R.MIN_AGREEMENT, R.STARTS, R.agreement, R._salvaged, R.agreeing_views
-    witnessed_as_shipped = R._witnessed
+    shipped = L.DEFAULTS, C.agreement, S.salvage_agreed_views, C.agreeing_views
+    witnessed_as_shipped = W.witness_verdict
     seen: list[float] = []
     salvaged: list[int] = []
     core = [0]
     witness: list[str] = []
 
-    def witnessed(best, ends, mapped, salvage):
-        rec = witnessed_as_shipped(best, ends, mapped, salvage)
+    def witnessed(best, ends, mapped, *rest):
+        rec = witnessed_as_shipped(best, ends, mapped, *rest)
         witness.append("no mapping" if mapped is None else "none" if rec is None
                        else "confirmed a start" if any(rec is e for e in (best, *ends))
                        else f"salvaged {int(rec.registered.sum())} views")
         return rec
 
     def views(*args):
-        out = shipped[4](*args)
+        out = shipped[3](*args)
         core[0] = max(core[0], int(out.sum()))
         return out
 
     def recorded(*args):
-        seen.append(shipped[2](*args))
+        seen.append(shipped[1](*args))
         return seen[-1]
 
     def salvage(*args):
-        rec = shipped[3](*args)
+        rec = shipped[2](*args)
         salvaged.append(0 if rec is None else int(rec.registered.sum()))
         return rec
 
-    R.agreement, R._salvaged, R.agreeing_views = recorded, salvage, views
-    R._witnessed = witnessed
+    C.agreement, S.salvage_agreed_views, C.agreeing_views = recorded, salvage, views
+    W.witness_verdict = witnessed
     try:
         t0 = time.perf_counter()
         as_shipped = rt.encode(photos, cameras="refined")
@@ -73,16 +77,17 @@ def scene_signals(rt: IrisRuntime, photos, truth, solve: bool) -> dict:
                "agreement": list(seen),
                **({"core": core[0], "salvaged": salvaged[0]} if salvaged else {}),
                **({"witness": witness[0]} if witness else {})}
-        R._salvaged, R._witnessed = shipped[3], witnessed_as_shipped
-        R.MIN_AGREEMENT = 0.0
+        S.salvage_agreed_views, W.witness_verdict = shipped[2], witnessed_as_shipped
+        unchecked = replace(shipped[0], agreement=replace(shipped[0].agreement, min_share=0.0))
+        L.DEFAULTS = unchecked
         chosen = rt.encode(photos, cameras="refined")
         ends = {}
-        for kind in shipped[1]:
-            R.STARTS = (kind,)
+        for kind in shipped[0].starts.kinds:
+            L.DEFAULTS = replace(unchecked, starts=replace(unchecked.starts, kinds=(kind,)))
             ends[kind] = rt.encode(photos, cameras="refined")
     finally:
-        R.MIN_AGREEMENT, R.STARTS, R.agreement, R._salvaged, R.agreeing_views = shipped
-        R._witnessed = witnessed_as_shipped
+        L.DEFAULTS, C.agreement, S.salvage_agreed_views, C.agreeing_views = shipped
+        W.witness_verdict = witnessed_as_shipped
     if truth is not None:
         row["refined_rpa@15"] = rpa(as_shipped.world_from_cam, truth)
         if chosen.camera_source == "refined":

@@ -1,5 +1,5 @@
 """A salvage that grows: the probe behind docs/CAMERAS.md's "Salvaging the views two starts agree
-on" (not shipped). Where no start confirms the chosen one, ``refine._salvaged`` poses every view
+on" (not shipped). Where no start confirms the chosen one, ``refine.salvage.salvage_agreed_views`` poses every view
 outside the agreeing set at once against that set's points; this variant registers them one at a
 time as the mapper does (the view that sees the most points, PnP, ten iterations of adjustment,
 points triangulated again), then runs the refinement's rounds.
@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -25,16 +26,22 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "scripts"))
 
-import iris_runtime.cameras.refine as R  # noqa: E402
-from iris_runtime.cameras.refine import (PNP_MIN_INLIERS, REFINE_ROUNDS,  # noqa: E402
-                                         RETRIANGULATION_ANGLE, _reconstruction, _round, _start,
-                                         pose_from_points, triangulate)
+from iris_runtime.cameras.locate import PNP_MIN_INLIERS, pose_from_points  # noqa: E402
+from iris_runtime.cameras.refine import ladder as L  # noqa: E402
+from iris_runtime.cameras.refine import salvage as S  # noqa: E402
+from iris_runtime.cameras.refine.rounds import (adjust_round, as_reconstruction,  # noqa: E402
+                                                run_rounds, start_adjustment)
+from iris_runtime.cameras.triangulation import triangulate  # noqa: E402
 
 
-def grown(best, witnesses, tracks, image_size, centre, max_error, loss_scale, pnp_error):
-    """``refine._salvaged``'s signature and agreeing set; the other views registered one at a
-    time, each followed by ten iterations of adjustment with the focal held."""
-    core = R.salvage_core(best, witnesses)
+def grown(best, witnesses, evidence, opts, stages):
+    """``refine.salvage.salvage_agreed_views``'s signature and agreeing set; the other views
+    registered one at a time, each followed by ten iterations of adjustment with the focal
+    held."""
+    tracks, centre, image_size = evidence.tracks, evidence.centre, evidence.image_size
+    max_error, loss_scale, pnp_error = opts.max_error, opts.loss_scale, opts.pnp_error
+    adjust = stages.adjust
+    core = S.salvage_core(best, witnesses, stages.salvage, stages.agreement)
     if core is None:
         return None
     V = len(core)
@@ -47,47 +54,46 @@ def grown(best, witnesses, tracks, image_size, centre, max_error, loss_scale, pn
 
     while True:
         X, ok = triangulate(rot, t, f, centre, tracks.uv, tracks.observed & posed[None],
-                            max_error=max_error, min_angle=RETRIANGULATION_ANGLE)
+                            max_error=max_error, min_angle=adjust.retriangulation_angle)
         seen = np.where(posed | failed, -1, (ok[:, None] & tracks.observed).sum(0))
         v = int(np.argmax(seen))
         if seen[v] < PNP_MIN_INLIERS:
             break
         sees = ok & tracks.observed[:, v]
         pose = pose_from_points(X[sees], tracks.uv[sees, v], f, image_size, max_error=pnp_error,
-                                min_inliers=PNP_MIN_INLIERS, method=R.SALVAGE_PNP)
+                                min_inliers=PNP_MIN_INLIERS, method=stages.salvage.pnp.method)
         if pose is None:
             failed[v] = True
             continue
         rot[v], t[v] = pose[0], pose[1]
         posed[v] = True
         if posed[0]:                                 # view 0 is the gauge the rounds hold fixed
-            a = _round(_start(rot, t, f, centre, tracks, posed), 10, False, True, centre, tracks,
-                       scale_view(), max_error, loss_scale)
+            a = adjust_round(start_adjustment(rot, t, f, centre, tracks, posed), 10, False, True,
+                             centre, tracks, scale_view(), max_error, loss_scale, adjust)
             if a is None:
                 return None
             rot, t, f = a.R.copy(), a.t.copy(), a.focal
     if not posed[0]:
         return None
     sv = scale_view()
-    a = _start(rot, t, f, centre, tracks, posed)
-    last = len(REFINE_ROUNDS) - 1
-    for n, (iterations, refine_focal) in enumerate(REFINE_ROUNDS):
-        a = _round(a, iterations, refine_focal, n == last, centre, tracks, sv, max_error,
-                   loss_scale) if a else None
-    return _reconstruction(a, tracks, sv) if a is not None else None
+    a = run_rounds(start_adjustment(rot, t, f, centre, tracks, posed), 0, None, centre, tracks,
+                   sv, max_error, loss_scale, adjust)
+    return as_reconstruction(a, tracks, sv, adjust) if a is not None else None
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("model_dir")
     ap.add_argument("which", choices=("validation", "scenes"))
-    ap.add_argument("--min-views", type=int, default=R.MIN_CORE_VIEWS)
-    ap.add_argument("--share", type=float, default=R.MIN_CORE_SHARE)
+    ap.add_argument("--min-views", type=int, default=L.DEFAULTS.salvage.min_core_views)
+    ap.add_argument("--share", type=float, default=L.DEFAULTS.salvage.min_core_share)
     ap.add_argument("--real", type=Path, default=REPO.parent / "real",
                     help="the real sets (scripts/real_sets.py --out); its castle/ is used")
     args = ap.parse_args()
-    R._salvaged = grown
-    R.MIN_CORE_VIEWS, R.MIN_CORE_SHARE = args.min_views, args.share
+    S.salvage_agreed_views = grown
+    L.DEFAULTS = replace(L.DEFAULTS, salvage=replace(L.DEFAULTS.salvage,
+                                                     min_core_views=args.min_views,
+                                                     min_core_share=args.share))
     if args.which == "validation":
         from benchmarks.refine_cost import measure
         print(json.dumps(measure(args.model_dir, [], scenes="validation")["summary"]))

@@ -995,7 +995,7 @@ def test_refine_cameras_is_order_free(corner):
                                atol=1e-6)
 
 
-def test_refine_cameras_starts_from_the_pairs_where_the_model_is_far_off(corner, monkeypatch):
+def test_refine_cameras_starts_from_the_pairs_where_the_model_is_far_off(corner):
     """A start 40 degrees off (a head that has not learned the scene) cannot be adjusted into
     place; with the pairs' averaged rotations (and the start's centres, 15% of a baseline off) it
     can, and that adjustment is kept."""
@@ -1005,8 +1005,8 @@ def test_refine_cameras_starts_from_the_pairs_where_the_model_is_far_off(corner,
     s = refine.refine_cameras(list(photos), start, FOCAL, DEPTH_RANGE)
     assert s.status == ("solved",) * 6
     assert _pair_errors(s.world_from_cam, truth).max() < 2.0
-    monkeypatch.setattr(refine, "STARTS", ("model",))
-    alone = refine.refine_cameras(list(photos), start, FOCAL, DEPTH_RANGE)
+    model_only = refine.RefineOptions(starts=refine.StartOptions(kinds=("model",)))
+    alone = refine.refine_cameras(list(photos), start, FOCAL, DEPTH_RANGE, refinement=model_only)
     assert alone is None or _pair_errors(alone.world_from_cam, truth).max() > 10.0
 
 
@@ -1057,7 +1057,7 @@ def test_rotation_and_centre_averaging_recover_the_cameras_despite_a_wrong_pair(
 def test_agreement_counts_the_pairs_two_sets_of_cameras_agree_on():
     """The same 6 cameras in another frame and unit agree on every pair; one turned by 10
     degrees, one moved sideways by a third of its baseline, or one the second set leaves unposed,
-    on the 10 of the 15 pairs without it; at 4 degrees (under ``AGREEMENT_DEGREES``) on all of
+    on the 10 of the 15 pairs without it; at 4 degrees (under ``AgreementOptions.degrees``) on all of
     them. Pairs the first set leaves unposed do not count. A mirrored path (baselines reversed)
     agrees on none."""
     from iris_runtime.cameras.refine import agreement
@@ -1096,26 +1096,30 @@ def test_agreement_counts_the_pairs_two_sets_of_cameras_agree_on():
     assert agreement(R, t, posed, c[:, :3, :3], c[:, :3, 3], posed) == 0.0
 
 
-def test_refine_cameras_falls_back_where_no_other_start_agrees(corner, monkeypatch):
-    """The gate on ``MIN_AGREEMENT``: a refinement whose starts end at the same cameras is kept;
-    held to an agreement no start reaches, and with no set of views large enough to salvage
-    (``MIN_CORE_SHARE``), it gives None, and ``refine_model_cameras`` the solve. With one start
-    the check is off."""
+def test_refine_cameras_falls_back_where_no_other_start_agrees(corner):
+    """The gate on ``AgreementOptions.min_share``: a refinement whose starts end at the same
+    cameras is kept; held to an agreement no start reaches, and with no set of views large
+    enough to salvage (``SalvageOptions.min_core_share``), it gives None, and
+    ``refine_model_cameras`` the solve. With one start the check is off."""
     import iris_runtime.cameras.refine as refine
     from iris_runtime.cameras import refine_model_cameras
     photos, truth, solved = corner
     start = _perturbed(truth, np.random.default_rng(4), degrees=6.0)
     kept = refine.refine_cameras(list(photos), start, FOCAL, DEPTH_RANGE)
     assert kept is not None and _pair_errors(kept.world_from_cam, truth).max() < 2.0
-    monkeypatch.setattr(refine, "MIN_AGREEMENT", 1.01)
-    monkeypatch.setattr(refine, "MIN_CORE_SHARE", 1.01)
-    assert refine.refine_cameras(list(photos), start, FOCAL, DEPTH_RANGE) is None
+    unreachable = refine.RefineOptions(agreement=refine.AgreementOptions(min_share=1.01),
+                                       salvage=refine.SalvageOptions(min_core_share=1.01))
+    assert refine.refine_cameras(list(photos), start, FOCAL, DEPTH_RANGE,
+                                 refinement=unreachable) is None
     H, W = SIZE
-    cams = refine_model_cameras(list(photos), start, [FOCAL / W, FOCAL / H], SIZE, DEPTH_RANGE)
+    cams = refine_model_cameras(list(photos), start, [FOCAL / W, FOCAL / H], SIZE, DEPTH_RANGE,
+                                refinement=unreachable)
     assert cams.source == "epipolar"
     np.testing.assert_array_equal(cams.world_from_cam, solved.world_from_cam)
-    monkeypatch.setattr(refine, "STARTS", ("model",))
-    alone = refine.refine_cameras(list(photos), start, FOCAL, DEPTH_RANGE)
+    model_only = refine.RefineOptions(starts=refine.StartOptions(kinds=("model",)),
+                                      agreement=unreachable.agreement,
+                                      salvage=unreachable.salvage)
+    alone = refine.refine_cameras(list(photos), start, FOCAL, DEPTH_RANGE, refinement=model_only)
     assert alone is not None and _pair_errors(alone.world_from_cam, truth).max() < 2.0
 
 
@@ -1127,9 +1131,10 @@ def test_refine_cameras_salvages_the_views_two_starts_agree_on(corner, monkeypat
     not kept); with a core share above the 5 of 6 views that agree, the scene goes to the solve.
     """
     import iris_runtime.cameras.refine as refine
+    from iris_runtime.cameras.refine import confirm, salvage
     photos, truth, _ = corner
     start = _perturbed(truth, np.random.default_rng(4), degrees=6.0)
-    pairs, salvaged = refine.agreeing_pairs, refine._salvaged
+    pairs, salvaged = confirm.agreeing_pairs, salvage.salvage_agreed_views
 
     def view_2_disagrees(*args):
         agree = pairs(*args)
@@ -1141,11 +1146,11 @@ def test_refine_cameras_salvages_the_views_two_starts_agree_on(corner, monkeypat
             rec.R[2] = _rotation_about([0.3, 1.0, 0.1], np.radians(30.0)) @ rec.R[2]
         return salvaged(best, witnesses, *args)
 
-    monkeypatch.setattr(refine, "agreeing_pairs", view_2_disagrees)
-    monkeypatch.setattr(refine, "_salvaged", turned)
-    monkeypatch.setattr(refine, "MIN_AGREEMENT", 1.01)
-    monkeypatch.setattr(refine, "MIN_CORE_SHARE", core_share)
-    out = refine.refine_cameras(list(photos), start, FOCAL, DEPTH_RANGE)
+    monkeypatch.setattr(confirm, "agreeing_pairs", view_2_disagrees)
+    monkeypatch.setattr(salvage, "salvage_agreed_views", turned)
+    stages = refine.RefineOptions(agreement=refine.AgreementOptions(min_share=1.01),
+                                  salvage=refine.SalvageOptions(min_core_share=core_share))
+    out = refine.refine_cameras(list(photos), start, FOCAL, DEPTH_RANGE, refinement=stages)
     if core_share > 5 / 6:
         assert out is None
         return
@@ -1157,16 +1162,20 @@ def test_refine_cameras_salvages_the_views_two_starts_agree_on(corner, monkeypat
 def test_refine_cameras_asks_a_mapping_where_no_start_agrees_on_enough_views(corner, monkeypatch,
                                                                              witness):
     """Where no start confirms the best and none agrees with it on enough views to salvage, the
-    incremental mapper's own reconstruction of the refinement's pairs (``_witness``) is asked.
-    It owes nothing to the starts: on the corner it poses all six views at the true cameras.
-    A start it confirms is kept; where it confirms none, the views it agrees with the best on
-    are salvaged; with ``WITNESS_TRIALS = 0`` there is no witness and the caller runs the solve.
+    incremental mapper's own reconstruction of the refinement's pairs (``witness_mapping``) is
+    asked. It owes nothing to the starts: on the corner it poses all six views at the true
+    cameras. A start it confirms is kept; where it confirms none, the views it agrees with the
+    best on are salvaged; with ``WitnessOptions.trials = 0`` there is no witness and the caller
+    runs the solve.
     """
     import iris_runtime.cameras.refine as refine
+    from iris_runtime.cameras.refine import confirm
+    from iris_runtime.cameras.refine import salvage as salvage_stage
+    from iris_runtime.cameras.refine import witness as witness_stage
     photos, truth, _ = corner
     start = _perturbed(truth, np.random.default_rng(4), degrees=6.0)
-    agreement, mapping, core = refine.agreement, refine._witness, refine.salvage_core
-    salvage = refine._salvaged
+    agreement, mapping = confirm.agreement, witness_stage.witness_mapping
+    core, salvage = salvage_stage.salvage_core, salvage_stage.salvage_agreed_views
     mapped, salvages = [], []
 
     def counted(best, witnesses, *args):
@@ -1177,19 +1186,20 @@ def test_refine_cameras_asks_a_mapping_where_no_start_agrees_on_enough_views(cor
         mapped.append(mapping(*args))
         return mapped[-1]
 
-    def only_the_witness(R_a, t_a, posed_a, R_b, t_b, posed_b):
+    def only_the_witness(R_a, t_a, posed_a, R_b, t_b, posed_b, *degrees):
         asked = witness == "confirms" and mapped and any(R is mapped[-1].R for R in (R_a, R_b))
-        return agreement(R_a, t_a, posed_a, R_b, t_b, posed_b) if asked else 0.0
+        return agreement(R_a, t_a, posed_a, R_b, t_b, posed_b, *degrees) if asked else 0.0
 
-    def no_start_core(best, witnesses):
-        return core(best, witnesses) if mapped and witnesses == [mapped[-1]] else None
+    def no_start_core(best, witnesses, *options):
+        return core(best, witnesses, *options) if mapped and witnesses == [mapped[-1]] else None
 
-    monkeypatch.setattr(refine, "_witness", recorded)
-    monkeypatch.setattr(refine, "_salvaged", counted)
-    monkeypatch.setattr(refine, "agreement", only_the_witness)
-    monkeypatch.setattr(refine, "salvage_core", no_start_core)
-    monkeypatch.setattr(refine, "WITNESS_TRIALS", 0 if witness == "off" else 2)
-    out = refine.refine_cameras(list(photos), start, FOCAL, DEPTH_RANGE)
+    monkeypatch.setattr(witness_stage, "witness_mapping", recorded)
+    monkeypatch.setattr(salvage_stage, "salvage_agreed_views", counted)
+    monkeypatch.setattr(confirm, "agreement", only_the_witness)
+    monkeypatch.setattr(salvage_stage, "salvage_core", no_start_core)
+    stages = refine.RefineOptions(
+        witness=refine.WitnessOptions(trials=0 if witness == "off" else 2))
+    out = refine.refine_cameras(list(photos), start, FOCAL, DEPTH_RANGE, refinement=stages)
     if witness == "off":
         assert out is None and not mapped
         return
@@ -1209,10 +1219,11 @@ def test_refine_cameras_asks_a_mapping_where_no_start_agrees_on_enough_views(cor
 def test_only_the_refinement_runs_the_fast_adjustment(corner, monkeypatch):
     """The solve adjusts with ``bundle_adjust`` alone (the teacher store holds its results); the
     refinement's rounds and its witness mapping with ``fast_bundle_adjust`` alone, the witness
-    for ``WITNESS_ITERATIONS``."""
+    for ``WitnessOptions.iterations``."""
     import iris_runtime.cameras.bundle as bundle
     import iris_runtime.cameras.mapper as mapper
     import iris_runtime.cameras.refine as refine
+    from iris_runtime.cameras.refine import confirm, rounds, salvage, witness
     photos, truth, _ = corner
     calls = {"bundle_adjust": 0, "fast_bundle_adjust": 0}
     mapper_iterations = set()
@@ -1227,7 +1238,7 @@ def test_only_the_refinement_runs_the_fast_adjustment(corner, monkeypatch):
             return adjust(*args, **kw)
         return counted
 
-    for module in (mapper, refine):
+    for module in (mapper, rounds):
         for name in calls:
             if hasattr(module, name):
                 monkeypatch.setattr(module, name, counting(name, module))
@@ -1239,24 +1250,26 @@ def test_only_the_refinement_runs_the_fast_adjustment(corner, monkeypatch):
     mapper_iterations.clear()
     # No start agrees and none salvages: the rounds, then the witness, run.
     witnessed = []
-    mapping = refine._witness
-    monkeypatch.setattr(refine, "agreement", lambda *args: 0.0)
-    monkeypatch.setattr(refine, "salvage_core", lambda *args: None)
-    monkeypatch.setattr(refine, "_witness", lambda *args: witnessed.append(1) or mapping(*args))
+    mapping = witness.witness_mapping
+    monkeypatch.setattr(confirm, "agreement", lambda *args: 0.0)
+    monkeypatch.setattr(salvage, "salvage_core", lambda *args: None)
+    monkeypatch.setattr(witness, "witness_mapping",
+                        lambda *args: witnessed.append(1) or mapping(*args))
     refine.refine_cameras(list(photos), _perturbed(truth, np.random.default_rng(4), 6.0), FOCAL,
                           DEPTH_RANGE)
     assert witnessed and calls["fast_bundle_adjust"] > 0 and calls["bundle_adjust"] == 0
-    assert mapper_iterations == set(refine.WITNESS_ITERATIONS)
+    assert mapper_iterations == set(refine.WitnessOptions().iterations)
 
 
 
 def test_the_salvage_and_the_witness_cap_their_pnp_ransac(corner, monkeypatch):
     """The solve's registrations run ``PNP_ITERATIONS``; the refinement's salvage and witness at
-    most ``SALVAGE_PNP_ITERATIONS`` (and fewer where ``confident_iterations`` says so)."""
+    most ``CappedPnP.max_iterations`` (and fewer where ``confident_iterations`` says so)."""
     import cv2
 
     import iris_runtime.cameras.locate as locate
     import iris_runtime.cameras.refine as refine
+    from iris_runtime.cameras.refine import confirm, salvage
     photos, truth, _ = corner
     counts = []
     ransac = cv2.solvePnPRansac
@@ -1270,35 +1283,37 @@ def test_the_salvage_and_the_witness_cap_their_pnp_ransac(corner, monkeypatch):
     assert max(counts) == locate.PNP_ITERATIONS
     counts.clear()
     # No start agrees: the salvage (its core from the witness alone) and the witness run.
-    core = refine.salvage_core
-    monkeypatch.setattr(refine, "agreement", lambda *args: 0.0)
-    monkeypatch.setattr(refine, "salvage_core",
-                        lambda best, witnesses: core(best, witnesses) if len(witnesses) == 1
-                        and witnesses[0].history else None)
+    core = salvage.salvage_core
+    monkeypatch.setattr(confirm, "agreement", lambda *args: 0.0)
+    monkeypatch.setattr(salvage, "salvage_core",
+                        lambda best, witnesses, *options: core(best, witnesses, *options)
+                        if len(witnesses) == 1 and witnesses[0].history else None)
     refine.refine_cameras(list(photos), _perturbed(truth, np.random.default_rng(4), 6.0), FOCAL,
                           DEPTH_RANGE)
-    assert counts and max(counts) <= refine.SALVAGE_PNP_ITERATIONS < locate.PNP_ITERATIONS
+    pnp = refine.CappedPnP()
+    assert counts and max(counts) <= pnp.max_iterations < locate.PNP_ITERATIONS
     # By the cap, a pose that 42% of the correspondences support would have been drawn with the
-    # RANSAC's confidence; one that 41% support not yet (the cap's reason, refine's comment).
-    assert (locate.confident_iterations(100, 42, refine.SALVAGE_PNP)
-            <= refine.SALVAGE_PNP_ITERATIONS
-            < locate.confident_iterations(100, 41, refine.SALVAGE_PNP))
+    # RANSAC's confidence; one that 41% support not yet (the cap's reason, CappedPnP's doc).
+    assert (locate.confident_iterations(100, 42, pnp.method)
+            <= pnp.max_iterations
+            < locate.confident_iterations(100, 41, pnp.method))
 
 def test_refine_cameras_ranks_its_starts_in_the_photos_pixels(corner, monkeypatch):
     """The starts are ranked as the mapper ranks reconstructions (``reprojection_score``), with
     its truncation in the photos' pixels as the solve has it: 3 px at 320 px, 4.8 px on photos
     of 512 px (the corner enlarged twice), not the reference size's 3."""
     import iris_runtime.cameras.refine as refine
+    from iris_runtime.cameras.refine import starts
     from iris_runtime.cameras.two_view import pixel_scale
     photos, truth, _ = corner
     large = [np.repeat(np.repeat(p, 2, axis=0), 2, axis=1) for p in photos]
-    score, seen = refine.reprojection_score, []
+    score, seen = starts.reprojection_score, []
 
     def recorded(rec, tracks, centre, opts):
         seen.append(opts.max_error)
         return score(rec, tracks, centre, opts)
 
-    monkeypatch.setattr(refine, "reprojection_score", recorded)
+    monkeypatch.setattr(starts, "reprojection_score", recorded)
     start = _perturbed(truth, np.random.default_rng(4), degrees=6.0)
     out = refine.refine_cameras(large, start, 2 * FOCAL, DEPTH_RANGE)
     assert out is not None and _pair_errors(out.world_from_cam, truth).max() < 2.0
@@ -1307,12 +1322,14 @@ def test_refine_cameras_ranks_its_starts_in_the_photos_pixels(corner, monkeypatc
 
 
 def test_the_witness_confirms_a_start_only_on_the_views_both_pose(monkeypatch):
-    """``_witnessed`` takes a start the witness agrees with both ways: a start at the true
+    """``witness_verdict`` takes a start the witness agrees with both ways: a start at the true
     cameras that leaves view 1 unposed is not confirmed by a witness that poses all five views
     (on one real set that start left a view with the head's camera), the same start posing every
     view is; with no start confirmed it salvages ``best`` (here: nothing to salvage, None)."""
     import iris_runtime.cameras.refine as refine
     from iris_runtime.cameras.mapper import Reconstruction
+    from iris_runtime.cameras.refine import salvage
+    from iris_runtime.cameras.refine import witness as witness_stage
     truth = np_scenes.cameras(5, 70.0)
     cam = np.linalg.inv(truth)
 
@@ -1323,16 +1340,17 @@ def test_the_witness_confirms_a_start_only_on_the_views_both_pose(monkeypatch):
         return Reconstruction(R, cam[:, :3, 3].copy(), FOCAL, np.array(registered),
                               np.zeros((0, 3)), np.zeros(0, bool), np.zeros((0, 5), bool), (0, 1))
 
-    monkeypatch.setattr(refine, "_salvaged", lambda best, witnesses, *args: None)
+    monkeypatch.setattr(salvage, "salvage_agreed_views", lambda best, witnesses, *args: None)
     witness = rec([True] * 5)
     best = rec([True] * 5, turned=(2, 3))                 # right on the pairs of 0, 1 and 4 only
     partial = rec([True, False, True, True, True])        # right, but view 1 unposed
     assert refine.agreement(partial.R, partial.t, partial.registered, witness.R, witness.t,
                             witness.registered) == 1.0  # one way it agrees on every pair
-    assert refine._witnessed(best, [partial], witness, ()) is None
+    verdict = witness_stage.witness_verdict
+    assert verdict(best, [partial], witness, None, None) is None
     full = rec([True] * 5)
-    assert refine._witnessed(best, [partial, full], witness, ()) is full
-    assert refine._witnessed(best, [full], None, ()) is None
+    assert verdict(best, [partial, full], witness, None, None) is full
+    assert verdict(best, [full], None, None, None) is None
 
 
 def test_agreeing_views_is_the_largest_set_that_agrees_pair_by_pair():
@@ -1392,8 +1410,8 @@ def test_refine_cameras_refuses_bad_input(corner):
     for bad, match in ((start[:5], r"world_from_cam.*\[6, 4, 4\]"),
                        (start[:, :3], r"world_from_cam.*\[6, 4, 4\]"),
                        (nan, "world_from_cam: expected finite"),
-                       (sheared, "world_from_cam: expected rigid"),
-                       (bottom, "world_from_cam: expected rigid")):
+                       (sheared, r"world_from_cam\[1\]: expected a rigid"),
+                       (bottom, r"world_from_cam\[2\]: expected a rigid")):
         with pytest.raises(InputError, match=match):
             refine_cameras(list(photos), bad, FOCAL, DEPTH_RANGE)
     for focal in (0.0, -5.0, np.nan, np.inf, [FOCAL, FOCAL], "230"):

@@ -33,7 +33,7 @@ PNP_MIN_INLIERS = 15
 #: ... and the fraction of its 2D-3D correspondences they must be (COLMAP's default).
 PNP_MIN_INLIER_RATIO = 0.25
 #: RANSAC iterations of the PnP (the solve's; the refinement's salvage and witness run fewer,
-#: ``refine.SALVAGE_PNP_ITERATIONS``).
+#: ``refine.CappedPnP.max_iterations``).
 PNP_ITERATIONS = 1000
 #: Points of known cameras seen under a narrower angle (degrees) carry no depth.
 MIN_TRIANGULATION_ANGLE = 1.5

@@ -55,13 +55,13 @@ class MapperOptions:
     pnp_confident_stop: ... and whether it gives up once a pose would have been found with its
                         confidence (``locate.confident_iterations``; the refinement's witness)
     pnp_iterations:     ... and its iterations at most (``locate.PNP_ITERATIONS``; the witness
-                        runs fewer, ``refine.SALVAGE_PNP_ITERATIONS``)
+                        runs fewer, ``refine.CappedPnP.max_iterations``)
     fast_adjustment:    adjust with ``bundle.fast_bundle_adjust`` (the refinement's witness)
                         instead of ``bundle.bundle_adjust`` (the solve: the teacher store holds
                         its results)
     finish_min_views:   a starting pair's reconstruction that registers fewer views is kept as
                         it stands, without the final adjustments (the refinement's witness: a
-                        mapping of so few views can confirm nothing, ``refine._witness``)
+                        mapping of so few views can confirm nothing, ``refine.witness``)
     """
     init_min_inliers: int = 30
     planar_min_angle: float = 0.5

@@ -14,7 +14,7 @@ import numpy as np
 
 from ..images import camera_copies
 from .features import canonical_order
-from .refine import refine_cameras
+from .refine import RefineOptions, refine_cameras
 from .solve import CameraSolve, solve_cameras
 
 __all__ = ["ModelCameras", "replace_model_cameras", "refine_model_cameras", "canonical_start"]
@@ -48,15 +48,18 @@ def replace_model_cameras(photos, world_from_cam, focal, image_size: tuple[int, 
 
 
 def refine_model_cameras(photos, world_from_cam, focal, image_size: tuple[int, int],
-                         depth_range: tuple[float, float]) -> ModelCameras:
+                         depth_range: tuple[float, float], *,
+                         refinement: RefineOptions | None = None) -> ModelCameras:
     """As ``replace_model_cameras``, but the cameras are ``refine_cameras`` of the photos started
     from the model's: the same photos' copies, the model's focal carried to their pixels. Where
     the refinement cannot constrain the cameras or finds no start to agree with (it returns
-    None), or leaves view 0 (the frame) unposed, the solve replaces them."""
+    None), or leaves view 0 (the frame) unposed, the solve replaces them. ``refinement``: the
+    refinement's settings (default ``RefineOptions()``)."""
     model, model_focal, model_K = _model(world_from_cam, focal, image_size)
     copies, model_from_camera = camera_copies([np.asarray(p) for p in photos], image_size)
     camera_K = np.linalg.inv(model_from_camera) @ model_K
-    solve = refine_cameras(copies, model, float(camera_K[0, 0]), depth_range)
+    solve = refine_cameras(copies, model, float(camera_K[0, 0]), depth_range,
+                           refinement=refinement)
     if solve is None or solve.status[0] == "unposed":
         return _replaced(solve_cameras(copies, depth_range), "epipolar", model, model_focal,
                          model_K, model_from_camera, image_size)

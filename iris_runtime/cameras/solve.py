@@ -21,7 +21,8 @@ from .tracks import Tracks, build_tracks
 from .two_view import (MAX_ERROR, estimate_from_distinct, estimate_two_view, fundamental_matrix,
                        intrinsics, pixel_scale, sampson_distances)
 
-__all__ = ["CameraSolve", "solve_cameras", "check_photos", "check_depth_range", "finish_solve",
+__all__ = ["CameraSolve", "solve_cameras", "check_photos", "check_depth_range", "check_focal",
+           "finish_solve",
            "STATUSES", "DEPTH_TARGET", "FOCAL_PRIORS", "LOCATE_MIN_INLIERS"]
 
 #: Per-view outcome: registered in the joint solve, posed against its points afterwards with the
@@ -112,6 +113,15 @@ def check_depth_range(depth_range) -> tuple[float, float]:
     return near, far
 
 
+def check_focal(focal) -> float:
+    """``focal`` (pixels) as a positive finite float, or ``InputError``: the one check of a
+    given focal, for the solve and the refinement."""
+    if (isinstance(focal, (bool, np.bool_)) or not isinstance(focal, (int, float, np.number))
+            or not np.isfinite(focal) or focal <= 0):
+        raise InputError(f"focal: expected a positive number of pixels, got {focal!r}")
+    return float(focal)
+
+
 def _point_map(rec: Reconstruction, tracks: Tracks, features, perm, k: int) -> PointMap:
     """The reconstruction's valid points and their active observations (views in the caller's
     numbering), their descriptors found in the photos enlarged ``k`` times."""
@@ -176,8 +186,8 @@ def solve_cameras(photos, depth_range: tuple[float, float], *, focal: float | No
     """
     photos = check_photos(photos)
     near, far = check_depth_range(depth_range)
-    if focal is not None and not (np.isfinite(focal) and focal > 0):
-        raise InputError(f"focal: expected a positive number of pixels, got {focal!r}")
+    if focal is not None:
+        focal = check_focal(focal)
     V = len(photos)
     size = photos[0].shape[:2]
     perm = canonical_order(photos)
