@@ -14,8 +14,9 @@ view's translation (the scale, which the images cannot fix).
 
 ``fast_bundle_adjust`` minimises the same cost in the same parameters, with Nielsen's damping
 and fewer numpy calls a step: the refinement of a model's cameras runs it (``refine``). The
-solve keeps ``bundle_adjust`` as it is, because the teacher store (``iris_train.pseudo_poses``)
-holds its results and is rebuilt whenever they could change (docs/CAMERAS.md, "A faster
+solve keeps ``bundle_adjust`` as it is: the teacher store (``iris_train.pseudo_poses``, 8000
+solved scenes) holds its results and would have to be solved again, about 18 hours of one core
+(docs/record/cameras-refactor.md, "One bundle adjuster? Not yet"; docs/CAMERAS.md, "A faster
 adjustment for the refinement").
 """
 from __future__ import annotations
