@@ -163,7 +163,8 @@ def test_healthz(client, rt):
     assert set(render_body["properties"]["quality"]["anyOf"][0]["enum"]) == \
         set(body["model"]["quality_presets"])
     scene_body = body_schema("/scenes", "post", "multipart/form-data")
-    assert scene_body["required"] == ["images"] and scene_body["properties"]["images"]["minItems"] == 2
+    assert scene_body["required"] == ["images"]
+    assert scene_body["properties"]["images"]["minItems"] == 2
     assert "image" in body_schema("/scenes/{scene_id}/locate", "post",
                                   "multipart/form-data")["properties"]
     for path, methods in spec["paths"].items():
@@ -735,8 +736,8 @@ def _request_probes(c, sid: str, photo: bytes) -> list[Probe]:
               "image", "at most 1", "one photo"),
         Probe(413, "too_large", "more than 16 text fields", lambda: scenes(
             photo, photo, **{f"f{i}": "x" for i in range(17)}), "16"),
-        Probe(413, "too_large", "header declares", lambda: scenes(png_header(40_000, 30_000), photo),
-              "images[0]", "40000x30000 = 1200000000", "100000", "--max-photo-pixels"),
+        Probe(413, "too_large", "header declares",
+              lambda: scenes(png_header(40_000, 30_000), photo), "images[0]", "40000x30000 = 1200000000", "100000", "--max-photo-pixels"),
         Probe(413, "too_large", "output over", lambda: rnd(height=5000, width=5000),
               "5000x5000 = 25000000", "at most 4096", "--max-output-pixels"),
         Probe(413, "too_large", "orbit frames over", lambda: c.get(
@@ -786,8 +787,8 @@ def test_documented_error_table(model_dir, tmp_path):
     photo = PHOTOS[0].read_bytes()
     probed = []
     try:
-        with httpx.Client(base_url=srv.url, timeout=120.0,
-                          headers={"Authorization": "Bearer tok"}) as c, ThreadPoolExecutor(3) as ex:
+        with httpx.Client(base_url=srv.url, timeout=120.0, headers={
+                "Authorization": "Bearer tok"}) as c, ThreadPoolExecutor(3) as ex:
             r = c.post("/scenes", files=[("images", (p.name, p.read_bytes(), "image/png"))
                                          for p in PHOTOS[:2]])
             assert r.status_code == 201, r.text
