@@ -766,7 +766,7 @@ def _request_probes(c, sid: str, photo: bytes) -> list[Probe]:
     ]
 
 
-@pytest.mark.filterwarnings("ignore::DeprecationWarning")      # starlette's TestClient on httpx
+@pytest.mark.filterwarnings("ignore:Using `httpx` with `starlette.testclient`")
 def test_documented_error_table(model_dir, tmp_path):
     """Every row of docs/SERVING.md's error table is what a real server answers: a request per
     row (several for some) gets the row's status, type and header, with a message naming the
