@@ -1,12 +1,12 @@
 """What the cameras cost at encode time: ``IrisRuntime.encode`` of 8 photos of 320x240 (and of
 the quickstart's 64x64 sample) on one thread, with the encoder's cameras, with the camera solve
-(``cameras="epipolar"``) and with the encoder's cameras refined by the photos
+(``cameras="solve"``) and with the encoder's cameras refined by the photos
 (``cameras="refined"``). Medians of ``--runs`` wall times after one warm-up, one process.
 
     python benchmarks/encode_cost.py MODEL_DIR                  # an iris-export output
     python benchmarks/encode_cost.py MODEL_DIR --runs 7 --json benchmarks/results/encode_cost.json
     python benchmarks/encode_cost.py MODEL_DIR --set min_trials=2      # a solve setting changed
-    python benchmarks/encode_cost.py MODEL_DIR --heldout --cameras model,epipolar,refined --runs 3
+    python benchmarks/encode_cost.py MODEL_DIR --heldout --cameras model,solve,refined --runs 3
     python benchmarks/encode_cost.py MODEL_DIR --heldout --eval-heldout --cameras refined --runs 3
 
 ``--heldout`` adds the 16 held-out synthetic scenes at the model's 64x64 (rendered at 256x256
@@ -72,7 +72,7 @@ def photo_sets(heldout: bool = False, eval_heldout: bool = False) -> dict:
 
 
 def measure(model_dir: str, runs: int, settings: list[str] = (),
-            modes: tuple[str, ...] = ("model", "epipolar", "refined"),
+            modes: tuple[str, ...] = ("model", "solve", "refined"),
             heldout: bool = False, eval_heldout: bool = False) -> dict:
     import cv2
 
@@ -142,7 +142,7 @@ def main(argv=None) -> int:
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
                     help="a solve setting changed, as scripts/camera_study.py --set")
-    ap.add_argument("--cameras", default="model,epipolar,refined",
+    ap.add_argument("--cameras", default="model,solve,refined",
                     help="comma-separated camera modes of encode (default: all three)")
     ap.add_argument("--heldout", action="store_true",
                     help="add the 16 held-out scenes at 64x64, with RPA@15 against true cameras")

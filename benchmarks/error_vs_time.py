@@ -13,7 +13,7 @@ in subprocesses, ``python -m benchmarks.evt.child``):
 - knobs:   held-out scenes (``iris_train.data.HELDOUT_SEEDS``, 8 frames, targets
            ``evaluate.TARGET_FRAMES``, the others references; all frames encoded, targets rendered
            from ``Scene.subset(refs)`` at their predicted poses; every row encodes with the camera
-           head's cameras, ``encode(cameras="model")``, since torch has no epipolar solve and
+           head's cameras, ``encode(cameras="model")``, since torch has no camera solve and
            the cameras do not change the renderer's work). Every knob against the torch
            eager reference (``IrisModel.render``, as installed and with tcmalloc preloaded) and
            the full ORT runtime. Seconds per target frame (median of ``--runs`` timed renders after

@@ -10,6 +10,8 @@ from __future__ import annotations
 import argparse
 import sys
 
+from iris_runtime.manifest import CAMERAS, camera_name
+
 from .io_spec import DEFAULT_OPSET, MIN_OPSET
 
 EXIT_VALIDATION = 1
@@ -38,12 +40,12 @@ def build_parser() -> argparse.ArgumentParser:
                              "'reference' (the model's render_samples traced as is) or "
                              "'fast-contrib' (fast with com.microsoft fused ops, slower here); "
                              "see export/fast_renderer.py and docs/PERFORMANCE.md")
-    parser.add_argument("--cameras", choices=["model", "epipolar", "refined"], default=None,
+    parser.add_argument("--cameras", type=camera_name, choices=list(CAMERAS), default=None,
                         help="the runtime's default cameras, recorded in iris.json (default: "
-                             "'refined' where the renderer was trained with 'epipolar' and the "
+                             "'refined' where the renderer was trained with 'solve' and the "
                              "camera head distilled from the solve, else the ones the renderer "
                              "was trained with); 'refined' (the camera head's refined by the "
-                             "photos) over a renderer trained with 'epipolar'")
+                             "photos) over a renderer trained with 'solve'")
     parser.add_argument("--force", action="store_true", help="replace an existing OUT_DIR")
     parser.add_argument("--quick", action="store_true",
                         help="smaller validation probes and timing runs (tests, smoke checks)")

@@ -19,6 +19,7 @@ from pathlib import Path
 import onnx
 
 from iris_runtime.fileio import sha256_file
+from iris_runtime.manifest import camera_name
 from iris_runtime.validation import check_integer
 from iris_train.model import CheckpointError, IrisModel, load_model, read_checkpoint, trained_cameras
 
@@ -66,19 +67,19 @@ def _publish(tmp: Path, out_dir: Path, force: bool) -> None:
 
 def _default_cameras(cameras: str | None, trained: str, distilled: bool = False) -> str:
     """The manifest's "cameras": ``cameras`` when given (the trained ones, or "refined" over a
-    renderer trained with "epipolar"); else "refined" over a renderer trained with "epipolar"
+    renderer trained with "solve"); else "refined" over a renderer trained with "solve"
     whose camera head was ``distilled`` from the solve's cameras (``scripts/head_distill.py``: a
     head trained to start the refinement, which is then as accurate as the solve in a fraction
     of its time, docs/CAMERAS.md), else ``trained``; ``ExportArgumentError`` otherwise."""
     if cameras is None:
-        return "refined" if distilled and trained == "epipolar" else trained
+        return "refined" if distilled and trained == "solve" else trained
     if cameras == trained:
         return trained
-    if cameras == "refined" and trained == "epipolar":
+    if cameras == "refined" and trained == "solve":
         return cameras
     raise ExportArgumentError(f"cameras: this renderer was trained with {trained!r} cameras, so "
                               f"the default can be {trained!r}"
-                              + (" or 'refined'" if trained == "epipolar" else "")
+                              + (" or 'refined'" if trained == "solve" else "")
                               + f", not {cameras!r}")
 
 
@@ -98,9 +99,9 @@ def export_model(model_or_ckpt: IrisModel | str | os.PathLike, out_dir: str | os
     to stderr. ``quick`` shrinks the validation probes (tests); ``threads`` sets the intra-op
     threads of ONNX Runtime and torch during validation (see ``export.validate.validate``).
     ``cameras``: the manifest's "cameras", the runtime's default (None: "refined" where the
-    renderer was trained with "epipolar" and the checkpoint's camera head distilled from the
+    renderer was trained with "solve" and the checkpoint's camera head distilled from the
     solve, else the cameras the renderer was trained with, ``trained_cameras``); "refined" (the
-    camera head's refined by the photos) only for a renderer trained with "epipolar", whose unit
+    camera head's refined by the photos) only for a renderer trained with "solve", whose unit
     the refinement gives.
     ``renderer``: which renderer graph to write (``export.fast_renderer.RENDERER_KINDS``):
     "fast" (the default) or "fast-contrib" (``FastRendererGraph``: same I/O and values, laid
@@ -142,7 +143,7 @@ def export_model(model_or_ckpt: IrisModel | str | os.PathLike, out_dir: str | os
         source = {"checkpoint": ckpt.name, "sha256": sha256_file(ckpt)}
         payload = read_checkpoint(ckpt)
         trained, distilled = trained_cameras(payload), "distill" in payload
-    cameras = _default_cameras(cameras, trained, distilled)
+    cameras = _default_cameras(camera_name(cameras), trained, distilled)
     was_training = model.training
     model.eval()
 

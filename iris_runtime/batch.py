@@ -41,7 +41,7 @@ from pathlib import Path
 from . import cli
 from .errors import InputError, IrisError
 from .fileio import atomic_write_json
-from .manifest import CAMERAS
+from .manifest import CAMERAS, camera_name
 from .quality import QUALITY_PRESETS
 
 __all__ = ["SceneRenderer", "find_scenes", "render_argv", "write_scene", "main"]
@@ -211,7 +211,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--fps", type=cli._positive, default=24, help="orbit.mp4 frame rate")
     p.add_argument("--quality", choices=list(QUALITY_PRESETS), default=None,
                    help="speed/error preset (default: the model's, as iris-render)")
-    p.add_argument("--cameras", choices=list(CAMERAS), default=None,
+    p.add_argument("--cameras", type=camera_name, choices=list(CAMERAS), default=None,
                    help="cameras of the inputs (default: the model's manifest)")
     p.add_argument("--precision", choices=["float32", "int8"], default="float32")
     p.add_argument("--providers", type=cli.providers_arg, default=None, metavar="A,B",

@@ -14,8 +14,8 @@ A thin command line over ``IrisRuntime``. It encodes the input images once, then
   written to ``located_poses.json`` and rendered from the inputs as ``located_NNN``;
 - nothing of the above: every input view (``--view`` 0..V-1).
 
-``--cameras epipolar`` replaces the model's predicted cameras of the inputs by the camera solve of
-the photos at their own resolution (``IrisRuntime.encode(images, cameras="epipolar")``,
+``--cameras solve`` replaces the model's predicted cameras of the inputs by the camera solve of
+the photos at their own resolution (``IrisRuntime.encode(images, cameras="solve")``,
 ``iris_runtime.cameras``: SIFT matches, two-view model selection, incremental mapping with bundle
 adjustment of poses and focal, the scene's median depth put in the middle of the renderer's depth
 range); every output (renders, ``--view`` poses, orbit, camera files) then uses those cameras and
@@ -40,7 +40,7 @@ Written to OUT (created if needed; files of the same name are replaced):
   intrinsics are in pixels of these model-resolution images;
 - ``cameras.png``: a picture of those predicted cameras (frustums with their view indices, from
   above; ``iris_runtime.camera_plot.draw_cameras``), written whenever the inputs are encoded;
-- ``cameras.json``: where the cameras come from (``source``: "model", "epipolar" or "mixed"),
+- ``cameras.json``: where the cameras come from (``source``: "model", "solve" or "mixed"),
   ``solved_at`` [H, W] the resolution of the photos they were solved at (null for the model's),
   ``status`` per view ("solved", "located", "unposed"; null for the model's), ``focal`` [fx/W,
   fy/H] at the model's resolution and the model's own ``encoder_focal`` and
@@ -62,7 +62,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .manifest import CAMERAS
+from .manifest import CAMERAS, camera_name
 from .quality import PRECISIONS, QUALITY_PRESETS
 
 if TYPE_CHECKING:
@@ -148,7 +148,7 @@ def build_parser() -> argparse.ArgumentParser:
                              "the scene): printed, written to located_poses.json (4x4 "
                              "world_from_cam each) and rendered as located_NNN; give it after "
                              "IMAGES")
-    p.add_argument("--cameras", choices=list(CAMERAS), default=None,
+    p.add_argument("--cameras", type=camera_name, choices=list(CAMERAS), default=None,
                    help="cameras of the inputs: the model's prediction or the camera solve of "
                         "the photos at their own resolution, scaled to the renderer's depth range "
                         "(views it cannot pose keep the model's camera, reported). Default: the "
@@ -320,7 +320,7 @@ def _encode(req: _Request, args: argparse.Namespace, say, t_load: float):
     if (args.cameras or rt.default_cameras) != "model":
         unposed = [i for i, st in enumerate(scene.camera_status or ()) if st == "unposed"]
         say(f"cameras of the inputs: {scene.camera_source}"
-            + {"epipolar": f" (every view solved from the photos at {_hw_text(scene.camera_size)})",
+            + {"solve": f" (every view solved from the photos at {_hw_text(scene.camera_size)})",
                "refined": f" (every view's camera refined by the photos at "
                           f"{_hw_text(scene.camera_size)})",
                "mixed": f" (solved at {_hw_text(scene.camera_size)}; views {unposed} could not be "

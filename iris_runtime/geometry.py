@@ -41,7 +41,7 @@ CUE_EPS = 1e-4
 def intrinsics_from_focal(focal, height: int, width: int) -> np.ndarray:
     """``K [3, 3]`` in pixels from a normalised focal, principal point at the image centre: the
     model's ``[fx/W, fy/H]``, or one number fx/W for square pixels (fy = fx in pixels, the focal
-    of the epipolar solve)."""
+    of the camera solve)."""
     focal = np.asarray(focal)
     K = np.zeros((3, 3), dtype=np.result_type(focal.dtype, np.float32))
     K[0, 0] = focal[0] * width if focal.ndim else focal * width

@@ -76,16 +76,29 @@ class Manifest:
     #: config.explicit_rgb: the renderer takes ``colours`` (the reference RGB at the samples).
     explicit_rgb: bool = False
     #: The cameras the renderer was trained with, and so ``IrisRuntime.encode``'s default:
-    #: "model" (the camera head's) or "epipolar" (``iris-train --render-cameras epipolar``).
+    #: "model" (the camera head's), "solve" (``iris-train --render-cameras solve``) or "refined".
     #: Optional in the file; "model" when absent (every model exported before it existed).
     cameras: str = "model"
 
 
-#: The cameras a renderer can be given: the encoder's ("model") or the camera solve of the photos
-#: ("epipolar", ``iris_runtime.cameras.replace_model_cameras``). The values of the manifest's
-#: optional "cameras" (``Manifest.cameras``), of ``IrisRuntime.encode(cameras=...)`` and of
-#: ``iris-train --render-cameras``.
-CAMERAS = ("model", "epipolar", "refined")
+#: The cameras a renderer can be given: the encoder's ("model"), the camera solve of the photos
+#: ("solve": SIFT matches, incremental mapping and bundle adjustment,
+#: ``iris_runtime.cameras.replace_model_cameras``) or the encoder's refined by the photos
+#: ("refined", ``iris_runtime.cameras.refine_model_cameras``). The values of the manifest's
+#: optional "cameras" (``Manifest.cameras``), of ``IrisRuntime.encode(cameras=...)``, of the
+#: command lines' ``--cameras`` and of ``iris-train --render-cameras``.
+CAMERAS = ("model", "solve", "refined")
+#: Former names of those cameras, the one place they are kept: wherever a name is read (a
+#: manifest, ``encode``, a command line, a request, a checkpoint's training config) it goes
+#: through ``camera_name``, so that old manifests, requests and checkpoints keep working.
+#: "epipolar": the solve's name until 2026-12-06.
+CAMERA_ALIASES = {"epipolar": "solve"}
+
+
+def camera_name(value):
+    """``value`` read as a name of ``CAMERAS``: a former name (``CAMERA_ALIASES``) as its current
+    one, anything else as given (the caller checks it against ``CAMERAS``)."""
+    return CAMERA_ALIASES.get(value, value) if isinstance(value, str) else value
 
 
 def read_graph_bytes(entry: GraphEntry) -> bytes:
@@ -328,7 +341,7 @@ def read_manifest(model_dir: str | os.PathLike, *, verify_hashes: bool = True) -
                                 f"but config.explicit_rgb is not true (a renderer without explicit "
                                 f"colour takes no reference RGB)")
 
-    cameras = doc.get("cameras", "model")
+    cameras = camera_name(doc.get("cameras", "model"))
     if cameras not in CAMERAS:
         raise ManifestError(f"{path}: 'cameras' must be one of {list(CAMERAS)}, got "
                             f"{cameras!r}")

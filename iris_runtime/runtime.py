@@ -49,7 +49,8 @@ from .images import fit_to_model, load_image
 from .io_spec import FIELD_MAPS, FOCAL, IMAGES, IS_REFERENCE, WORLD_FROM_CAM
 from .limits import (MAX_CHUNK_RAYS, MAX_CHUNK_SAMPLES, MAX_ENCODER_TOKENS, MAX_LOCATE_CALLS,
                      MAX_OUTPUT_PIXELS, RENDER_BUDGET, render_memory_bound)
-from .manifest import CAMERAS, MANIFEST_NAME, Manifest, read_graph_bytes, read_manifest
+from .manifest import (CAMERAS, MANIFEST_NAME, Manifest, camera_name, read_graph_bytes,
+                       read_manifest)
 from .quality import PRECISIONS, QUALITY_PRESETS, RenderSettings
 from .scene import CAMERA_SOURCES, RenderJob, RenderResult, Scene, check_pose
 from .validation import check_intrinsics
@@ -325,8 +326,8 @@ class IrisRuntime:
 
     @property
     def default_cameras(self) -> str:
-        """``encode``'s cameras when none are asked for: the manifest's "cameras" ("epipolar" for
-        a model trained by ``iris-train --render-cameras epipolar``, "refined" where its camera
+        """``encode``'s cameras when none are asked for: the manifest's "cameras" ("solve" for
+        a model trained by ``iris-train --render-cameras solve``, "refined" where its camera
         head was then distilled from the solve, as the shipped model's, else "model")."""
         return self.manifest.cameras
 
@@ -339,7 +340,7 @@ class IrisRuntime:
         cameras: None (default): ``default_cameras``, the cameras this model's renderer was
                  trained with (the manifest's "cameras").
                  "model": the encoder's predicted cameras and focal.
-                 "epipolar": the field maps are the encoder's as always, but the cameras are
+                 "solve": the field maps are the encoder's as always, but the cameras are
                  solved from the photos themselves at their own resolution (a copy at most
                  ``images.CAMERA_WORKING_SIZE`` on the longer side, ``images.camera_copies``)
                  by ``iris_runtime.cameras.solve_cameras``: SIFT matches across every pair,
@@ -355,7 +356,7 @@ class IrisRuntime:
                  (``camera_status`` "unposed", ``camera_source`` "mixed"; all of them, and
                  ``camera_source`` "model", when view 0 is not posed, since it defines the
                  frame). Cost and accuracy: docs/CAMERAS.md.
-                 "refined": as "epipolar", but the encoder's cameras and focal are the start of
+                 "refined": as "solve", but the encoder's cameras and focal are the start of
                  one bundle adjustment on the same matches (``cameras.refine_cameras``: no
                  incremental mapper, a fraction of the solve's time) instead of being replaced;
                  ``camera_source`` "refined". The start is the encoder's prediction with the
@@ -364,7 +365,7 @@ class IrisRuntime:
                  photos come in. Where the photos cannot constrain the cameras
                  (fewer than two views keep enough observations), view 0 is not refined, or the
                  adjustment from no other start agrees with the one kept (a wrong minimum,
-                 ``cameras.refine.MIN_AGREEMENT``), the solve replaces them as with "epipolar".
+                 ``cameras.refine.AgreementOptions``), the solve replaces them as with "solve".
                  As accurate as the encoder's start is close (docs/CAMERAS.md, "Refining the
                  model's cameras").
         """
@@ -373,6 +374,7 @@ class IrisRuntime:
 
     @staticmethod
     def _check_cameras(cameras) -> str:
+        cameras = camera_name(cameras)          # a former name (manifest.CAMERA_ALIASES) too
         if not isinstance(cameras, str) or cameras not in CAMERAS:
             raise InputError(f"cameras: expected one of {list(CAMERAS)}, got {cameras!r}")
         return cameras
@@ -434,7 +436,7 @@ class IrisRuntime:
         its first reference is the identity; the scene's shared focal applies).
 
         For a Scene whose cameras were solved from its photos (``Scene.camera_solve``, from
-        ``cameras="epipolar"``) the pose is solved the same way, with the scene's cameras held
+        ``cameras="solve"``) the pose is solved the same way, with the scene's cameras held
         fixed: the photo, at its own resolution brought to ``Scene.camera_size`` (a centre crop
         when its aspect differs: it is taken to come from the same camera), is matched against
         the scene's points and posed by PnP (``iris_runtime.cameras.locate_photos``), in the

@@ -22,7 +22,7 @@ if TYPE_CHECKING:
 __all__ = ["Scene", "RenderResult", "check_pose", "CAMERA_SOURCES", "CAMERA_STATUSES"]
 
 #: Values of ``Scene.camera_source``.
-CAMERA_SOURCES = ("model", "epipolar", "refined", "mixed")
+CAMERA_SOURCES = ("model", "solve", "refined", "mixed")
 #: Values of ``Scene.camera_status`` (``iris_runtime.cameras.STATUSES``).
 CAMERA_STATUSES = ("solved", "located", "unposed")
 
@@ -58,12 +58,12 @@ class Scene:
                     read each view's photo. Default: ``arange(V)`` when there are V reference
                     images, else None (unknown; explicit-colour renders refuse such a Scene)
     camera_source:  where ``world_from_cam`` comes from: "model" (the encoder's prediction),
-                    "epipolar" (``encode(..., cameras="epipolar")``: every view from the camera
+                    "solve" (``encode(..., cameras="solve")``: every view from the camera
                     solve of the photos, ``iris_runtime.cameras.solve_cameras``) or "mixed" (the
                     solve could not pose some views; they keep the model's camera, see
                     ``camera_status``). ``subset`` keeps the value of the scene it was cut from
     encoder_focal:  float64 [2], the focal the encoder predicted when ``focal`` is another one
-                    (``cameras="epipolar"`` puts the solved focal in ``focal`` and ``K``); None
+                    (``cameras="solve"`` puts the solved focal in ``focal`` and ``K``); None
                     when ``focal`` is the encoder's. ``locate`` checks the reference images
                     against it
     camera_size:    (H, W) of the photos the cameras were solved at (their own resolution, at

@@ -1,7 +1,7 @@
 """The batches of an ``iris-train`` step: random scenes, a random subset of their views in random
 order (view 0 of that order is the canonical frame), split at random into reference and target
 views, random target pixels and stratified sample depths (``draw_batch``); with the run's
-cameras from the epipolar solve, only solved views and their cameras (``draw_solved``). One
+cameras from the camera solve, only solved views and their cameras (``draw_solved``). One
 ``numpy`` generator draws everything, so a batch is a function of the generator's seed.
 """
 from __future__ import annotations

@@ -163,8 +163,8 @@ class TrainConfig:
     teacher_focal_weight: float = 0.1         # ... log focal
     teacher_scenes: int = 0           # extra scenes per step encoded (all views) for the teacher only
     # Cameras the renderer is trained with: "model" (the camera head's, trained through the
-    # render), or "epipolar" (each scene's cached whole-scene epipolar solve,
-    # ``pseudo_poses.load_or_solve``: what ``IrisRuntime.encode(cameras="epipolar")`` gives the
+    # render), or "solve" (each scene's cached whole-scene camera solve, "epipolar" its former
+    # name; ``pseudo_poses.load_or_solve``: what ``IrisRuntime.encode(cameras="solve")`` gives the
     # renderer at inference; views the solve cannot pose are not drawn). The camera head is then
     # distilled on the same cameras (``solve_*_weight``); no label is read either way.
     render_cameras: str = "model"
@@ -184,7 +184,7 @@ class TrainConfig:
     # beside the classic scenes with equal probability per scene (docs/DATA.md).
     capture_scenes: int = 0
     # The classic scenes rendered at this square size (0: the model's) and brought to the
-    # model's by area averaging, so that the camera solve of ``render_cameras="epipolar"`` sees
+    # model's by area averaging, so that the camera solve of ``render_cameras="solve"`` sees
     # photos at a photo's resolution, as at inference, not the model's thumbnails.
     classic_render_size: int = 0
     # The renderer's reference colours and target pixels at this square size (0: the model's):

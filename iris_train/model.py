@@ -355,9 +355,10 @@ def trained_cameras(payload: dict) -> str:
     """The cameras a checkpoint's renderer was trained with (``TrainConfig.render_cameras``, one
     of ``iris_runtime.manifest.CAMERAS``; "model" for checkpoints without a training config).
     The exported manifest records it as the runtime's default ``cameras``."""
-    from iris_runtime.manifest import CAMERAS
+    from iris_runtime.manifest import CAMERAS, camera_name
     train_config = payload.get("train_config")
-    value = train_config.get("render_cameras", "model") if isinstance(train_config, dict) else "model"
+    value = camera_name(train_config.get("render_cameras", "model")
+                        if isinstance(train_config, dict) else "model")
     if value not in CAMERAS:
         raise CheckpointError(f"train_config.render_cameras: expected one of {list(CAMERAS)}, "
                               f"got {value!r}")

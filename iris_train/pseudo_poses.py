@@ -1,5 +1,5 @@
 """Pseudo-poses: the cameras of a training scene from its photos alone (no labels), the teacher
-of the camera head and the cameras ``iris-train --render-cameras epipolar`` renders with.
+of the camera head and the cameras ``iris-train --render-cameras solve`` renders with.
 
 The photometric loss alone leaves the camera head in a long valley (a small rotation and a small
 sideways translation move a 64x64 image alike; docs/TRAINING.md). Multi-view geometry has no
@@ -11,7 +11,7 @@ and the focal carried to the training size. Two products, both cached beside the
 
 - ``SolvedCameras`` (``load_or_solve``): every view's ``world_from_cam`` in view 0's frame, in
   the renderer's unit (the scene's median point depth ``DEPTH_TARGET`` into [near, far], what
-  ``IrisRuntime.encode(cameras="epipolar")`` gives the renderer at inference);
+  ``IrisRuntime.encode(cameras="solve")`` gives the renderer at inference);
 - ``PseudoPoses`` (``load_or_estimate``): the same cameras as relative poses of every pair
   (unit translation, "trusted" where both views are posed), for the teacher losses.
 
@@ -380,7 +380,7 @@ def main(argv=None) -> int:
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--solve", action="store_true",
                         help="with --train: cache the solved scene cameras (what iris-train "
-                             "--render-cameras epipolar renders with) instead of the pair teacher")
+                             "--render-cameras solve renders with) instead of the pair teacher")
     parser.add_argument("--pack", action="store_true",
                         help="with --solve: gather the solved cameras of every whole block of "
                              f"{STORE_BLOCK} seeds into data/teacher/ (kept in the repository)")

@@ -9,8 +9,8 @@ photometric MSE. AdamW with linear warm-up and cosine decay; the encoder and cam
     iris-train --preset tiny --steps 20000 --out runs/tiny
     torchrun --nproc_per_node=2 -m iris_train.train --preset tiny --steps 100 --out runs/ddp
 
-``--render-cameras epipolar`` renders with each training scene's whole-scene epipolar solve
-(``pseudo_poses.load_or_solve``, the cameras ``IrisRuntime.encode(cameras="epipolar")`` gives the
+``--render-cameras solve`` renders with each training scene's whole-scene camera solve
+(``pseudo_poses.load_or_solve``, the cameras ``IrisRuntime.encode(cameras="solve")`` gives the
 renderer at inference) instead of the head's, and distils the head on the same cameras; with
 ``--init CKPT`` it fine-tunes a trained model (models/README.md has the command of the shipped one).
 
@@ -40,7 +40,7 @@ import torch.distributed as dist
 import torch.nn as nn
 
 from iris_runtime.errors import InputError
-from iris_runtime.manifest import CAMERAS
+from iris_runtime.manifest import CAMERAS, camera_name
 
 from . import pseudo_poses
 from .batches import draw_batch
@@ -200,11 +200,12 @@ def train(cfg: TrainConfig, out: Path, resume: bool = False, scenes=None, thread
     if scenes is None:
         scenes = training_scenes(cfg, mcfg)
     colour_scenes = colour_size_scenes(cfg) if cfg.colour_size else None
-    if cfg.render_cameras not in CAMERAS[:2]:        # "refined" needs a trained head first
+    render_cameras = camera_name(cfg.render_cameras)     # "epipolar": the former "solve"
+    if render_cameras not in CAMERAS[:2]:        # "refined" needs a trained head first
         raise ValueError(f"render_cameras: expected one of {CAMERAS[:2]}, got "
                          f"{cfg.render_cameras!r}")
     teachers = solutions = None
-    if cfg.render_cameras == "epipolar":
+    if render_cameras == "solve":
         depth_range = (mcfg.near, mcfg.far)
         solutions = per_scene(scenes, lambda sc, i: pseudo_poses.load_or_solve(sc, i, depth_range),
                                lambda images: pseudo_poses.solve_scene(images, depth_range))

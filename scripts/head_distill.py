@@ -5,7 +5,7 @@
 
 Each step draws ``--batch`` training scenes with their cached solved cameras
 (``iris_train.pseudo_poses.load_or_solve``, the teacher of ``iris-train --render-cameras
-epipolar``; no camera label is read), 4-8 of their solved views in random order (view 0 of the
+solve``; no camera label is read), 4-8 of their solved views in random order (view 0 of the
 order is the canonical frame), encodes them all as references and minimises
 ``iris_train.losses.solve_losses`` (rotation ``1 - cos``, squared centre distance, squared log
 focal; weights 10, 10, 1 as in F1's distillation). Only the camera head and the encoder it reads

@@ -5,7 +5,7 @@
 Left: training PSNR of the learned renderer (its own term when the log has per-term values, else
 the whole loss). Right, for runs with the epipolar teacher: the teacher's rotation term as an
 angle (arccos(1 - loss), degrees) and its translation-direction term; for runs on the solved
-cameras (``--render-cameras epipolar``) the head's rotation against them and the centre term. Curves are smoothed with a
+cameras (``--render-cameras solve``) the head's rotation against them and the centre term. Curves are smoothed with a
 moving average over 10 log rows.
 """
 from __future__ import annotations
@@ -47,7 +47,7 @@ def main() -> None:
             ax2.plot(s, 10 * _smooth([r["terms"]["teacher_dir"] for r in rows]),
                      label=f"{log.name}: direction term x10")
         if rows and "solve_rot" in rows[0].get("terms", {}):
-            # --render-cameras epipolar: the head against the scene's solved cameras.
+            # --render-cameras solve: the head against the scene's solved cameras.
             rot = [math.degrees(math.acos(max(-1.0, 1 - r["terms"]["solve_rot"]))) for r in rows]
             ax2.plot(s, _smooth(rot), label=f"{log.name}: rotation vs solve (deg)")
             ax2.plot(s, 100 * _smooth([r["terms"]["solve_trans"] for r in rows]),

@@ -23,7 +23,7 @@ echo "== 2/2 render $SCENE with the torch-free runtime"
 # Re-render frames 1, 4 and 6 from their poses, plus a 24-frame orbit video, at the photos'
 # 256x256 (the model sees 64x64; the colour comes from the photos at their size). The cameras are the
 # manifest's default: the camera head's refined on the photos into the terms of the solve the
-# renderer was trained with (docs/CAMERAS.md); IRIS_CAMERAS=epipolar runs the solve itself,
+# renderer was trained with (docs/CAMERAS.md); IRIS_CAMERAS=solve runs the solve itself,
 # IRIS_CAMERAS=model takes the head's as they are.
 .venv/bin/iris-render "$OUT/model" "$SCENE"/frame_*.png -o "$OUT/render" \
   --view 1 --view 4 --view 6 --orbit 24 --size "$SIZE" ${IRIS_CAMERAS:+--cameras "$IRIS_CAMERAS"}

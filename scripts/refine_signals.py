@@ -17,7 +17,7 @@ the seconds; then with ``min_share = 0`` (the chosen
 start's cameras, whatever the check says) and with ``StartOptions.kinds`` one start at a time (each start's
 own end; a start that leaves view 0 unposed is handed to the solve by the runtime and has no
 RPA of its own). Where the set has true cameras: RPA@15 of each, of the cameras as shipped and
-of the solve (``"epipolar"``, unless ``--no-solve``).
+of the solve (``"solve"``, unless ``--no-solve``).
 """
 from __future__ import annotations
 
@@ -96,7 +96,7 @@ def scene_signals(rt: IrisRuntime, photos, truth, solve: bool) -> dict:
                          if e.camera_source == "refined"}
     if solve:
         t0 = time.perf_counter()
-        solved = rt.encode(photos, cameras="epipolar")
+        solved = rt.encode(photos, cameras="solve")
         row["solve_seconds"] = time.perf_counter() - t0
         if truth is not None:
             row["solve_rpa@15"] = rpa(solved.world_from_cam, truth)

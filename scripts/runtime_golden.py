@@ -3,7 +3,7 @@
 A refactor of ``iris_runtime`` must not change a single output bit. This script renders a fixed set
 of cases through the public API (every quality preset, top-k by ray and by point, odd chunk sizes,
 a resized and a rescaled output, explicit intrinsics, a pose that sees nothing, ``locate`` and the
-epipolar cameras) and either writes them to an ``.npz`` or compares against one::
+solve's cameras) and either writes them to an ``.npz`` or compares against one::
 
     python scripts/runtime_golden.py MODEL_DIR --write before.npz     # on the old code
     python scripts/runtime_golden.py MODEL_DIR --check before.npz     # on the new code
@@ -25,7 +25,7 @@ def cases(model_dir: str, threads: int = 1) -> dict[str, np.ndarray]:
     h, w = rt.image_size
     rng = np.random.default_rng(0)
     images = rng.random((4, h, w, 3), dtype=np.float32)
-    # A smooth pattern, so that epipolar matching has something to match.
+    # A smooth pattern, so that the camera solve has something to match.
     yy, xx = np.mgrid[0:h, 0:w] / max(h, w)
     for i in range(4):
         images[i, ..., 0] = 0.5 + 0.5 * np.sin(9 * (xx + 0.03 * i) + 3 * yy)
@@ -61,11 +61,11 @@ def cases(model_dir: str, threads: int = 1) -> dict[str, np.ndarray]:
     out["from_images.image"] = rt.render(images, pose)
     out["locate"] = rt.locate(scene, images[3])
     try:
-        epi = rt.encode(images, cameras="epipolar")
-        out["epipolar.world_from_cam"] = np.asarray(epi.world_from_cam)
-        out["epipolar.image"] = rt.render(epi, np.asarray(epi.world_from_cam[1]))
+        epi = rt.encode(images, cameras="solve")
+        out["solve.world_from_cam"] = np.asarray(epi.world_from_cam)
+        out["solve.image"] = rt.render(epi, np.asarray(epi.world_from_cam[1]))
     except Exception as exc:                              # recorded, so the check compares it too
-        out["epipolar.error"] = np.array(type(exc).__name__)
+        out["solve.error"] = np.array(type(exc).__name__)
     return out
 
 

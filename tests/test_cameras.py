@@ -1,7 +1,7 @@
 """iris_runtime.cameras: each step of the camera solve against exact geometry, and the whole solve
 on a ray-cast scene with true cameras (numpy + OpenCV only, torch-free).
 
-The runtime's use of it (``IrisRuntime.encode(cameras="epipolar")``, ``locate``, iris-render,
+The runtime's use of it (``IrisRuntime.encode(cameras="solve")``, ``locate``, iris-render,
 iris-eval) is tested in tests/test_cameras_runtime.py."""
 from __future__ import annotations
 
@@ -1114,7 +1114,7 @@ def test_refine_cameras_falls_back_where_no_other_start_agrees(corner):
     H, W = SIZE
     cams = refine_model_cameras(list(photos), start, [FOCAL / W, FOCAL / H], SIZE, DEPTH_RANGE,
                                 refinement=unreachable)
-    assert cams.source == "epipolar"
+    assert cams.source == "solve"
     np.testing.assert_array_equal(cams.world_from_cam, solved.world_from_cam)
     model_only = refine.RefineOptions(starts=refine.StartOptions(kinds=("model",)),
                                       agreement=unreachable.agreement,
@@ -1389,7 +1389,7 @@ def test_refine_cameras_reports_what_the_photos_cannot_constrain(corner):
     H, W = SIZE
     cams = refine_model_cameras(list(photos), collapsed, [FOCAL / W, FOCAL / H], SIZE,
                                 DEPTH_RANGE)
-    assert cams.source == "epipolar"
+    assert cams.source == "solve"
     np.testing.assert_array_equal(cams.world_from_cam, solved.world_from_cam)
     refined = refine_model_cameras(list(photos), start, [FOCAL / W, FOCAL / H], SIZE,
                                    DEPTH_RANGE)

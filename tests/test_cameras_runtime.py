@@ -1,5 +1,5 @@
 """The camera solve inside the runtime: the intrinsics carried from the photos to the model's
-resolution, ``IrisRuntime.encode(images, cameras="epipolar")`` and ``locate`` on photos at their
+resolution, ``IrisRuntime.encode(images, cameras="solve")`` and ``locate`` on photos at their
 own resolution, the Scene's record of them, iris-render's ``--cameras`` and iris-eval's torch
 backend."""
 from __future__ import annotations
@@ -122,10 +122,10 @@ def test_runtime_solves_the_cameras_on_the_photos_at_their_own_resolution(corner
     H, W = rt.image_size
     images = list(photos)
     model = rt.encode(images, cameras="model")
-    epi = rt.encode(images, cameras="epipolar")
+    epi = rt.encode(images, cameras="solve")
     assert model.camera_source == "model" and model.camera_size is None
     assert model.camera_status is None and model.camera_solve is None
-    assert epi.camera_source == "epipolar" and epi.camera_size == SIZE
+    assert epi.camera_source == "solve" and epi.camera_size == SIZE
     assert epi.camera_status == ("solved",) * 6 and "camera_size=(192, 256)" in repr(epi)
     np.testing.assert_array_equal(epi.field_maps, model.field_maps)     # the encoder's, as always
     np.testing.assert_array_equal(epi.encoder_focal, model.focal)
@@ -292,26 +292,30 @@ def test_default_cameras_follow_the_manifest(corner, model_dir, tmp_path):
     shutil.copytree(model_dir, d)
     doc = json.loads((d / "iris.json").read_text())
     assert doc["cameras"] == "model"                  # a random model: no training config
-    doc["cameras"] = "epipolar"
+    doc["cameras"] = "epipolar"                      # the solve's former name: an old manifest
     (d / "iris.json").write_text(json.dumps(doc))
     rt_model, rt_epi = IrisRuntime(model_dir, threads=1), IrisRuntime(d, threads=1)
-    assert rt_model.default_cameras == "model" and rt_epi.default_cameras == "epipolar"
+    assert rt_model.default_cameras == "model" and rt_epi.default_cameras == "solve"
     images = list(photos[:5])
-    default, epi = rt_epi.encode(images), rt_epi.encode(images, cameras="epipolar")
-    assert default.camera_source == epi.camera_source == "epipolar"
+    default, epi = rt_epi.encode(images), rt_epi.encode(images, cameras="solve")
+    assert default.camera_source == epi.camera_source == "solve"
+    old = rt_epi.encode(images, cameras="epipolar")         # ... and an old request
+    assert old.camera_source == "solve"
+    np.testing.assert_array_equal(old.world_from_cam, epi.world_from_cam)
     np.testing.assert_array_equal(default.world_from_cam, epi.world_from_cam)
     assert rt_epi.encode(images, cameras="model").camera_source == "model"
     np.testing.assert_array_equal(rt_epi.render(images, np.eye(4)), rt_epi.render(default, 0))
     backend = _backend(rt_epi)
     # iris-eval's default is the manifest's; its backend encodes with the model's cameras and
     # solves the photos itself (evaluate.cameras.pose_scene).
-    assert backend.default_cameras == "epipolar"
+    assert backend.default_cameras == "solve"
     assert backend.encode(np.stack(images)).camera_source == "model"
     del doc["cameras"]                                 # manifests written before the key
     (d / "iris.json").write_text(json.dumps(doc))
     assert IrisRuntime(d, threads=1).default_cameras == "model"
     # The checkpoint side: what the training config says, "model" when it says nothing.
-    assert trained_cameras({"train_config": {"render_cameras": "epipolar"}}) == "epipolar"
+    assert trained_cameras({"train_config": {"render_cameras": "solve"}}) == "solve"
+    assert trained_cameras({"train_config": {"render_cameras": "epipolar"}}) == "solve"   # old
     assert trained_cameras({"train_config": {}}) == trained_cameras({}) == "model"
 
 
@@ -325,13 +329,13 @@ def test_cli_cameras_flag(corner, model_dir, tmp_path):
         paths.append(str(p))
     base = [sys.executable, "-c", "import sys; sys.modules['torch'] = None; "
             "from iris_runtime.cli import main; sys.exit(main())", str(model_dir), *paths]
-    out = subprocess.run(base + ["-o", str(tmp_path / "o"), "--cameras", "epipolar", "--view", "1",
+    out = subprocess.run(base + ["-o", str(tmp_path / "o"), "--cameras", "solve", "--view", "1",
                                  "--no-depth"], capture_output=True, text=True, cwd=REPO)
     assert out.returncode == 0, out.stderr
-    assert "cameras of the inputs: epipolar (every view solved from the photos at 256x192)" \
+    assert "cameras of the inputs: solve (every view solved from the photos at 256x192)" \
         in out.stdout and (tmp_path / "o" / "view_001.png").is_file()
     cams = json.loads((tmp_path / "o" / "cameras.json").read_text())
-    assert cams["source"] == "epipolar" and cams["solved_at"] == [192, 256]
+    assert cams["source"] == "solve" and cams["solved_at"] == [192, 256]
     assert cams["status"] == ["solved"] * 4 and len(cams["focal"]) == 2
     head = np.array(cams["encoder_world_from_cam"])           # the camera head's poses
     assert head.shape == (4, 4, 4)
@@ -348,11 +352,11 @@ def test_cli_cameras_flag(corner, model_dir, tmp_path):
 
 
 # ----------------------------------------------------------------------------------------------
-# iris-eval --cameras epipolar (torch checkpoint backend)
+# iris-eval --cameras solve (torch checkpoint backend)
 # ----------------------------------------------------------------------------------------------
 
 @pytest.mark.torch
-def test_evaluate_with_epipolar_cameras_on_a_torch_model():
+def test_evaluate_with_solved_cameras_on_a_torch_model():
     """iris-eval solves the cameras from the photos at their own resolution (256 here) while the
     model sees its 64x64 images, exactly as IrisRuntime.encode does with a user's photos."""
     torch = pytest.importorskip("torch")
@@ -376,22 +380,22 @@ def test_evaluate_with_epipolar_cameras_on_a_torch_model():
         # One implementation: the references' cameras are replace_model_cameras of their photos.
         backend = TorchBackend(model)
         refs, targets = (0, 2, 3, 5, 7), (1, 4, 6)
-        posed = pose_scene(backend, prepared, refs, targets, "epipolar", "epipolar")
+        posed = pose_scene(backend, prepared, refs, targets, "solve", "solve")
         plain = backend.encode(prepared.images[list(refs)])
         ref = replace_model_cameras([prepared.photos[r] for r in refs], backend.poses(plain),
                                     plain.focal.double().numpy(), size, (cfg.near, cfg.far))
-        assert ref.camera_size == (256, 256) and ref.source == posed.source == "epipolar"
+        assert ref.camera_size == (256, 256) and ref.source == posed.source == "solve"
         np.testing.assert_array_equal(posed.encoded.world_from_cam.numpy(),
                                       ref.world_from_cam.astype(np.float32))
         np.testing.assert_array_equal(posed.encoded.focal.numpy(), ref.focal.astype(np.float32))
         assert posed.targets_located[list(targets)].all() and posed.fallbacks == 0
         base = evaluate(model, [scene], progress=False)
-        got = evaluate(model, [scene], progress=False, cameras="epipolar")
+        got = evaluate(model, [scene], progress=False, cameras="solve")
         for order in ORDERS:
             assert "cameras" not in base[order]
             c = got[order]["cameras"]
-            assert c["references"] == c["targets"] == "epipolar"
-            assert c["sources"] == {"epipolar": 1} and c["targets_epipolar"] == 1.0
+            assert c["references"] == c["targets"] == "solve"
+            assert c["sources"] == {"solve": 1} and c["targets_epipolar"] == 1.0
             for k in ("rpa@15", "rpa@30", "locate_rpa@30"):
                 assert got[order]["model"][k] > base[order]["model"][k]
             assert got[order]["model"]["rpa@15"] == 1.0
@@ -546,8 +550,8 @@ def test_camera_work_runs_the_blas_on_the_runtimes_threads(corner, model_dir, mo
     with controller.limit(limits=2, user_api="blas"):      # a BLAS with more than one thread
         outside = [lib["num_threads"] for lib in ThreadpoolController().info()
                    if lib["user_api"] == "blas"]
-        IrisRuntime(model_dir, threads=1).encode(list(photos), cameras="epipolar")
-        IrisRuntime(model_dir).encode(list(photos), cameras="epipolar")
+        IrisRuntime(model_dir, threads=1).encode(list(photos), cameras="solve")
+        IrisRuntime(model_dir).encode(list(photos), cameras="solve")
         after = [lib["num_threads"] for lib in ThreadpoolController().info()
                  if lib["user_api"] == "blas"]
     assert seen == [[1] * len(blas), outside]

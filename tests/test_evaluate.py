@@ -503,7 +503,7 @@ def test_scene_records_say_where_the_cameras_came_from(monkeypatch):
     from iris_train.evaluate import format_scenes
 
     class SolvedRuntime(OracleRuntime):
-        default_cameras = "epipolar"
+        default_cameras = "solve"
 
         def encode(self, images, cameras=None):
             assert cameras == "model"               # iris-eval solves the photos itself
@@ -548,7 +548,7 @@ def test_grid_and_records_show_the_camera_head_beside_the_solve(tmp_path, monkey
 
     class HeadRuntime(OracleRuntime):
         """An oracle whose camera head turns the references at positions 1 and 3."""
-        default_cameras = "epipolar"
+        default_cameras = "solve"
 
         def __init__(self, scenes):
             super().__init__(scenes)
@@ -565,7 +565,7 @@ def test_grid_and_records_show_the_camera_head_beside_the_solve(tmp_path, monkey
 
     def perfect_solve(photos, world_from_cam, focal, image_size, depth_range):
         np.testing.assert_array_equal(world_from_cam, rt.heads[-1])   # the head's, replaced
-        return C.ModelCameras(rt.clean, np.asarray(focal), None, "epipolar", ("solved",) * 5,
+        return C.ModelCameras(rt.clean, np.asarray(focal), None, "solve", ("solved",) * 5,
                               SIZE, None)
 
     monkeypatch.setattr(C, "replace_model_cameras", perfect_solve)
@@ -583,7 +583,7 @@ def test_grid_and_records_show_the_camera_head_beside_the_solve(tmp_path, monkey
     assert results["seq"]["model"]["head_reference_rpa@30"] == want["rpa@30"]
     assert "the camera head's" in format_cameras(results)[0]
     check_head_panel(panels, scene.world_from_cam, refs, rt.heads[0])
-    assert panels[0][1]["source"] == "epipolar"
+    assert panels[0][1]["source"] == "solve"
 
 
 def plane_scene(size=64, views=8, seed=3):

@@ -568,7 +568,7 @@ def test_tolerance_exceeded_raises_and_writes_nothing(checkpoint, tmp_path, monk
 
 
 @pytest.mark.parametrize("kwargs", [{"opset": 17}, {"opset": 1000}, {"quantize": "int4"}, {"threads": 0},
-                                    {"cameras": "refined"}, {"cameras": "epipolar"},
+                                    {"cameras": "refined"}, {"cameras": "solve"},
                                     {"cameras": "colmap"}])
 def test_bad_arguments_are_refused(checkpoint, tmp_path, kwargs):
     with pytest.raises(ExportArgumentError):      # the checkpoint's renderer: "model" cameras
@@ -580,13 +580,13 @@ def test_default_cameras_are_the_trained_ones_or_refined_over_solved_ones():
     """The manifest's default cameras: the ones the renderer was trained with, or "refined" (the
     camera head's refined by the photos, in the solve's unit) over a renderer trained on the
     solve's cameras, by default where the head was distilled from the solve; nothing else."""
-    assert pipeline._default_cameras(None, "epipolar") == "epipolar"
-    assert pipeline._default_cameras(None, "epipolar", distilled=True) == "refined"
+    assert pipeline._default_cameras(None, "solve") == "solve"
+    assert pipeline._default_cameras(None, "solve", distilled=True) == "refined"
     assert pipeline._default_cameras(None, "model", distilled=True) == "model"
-    assert pipeline._default_cameras("epipolar", "epipolar", distilled=True) == "epipolar"
-    assert pipeline._default_cameras("refined", "epipolar") == "refined"
+    assert pipeline._default_cameras("solve", "solve", distilled=True) == "solve"
+    assert pipeline._default_cameras("refined", "solve") == "refined"
     assert pipeline._default_cameras("model", "model") == "model"
-    for cameras, trained in (("refined", "model"), ("model", "epipolar"), ("epipolar", "model")):
+    for cameras, trained in (("refined", "model"), ("model", "solve"), ("solve", "model")):
         with pytest.raises(ExportArgumentError, match=f"not {cameras!r}"):
             pipeline._default_cameras(cameras, trained)
 

@@ -127,7 +127,7 @@ def test_torchrun_two_processes(tmp_path):
     assert read_checkpoint(tmp_path / "ddp" / "last.pt")["step"] == 2
 
 
-# -- training on the solved epipolar cameras (render_cameras="epipolar") -------------------------
+# -- training on the solved cameras (render_cameras="solve") -------------------------------------
 def _poses(rng, n):
     from scipy.spatial.transform import Rotation
     T = np.tile(np.eye(4), (n, 1, 1))
@@ -199,7 +199,7 @@ def test_train_on_solved_cameras_from_an_init_checkpoint(tmp_path):
     scenes = [render_scene(1_000_003, n_views=8, size=(64, 64))]
     base = dict(SMALL, views_min=4, views_max=4, preset="tiny-rgb")
     train(TrainConfig(steps=1, **base), tmp_path / "init", scenes=scenes, threads=1)
-    cfg = TrainConfig(steps=2, render_cameras="epipolar", solve_rotation_weight=10.0,
+    cfg = TrainConfig(steps=2, render_cameras="solve", solve_rotation_weight=10.0,
                       solve_translation_weight=10.0, solve_focal_weight=1.0, **base)
     train(cfg, tmp_path / "ft", scenes=scenes, threads=1, init=tmp_path / "init" / "last.pt")
     log = [json.loads(x) for x in (tmp_path / "ft" / "log.jsonl").read_text().splitlines()]

@@ -302,7 +302,7 @@ def test_drag_previews_with_one_request_in_flight_then_the_full_frame(browser, s
     # uses has "exact" as its default, too slow at the view's size on a loaded machine.
     quality = None if model["explicit_rgb"] else "adaptive"
     # Cameras solved from the photos: the same geometry whatever model the server runs.
-    scene = open_scene(d, server.url, PHOTOS[:4], WAIT, quality=quality, cameras="epipolar",
+    scene = open_scene(d, server.url, PHOTOS[:4], WAIT, quality=quality, cameras="solve",
                        view_px=DRAG_VIEW_PX)
     page = d.execute_script(PAGE_SETTINGS)
     vh, vw = page["view_size"]

@@ -15,7 +15,7 @@ each, in the order they run (COLMAP's incremental structure from motion, scaled 
 9. ``refine``: cameras a model predicted refined by the photos (matches, one bundle adjustment
    started from them: no mapper);
 10. ``replace``: a model's predicted cameras replaced by the solve or refined, at the model's
-   resolution (what ``IrisRuntime.encode(cameras="epipolar" | "refined")`` does).
+   resolution (what ``IrisRuntime.encode(cameras="solve" | "refined")`` does).
 
 Conventions (docs/ARCHITECTURE.md): OpenCV axes, ``world_from_cam`` camera-to-world with view 0 = I, pixel
 (row i, col j) centred at (j + 0.5, i + 0.5). Measurements behind the choices: docs/CAMERAS.md.

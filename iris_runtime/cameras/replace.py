@@ -1,5 +1,5 @@
 """A model's predicted cameras replaced by the camera solve of the same photos (what
-``IrisRuntime.encode(images, cameras="epipolar")`` and ``iris-eval``'s torch backend do), or
+``IrisRuntime.encode(images, cameras="solve")`` and ``iris-eval``'s torch backend do), or
 refined by them (``cameras="refined"``: ``refine.refine_cameras`` started from the model's).
 
 The photos are solved near their own resolution (``images.camera_copies``), and the solved focal
@@ -23,7 +23,7 @@ __all__ = ["ModelCameras", "replace_model_cameras", "refine_model_cameras", "can
 @dataclass(frozen=True)
 class ModelCameras:
     """world_from_cam [V, 4, 4] (view 0 = I), focal [2] (fx/W, fy/H) and K [3, 3] at the model's
-    resolution; source "epipolar" (every view posed by the solve), "refined" (every view's
+    resolution; source "solve" (every view posed by the solve), "refined" (every view's
     camera refined from the model's), "mixed" (the unposed views keep the model's camera) or
     "model"; status per view (``STATUSES``); camera_size (H, W) the
     solve ran at (None with source "model"); solve the ``CameraSolve`` (None with "model")."""
@@ -43,7 +43,7 @@ def replace_model_cameras(photos, world_from_cam, focal, image_size: tuple[int, 
     size: the ones the model's inputs were cut from), in the renderer's ``depth_range``."""
     model, model_focal, model_K = _model(world_from_cam, focal, image_size)
     copies, model_from_camera = camera_copies([np.asarray(p) for p in photos], image_size)
-    return _replaced(solve_cameras(copies, depth_range), "epipolar", model, model_focal, model_K,
+    return _replaced(solve_cameras(copies, depth_range), "solve", model, model_focal, model_K,
                      model_from_camera, image_size)
 
 
@@ -61,7 +61,7 @@ def refine_model_cameras(photos, world_from_cam, focal, image_size: tuple[int, i
     solve = refine_cameras(copies, model, float(camera_K[0, 0]), depth_range,
                            refinement=refinement)
     if solve is None or solve.status[0] == "unposed":
-        return _replaced(solve_cameras(copies, depth_range), "epipolar", model, model_focal,
+        return _replaced(solve_cameras(copies, depth_range), "solve", model, model_focal,
                          model_K, model_from_camera, image_size)
     return _replaced(solve, "refined", model, model_focal, model_K, model_from_camera, image_size)
 

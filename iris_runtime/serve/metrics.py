@@ -23,7 +23,7 @@ from prometheus_client import (CONTENT_TYPE_LATEST, CollectorRegistry, Counter, 
 __all__ = ["Metrics"]
 
 # Latency buckets: a health check is ~1 ms, a render of a model-size view 0.1-10 s, an orbit video
-# or an epipolar encode of many photos up to minutes.
+# or an encode with the camera solve of many photos up to minutes.
 _BUCKETS = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0, 60.0, 120.0, 300.0)
 
 

@@ -70,7 +70,7 @@ class SceneOut(_Out):
     world_from_cam: list[Matrix] = Field(description="[V, 4, 4]")
     intrinsics: Matrix = Field(description="[3, 3], pixels of the model's resolution")
     focal: list[float] = Field(description="[fx / W, fy / H]")
-    camera_source: str = Field(description="model, epipolar, refined or mixed")
+    camera_source: str = Field(description="model, solve, refined or mixed")
     cameras: str = Field(description="the cameras asked for")
     bytes: int = Field(description="held in the scene store")
 

@@ -60,11 +60,11 @@ Protocol (docs/ARCHITECTURE.md, "Conventions", the paper's appendix scaled down)
 - Scenes without ground-truth cameras (users' folders) count towards the model's PSNR/SSIM and the
   best-reference and mean-colour baselines only; pose metrics and the nearest-reference baseline
   average over the scenes with cameras (``null`` in the JSON when there are none).
-- ``--cameras epipolar``: the references' cameras (and the focal) are the camera solve of the
+- ``--cameras solve``: the references' cameras (and the focal) are the camera solve of the
   references' **photos at their own resolution** (``PreparedScene.photos``: a folder's files as
   stored, the synthetic sets rendered at ``SYNTHETIC_PHOTO_SIZE``), scaled to the model's units
   (``iris_runtime.cameras.replace_model_cameras``, as ``IrisRuntime.encode(photos,
-  cameras="epipolar")`` does; the model itself sees the frames at its resolution), and the
+  cameras="solve")`` does; the model itself sees the frames at its resolution), and the
   targets are posed against the solve's points with its cameras fixed
   (``CameraSolve.locate``, as ``IrisRuntime.locate``; a target it cannot pose
   keeps the model's located pose); ``--locate model`` keeps the model's ``locate`` instead.
@@ -77,13 +77,13 @@ Protocol (docs/ARCHITECTURE.md, "Conventions", the paper's appendix scaled down)
   renderer's error is then told apart from the cameras'. The encoder still sees the references
   alone; only the cameras it predicted are replaced.
 - Every scene's record (JSON ``scenes``, the printed per-scene table) says where its cameras came
-  from: the Scene's camera source ("model", "epipolar", "mixed", "true"), which references the
+  from: the Scene's camera source ("model", "solve", "mixed", "true"), which references the
   solve posed and which targets it located, and the number of **fallbacks**: views
   that were to get a solved camera and kept the camera head's instead. With anything but model
   cameras each order's summary counts the scenes per source and the fallbacks.
 - The camera head beside the cameras that replaced it: ``reference_rpa@5/15/30`` is the RPA of
   the rendered cameras over the pairs of two references (the 10 of 28 pairs that
-  ``locate_rpa`` leaves out), and with ``--cameras epipolar`` or ``true``
+  ``locate_rpa`` leaves out), and with ``--cameras solve`` or ``true``
   ``head_reference_rpa@5/15/30`` the same for the camera head's own cameras of the references
   (kept in ``Scene.encoder_world_from_cam``; ``null`` with model cameras). References only: a
   scene's head cameras are its references' (the targets' poses come from ``--locate``). ``--grid``

@@ -168,7 +168,7 @@ class RuntimeBackend:
     def locate(self, scene, references: np.ndarray, queries: np.ndarray) -> np.ndarray:
         """The model's poses [Q, 4, 4] of ``queries`` in ``scene``'s frame (the scene keeps its
         references). Asked on the scene with ``camera_source`` "model": ``IrisRuntime.locate``
-        of a solved scene would run the epipolar location itself, which ``evaluate`` runs once
+        of a solved scene would run the solve's location itself, which ``evaluate`` runs once
         where it is asked for (and records which targets it posed)."""
         if getattr(scene, "camera_source", "model") != "model" and dataclasses.is_dataclass(scene):
             scene = dataclasses.replace(scene, camera_source="model")

@@ -1,4 +1,4 @@
-"""Where the cameras of an evaluated scene come from: the model's, the epipolar solve's, or the
+"""Where the cameras of an evaluated scene come from: the model's, the camera solve's, or the
 data's own ("true"), for the references (the encoded scene) and for the targets (located).
 
 ``true_cameras`` puts a scene's own cameras in the frame and unit the renderer works in, by the
@@ -7,7 +7,7 @@ presentation, and scaled so that the median depth of the reference images' trian
 lies ``DEPTH_TARGET`` of the way into the model's [near, far]. The points are the solve's own
 matches triangulated with the true cameras (``iris_runtime.cameras.point_map_from_cameras``),
 never stored depth maps: the same photos then get the same unit whichever cameras they are
-rendered from, so ``--cameras true`` and ``--cameras epipolar`` differ only in the cameras.
+rendered from, so ``--cameras true`` and ``--cameras solve`` differ only in the cameras.
 """
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ from typing import Sequence
 import numpy as np
 
 from iris_runtime.errors import InputError
-from iris_runtime.manifest import CAMERAS
+from iris_runtime.manifest import CAMERAS, camera_name
 
 #: Triangulated observations needed to scale true cameras by their depth; with fewer, the mean
 #: baseline is set to DEFAULT_BASELINE.
@@ -42,10 +42,10 @@ def check_modes(default_cameras: str, cameras: str | None, locate: str | None) -
     """``(cameras, locate)`` with the defaults filled in (cameras: the model's trained ones;
     locate: as cameras); ``InputError`` for an unknown mode, or for true target cameras with
     other reference cameras (they would lie in another frame)."""
-    cameras = default_cameras if cameras is None else cameras
+    cameras = camera_name(default_cameras if cameras is None else cameras)
     if cameras not in CAMERA_MODES:
         raise InputError(f"cameras: expected one of {list(CAMERA_MODES)}, got {cameras!r}")
-    locate = cameras if locate is None else locate
+    locate = cameras if locate is None else camera_name(locate)
     if locate not in LOCATE_MODES:
         raise InputError(f"locate: expected one of {list(LOCATE_MODES)}, got {locate!r}")
     if locate == "true" and cameras != "true":
@@ -144,16 +144,16 @@ class PosedScene:
 
     encoded:          the backend's scene (references in presentation order)
     world_from_cam:   float64 [V, 4, 4]  the cameras rendered from / at (references and targets)
-    source:           "model", "epipolar", "refined", "mixed" (the Scene's ``camera_source``) or
+    source:           "model", "solve", "refined", "mixed" (the Scene's ``camera_source``) or
                       "true"
     references_solved: bool [V] over frames (False for targets), which reference cameras the
-                      epipolar solve (or the data) gave; None with the model's cameras
+                      camera solve (or the data) gave; None with the model's cameras
     targets_located:  bool [V] over frames, which targets ``cameras.locate_views`` posed (or the
                       data, with ``locate="true"``); None with the model's locate
     fallbacks:        views that were to get a solved camera and kept the camera head's
     scale, scale_source, principal_offset: of ``true_cameras`` (None for the other modes)
     head_world_from_cam: float64 [V, 4, 4] over frames, the camera head's cameras of the
-                      references where other cameras replaced them (``cameras`` "epipolar" or
+                      references where other cameras replaced them (``cameras`` "solve" or
                       "true"), in the head's own frame and unit; the targets' rows are NaN (the
                       scene the head posed holds the references only). None with the model's
                       cameras (then ``world_from_cam`` is the head's)
@@ -177,7 +177,7 @@ def pose_scene(backend, scene: PreparedScene, ref_order: Sequence[int],
     """Encode ``scene``'s references alone (``ref_order``) and pose every frame.
 
     The model sees ``scene.images``; the camera solve sees ``scene.photos``, the frames at their
-    own resolution, as ``IrisRuntime.encode(photos, cameras="epipolar")`` does with a user's.
+    own resolution, as ``IrisRuntime.encode(photos, cameras="solve")`` does with a user's.
     With ``scene.output_size`` (``iris-eval --size``) the references are encoded from their
     photos (``backend.encode(photos, colour_size=...)``: the encoder sees them fitted to the
     model, which ``scene.images`` then are, and the render samples their colours); every other
@@ -185,7 +185,7 @@ def pose_scene(backend, scene: PreparedScene, ref_order: Sequence[int],
     References: the model's cameras, the solve's (``replace_model_cameras``: a view it cannot
     pose keeps the model's camera), the model's refined by the photos (``refine_model_cameras``)
     or ``true_cameras`` (needs the scene's true poses and K, else
-    ``InputError``). Targets: the model's ``locate``; ``"epipolar"``: posed against the solve's
+    ``InputError``). Targets: the model's ``locate``; ``"solve"``: posed against the solve's
     points with its cameras fixed (``CameraSolve.locate``, as ``IrisRuntime.locate``), or with model
     or true reference cameras against those (``locate_views`` at the model's resolution), the
     model's pose kept for a target that cannot be posed; or the true cameras. Where the
@@ -211,7 +211,7 @@ def pose_scene(backend, scene: PreparedScene, ref_order: Sequence[int],
     if cameras == "true":
         encoded = backend.with_cameras(encoded, truth.world_from_cam[ref_order], truth.focal)
         source, refs_solved = "true", np.ones(len(ref_order), dtype=bool)
-    elif cameras in ("epipolar", "refined"):
+    elif cameras in ("solve", "refined"):
         from iris_runtime.cameras import (canonical_start, refine_model_cameras,
                                           replace_model_cameras)
         ref_photos = [photos[r] for r in ref_order]
@@ -242,7 +242,7 @@ def pose_scene(backend, scene: PreparedScene, ref_order: Sequence[int],
         located = np.ones(len(target_order), dtype=bool)
     else:
         poses = backend.locate(encoded, images[ref_order], images[target_order])
-        if locate in ("epipolar", "refined"):
+        if locate in ("solve", "refined"):
             from iris_runtime.cameras import locate_views
             if solve is not None:                 # as IrisRuntime.locate of a solved Scene
                 epi, located = solve.locate([photos[t] for t in target_order])
@@ -254,9 +254,9 @@ def pose_scene(backend, scene: PreparedScene, ref_order: Sequence[int],
             poses = np.where(located[:, None, None], epi, poses)
         pred[target_order] = poses
     fallbacks = 0
-    if cameras in ("epipolar", "refined"):
+    if cameras in ("solve", "refined"):
         fallbacks += int((~refs_solved).sum())
-    if locate in ("epipolar", "refined"):
+    if locate in ("solve", "refined"):
         fallbacks += int((~located).sum())
     return PosedScene(
         encoded, pred, source, _over_frames(refs_solved, ref_order, V),

@@ -5,6 +5,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from iris_runtime.manifest import camera_name
 from iris_runtime.quality import QUALITY_PRESETS
 
 from .backends import backend_for
@@ -64,14 +65,14 @@ def build_parser() -> argparse.ArgumentParser:
                         help="intra-op threads of torch (checkpoint) or ONNX Runtime (exported "
                              "model); default: the library's choice. On a busy machine 1 can be "
                              "much faster than oversubscribed cores")
-    parser.add_argument("--cameras", choices=CAMERA_MODES, default=None,
+    parser.add_argument("--cameras", type=camera_name, choices=CAMERA_MODES, default=None,
                         help="cameras of the references: the model's, the camera solve of "
-                             "their photos scaled to the model's units ('epipolar': "
+                             "their photos scaled to the model's units ('solve': "
                              "iris_runtime.cameras), or the data's own ('true': transforms.json / "
                              "COLMAP text of a folder, the true cameras of synthetic scenes; re-based on "
                              "view 0 and scaled by the solve's depth rule); default: the cameras "
                              "the model was trained with (its manifest's or checkpoint's)")
-    parser.add_argument("--locate", choices=LOCATE_MODES, default=None,
+    parser.add_argument("--locate", type=camera_name, choices=LOCATE_MODES, default=None,
                         help="poses of the targets: the model's locate, the camera solve "
                              "against the references' cameras (iris_runtime.cameras."
                              "locate_views; model fallback per target), or the data's own "

@@ -58,21 +58,21 @@ def evaluate(model, scenes: Iterable, *, views: int = DEFAULT_VIEWS, seed: int =
     scene has ``views`` frames.
 
     ``cameras``: None (default): the cameras the model was trained with (an exported model's
-    ``IrisRuntime.default_cameras``, a checkpoint's training config); "model"; "epipolar": the
-    references' cameras (and focal) are the global epipolar solve of the reference images scaled
+    ``IrisRuntime.default_cameras``, a checkpoint's training config); "model"; "solve": the
+    references' cameras (and focal) are the global camera solve of the reference images scaled
     to the model's units (``iris_runtime.cameras.replace_model_cameras``); "true": the data's own
     cameras (``cameras.true_cameras``: re-based on view 0, scaled by the solve's depth rule, the
-    true focal). ``locate``: how the targets are posed, "model" (``locate``), "epipolar"
+    true focal). ``locate``: how the targets are posed, "model" (``locate``), "solve"
     (``iris_runtime.cameras.locate_views`` against the references' cameras; a target it cannot
     pose keeps the model's located pose) or "true" (only with ``cameras="true"``); default: the
     value of ``cameras``. With anything but model cameras each ``R`` also holds ``"cameras":
     {"references", "targets", "sources": {camera source: scenes}, "targets_epipolar": fraction
-    of targets posed by the epipolar solve, "fallbacks": views that kept the camera head's camera
+    of targets posed by the camera solve (the key keeps the solve's former name), "fallbacks": views that kept the camera head's camera
     where a solved one was asked for, "scenes_with_fallbacks"}``.
 
     ``reference_rpa@t``: RPA of the rendered cameras over the pairs of two references (with
     ``locate_rpa@t``'s pairs, all pairs). ``head_reference_rpa@t``: the same pairs posed by the
-    camera head, where other cameras (``cameras`` "epipolar" or "true") replaced its own: the
+    camera head, where other cameras (``cameras`` "solve" or "true") replaced its own: the
     head's own score beside the cameras that replaced it (None with model cameras, where it
     equals ``reference_rpa@t``). References only: a scene's head cameras are its references'
     (the targets' poses come from ``locate``). ``grid``'s camera picture then draws the head's
@@ -293,7 +293,7 @@ class _OrderRecord:
             _POSE_KEYS, lambda s: s["baselines"]["identity_poses"])
         if report_cameras:
             sources: dict[str, int] = {}
-            located = []                    # targets posed by the epipolar solve
+            located = []                    # targets posed by the camera solve
             for s in self.scenes:
                 c = s["cameras"]
                 sources[c["source"]] = sources.get(c["source"], 0) + 1

@@ -7,6 +7,7 @@ from typing import Sequence
 import numpy as np
 
 from iris_runtime.fileio import atomic_write_bytes, atomic_write_json
+from iris_runtime.manifest import camera_name
 
 from ..metrics import RPA_THRESHOLDS, depth_spearman
 from .protocol import LOCATE_RPA_KEYS, ORDERS, RPA_KEYS, capped_psnr
@@ -97,8 +98,8 @@ def format_cameras(results: dict) -> list[str]:
         frac = c["targets_epipolar"]
         out.append(f"{order.capitalize()}: references' cameras {c['references']} (scenes by "
                    f"source: {c['sources']}), targets {c['targets']}"
-                   + ("" if frac is None or c["targets"] not in ("epipolar", "refined") else
-                      f" ({100 * frac:.0f}% of targets posed by the epipolar solve)")
+                   + ("" if frac is None or camera_name(c["targets"]) not in ("solve", "refined")
+                      else f" ({100 * frac:.0f}% of targets posed by the camera solve)")
                    + f"; {c['fallbacks']} view(s) fell back to the camera head in "
                      f"{c['scenes_with_fallbacks']} scene(s)"
                    + ("" if rendered is None or head is None else

@@ -27,7 +27,7 @@ async def create_scene(
                                       "/healthz's limits.max_photos")],
         service: ServiceDep, response: Response,
         cameras: Annotated[str | None, Form(
-            description="model, epipolar or refined (default: /healthz's "
+            description="model, solve or refined (default: /healthz's "
                         "model.default_cameras)")] = None) -> dict:
     photos = [await service.read_photo(part, f"images[{i}]") for i, part in enumerate(images)]
     cameras = cameras or service.rt.default_cameras
