@@ -155,6 +155,79 @@ def _setup_distributed() -> tuple[int, int]:
     return (dist.get_rank() if world > 1 else 0), world
 
 
+def _load_init(loss_module: PhotometricLoss, payload: dict, init: Path, verbose: bool) -> None:
+    """Start a fine-tune from checkpoint ``payload`` (read from ``init``): its weights
+    (``load_init_weights``) and its warp auxiliary's head when it has one."""
+    fresh = load_init_weights(loss_module.model, payload, f"init: {str(init)!r}")
+    if fresh and verbose:
+        print(f"iris-train: --init {init}: {len(fresh)} tensors of the new "
+              f"{loss_module.model.cfg.camera_head!r} camera head start fresh", file=sys.stderr)
+    if loss_module.sample_logit is not None and payload.get("aux"):
+        loss_module.sample_logit.load_state_dict(payload["aux"])
+
+
+def _load_resume(loss_module: PhotometricLoss, optimizer: torch.optim.Optimizer, payload: dict,
+                 ckpt_path: Path) -> tuple[int, float]:
+    """Continue the run of checkpoint ``payload`` (read from ``ckpt_path``): model, warp
+    auxiliary and optimiser state -> (the step to continue from, the seconds trained so far).
+    ``ValueError`` when the checkpoint has another camera head than the run's model."""
+    model = loss_module.model
+    resumed = payload["config"] if isinstance(payload["config"], dict) else {}
+    resumed_head = resumed.get("camera_head", "tokens")
+    if resumed_head != model.cfg.camera_head:
+        raise ValueError(f"resume: {str(ckpt_path)!r} has the {resumed_head!r} camera head, "
+                         f"not {model.cfg.camera_head!r} (--camera-head)")
+    model.load_state_dict(payload["model"])
+    if loss_module.sample_logit is not None:
+        loss_module.sample_logit.load_state_dict(payload["aux"])
+    optimizer.load_state_dict(payload["optimizer"])
+    return int(payload["step"]), float(payload.get("elapsed", 0.0))
+
+
+def _camera_targets(cfg: TrainConfig, mcfg: ModelConfig, scenes) -> tuple:
+    """-> (teachers, solutions), scene index -> the scene's ``PseudoPoses`` / ``SolvedCameras``
+    (``pseudo_poses``, cached per scene), for ``draw_batch``: the solved cameras when the
+    renderer trains on them (``render_cameras="solve"``), else the pair teacher when a
+    teacher term has a weight; None for the other. ``ValueError`` for another
+    ``render_cameras``."""
+    render_cameras = camera_name(cfg.render_cameras)     # "epipolar": the former "solve"
+    if render_cameras not in CAMERAS[:2]:        # "refined" needs a trained head first
+        raise ValueError(f"render_cameras: expected one of {CAMERAS[:2]}, got "
+                         f"{cfg.render_cameras!r}")
+    if render_cameras == "solve":
+        depth_range = (mcfg.near, mcfg.far)
+        return None, per_scene(scenes,
+                               lambda sc, i: pseudo_poses.load_or_solve(sc, i, depth_range),
+                               lambda images: pseudo_poses.solve_scene(images, depth_range))
+    if cfg.teacher_weight or cfg.teacher_translation_weight or cfg.teacher_focal_weight:
+        return per_scene(scenes, pseudo_poses.load_or_estimate, pseudo_poses.estimate), None
+    return None, None
+
+
+def _optimise(step_module: nn.Module, model: IrisModel, optimizer: torch.optim.Optimizer,
+              batch: tuple, cfg: TrainConfig, factor: float) -> tuple[float, dict]:
+    """One optimiser step on ``batch`` at ``factor`` times each group's learning rate, gradients
+    clipped -> (the loss, its terms)."""
+    for group in optimizer.param_groups:
+        group["lr"] = cfg.lr * factor * group["lr_scale"]
+    loss, terms = step_module(*batch)
+    optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
+    optimizer.step()
+    return float(loss.detach()), terms
+
+
+def _rank0_decides(flag: bool, world: int) -> bool:
+    """Rank 0's ``flag`` on every rank: so that every rank stops after the same step (a rank
+    that ran one step further would wait forever in DDP's all-reduce)."""
+    if world == 1:
+        return flag
+    value = torch.tensor([float(flag)])
+    dist.broadcast(value, src=0)
+    return bool(value.item())
+
+
 def train(cfg: TrainConfig, out: Path, resume: bool = False, scenes=None, threads: int | None = None,
           max_seconds: float | None = None, init: Path | None = None) -> Path:
     """Run (or resume) training; returns the path of the last checkpoint. ``init``: start from
@@ -177,81 +250,39 @@ def train(cfg: TrainConfig, out: Path, resume: bool = False, scenes=None, thread
     optimizer = make_optimizer(model, cfg, loss_module.aux_parameters())
     start_step, elapsed_before = 0, 0.0
     if init_payload is not None:
-        fresh = load_init_weights(model, init_payload, f"init: {str(init)!r}")
-        if fresh and rank == 0:
-            print(f"iris-train: --init {init}: {len(fresh)} tensors of the new "
-                  f"{mcfg.camera_head!r} camera head start fresh", file=sys.stderr)
-        if loss_module.sample_logit is not None and init_payload.get("aux"):
-            loss_module.sample_logit.load_state_dict(init_payload["aux"])
+        _load_init(loss_module, init_payload, init, verbose=rank == 0)
     if resume_payload is not None:
-        payload = resume_payload
-        resumed = payload["config"] if isinstance(payload["config"], dict) else {}
-        resumed_head = resumed.get("camera_head", "tokens")
-        if resumed_head != mcfg.camera_head:
-            raise ValueError(f"resume: {str(ckpt_path)!r} has the {resumed_head!r} camera head, "
-                             f"not {mcfg.camera_head!r} (--camera-head)")
-        model.load_state_dict(payload["model"])
-        if loss_module.sample_logit is not None:
-            loss_module.sample_logit.load_state_dict(payload["aux"])
-        optimizer.load_state_dict(payload["optimizer"])
-        start_step = int(payload["step"])
-        elapsed_before = float(payload.get("elapsed", 0.0))
+        start_step, elapsed_before = _load_resume(loss_module, optimizer, resume_payload, ckpt_path)
     model.train()
     if scenes is None:
         scenes = training_scenes(cfg, mcfg)
     colour_scenes = colour_size_scenes(cfg) if cfg.colour_size else None
-    render_cameras = camera_name(cfg.render_cameras)     # "epipolar": the former "solve"
-    if render_cameras not in CAMERAS[:2]:        # "refined" needs a trained head first
-        raise ValueError(f"render_cameras: expected one of {CAMERAS[:2]}, got "
-                         f"{cfg.render_cameras!r}")
-    teachers = solutions = None
-    if render_cameras == "solve":
-        depth_range = (mcfg.near, mcfg.far)
-        solutions = per_scene(scenes, lambda sc, i: pseudo_poses.load_or_solve(sc, i, depth_range),
-                               lambda images: pseudo_poses.solve_scene(images, depth_range))
-    elif cfg.teacher_weight or cfg.teacher_translation_weight or cfg.teacher_focal_weight:
-        teachers = per_scene(scenes, pseudo_poses.load_or_estimate, pseudo_poses.estimate)
+    teachers, solutions = _camera_targets(cfg, mcfg, scenes)
     step_module: nn.Module = loss_module
     if world > 1:
         step_module = nn.parallel.DistributedDataParallel(step_module)
     log_path = out / "log.jsonl"
-    if rank == 0:
-        (out / "train_config.json").write_text(json.dumps(dataclasses.asdict(cfg), indent=2))
     progress = None
     if rank == 0:
+        (out / "train_config.json").write_text(json.dumps(dataclasses.asdict(cfg), indent=2))
         from tqdm import tqdm
         progress = tqdm(total=cfg.steps, initial=start_step, desc="iris-train", dynamic_ncols=True,
                         disable=None)
     t0 = time.time()
     ema_loss, rays_done = None, 0
-    step = start_step
     for step in range(start_step, cfg.steps):
         factor = lr_factor(step, cfg)
-        for group in optimizer.param_groups:
-            group["lr"] = cfg.lr * factor * group["lr_scale"]
         # One generator per (seed, rank, step): a resumed run draws exactly the batches it would have.
         batch = draw_batch(scenes, cfg, mcfg, np.random.default_rng([cfg.seed, rank, step]), teachers,
                            solutions, colour_scenes)
-        loss, terms = step_module(*batch)
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
-        optimizer.step()
-        loss_value = float(loss.detach())
+        loss_value, terms = _optimise(step_module, model, optimizer, batch, cfg, factor)
         ema_loss = loss_value if ema_loss is None else 0.98 * ema_loss + 0.02 * loss_value
         rays_done += sum(int(d.shape[0]) for d in batch[4]) * world
         elapsed = time.time() - t0
-        out_of_time = max_seconds is not None and elapsed > max_seconds
-        if world > 1:
-            # Rank 0's clock decides, so every rank stops after the same step (a rank that ran one
-            # step further would wait forever in DDP's all-reduce).
-            flag = torch.tensor([float(out_of_time)])
-            dist.broadcast(flag, src=0)
-            out_of_time = bool(flag.item())
+        out_of_time = _rank0_decides(max_seconds is not None and elapsed > max_seconds, world)
         if rank == 0:
-            if progress is not None:
-                progress.update(1)
-                progress.set_postfix(loss=f"{ema_loss:.4f}", rays_s=f"{rays_done / max(elapsed, 1e-9):.0f}")
+            progress.update(1)
+            progress.set_postfix(loss=f"{ema_loss:.4f}", rays_s=f"{rays_done / max(elapsed, 1e-9):.0f}")
             if step % cfg.log_every == 0 or step == cfg.steps - 1:
                 record = {"step": step, "loss": loss_value, "psnr": -10 * math.log10(max(loss_value, 1e-10)),
                           "loss_ema": ema_loss, "lr": cfg.lr * factor,
