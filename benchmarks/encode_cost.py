@@ -15,8 +15,8 @@ cameras, the RPA@15 of each mode's cameras over all pairs: error against run tim
 ``--eval-heldout`` adds the same scenes as ``iris-eval`` brings them to 64x64 (its loader's
 resize: other pixels, so other keypoints, and other paths through the refinement).
 
-``--set`` takes ``scripts/camera_study.py``'s settings (a constant of a module of
-``iris_runtime.cameras``, or a field of ``MapperOptions``).
+``--set`` takes the camera studies' settings (``benchmarks/camera_settings.py``: a constant of
+a module of ``iris_runtime.cameras``, or a field of ``MapperOptions``).
 
 Photos: ViSP ``Castle-simu`` frames 1, 6, ..., 36 at 320x240 (``benchmarks/camera_solve.py``,
 Debian ``visp-images-data``) and the held-out synthetic scene 1000003 rendered at 320x240 (needs
@@ -80,7 +80,7 @@ def measure(model_dir: str, runs: int, settings: list[str] = (),
     import numpy as np
 
     from iris_runtime import IrisRuntime
-    from scripts.camera_study import apply
+    from benchmarks.camera_settings import apply
     cv2.setNumThreads(1)
     if settings:
         options, solve = apply(list(settings)), replace.solve_cameras
@@ -141,7 +141,7 @@ def main(argv=None) -> int:
     ap.add_argument("--runs", type=int, default=5)
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
-                    help="a solve setting changed, as scripts/camera_study.py --set")
+                    help="a solve setting changed (benchmarks/camera_settings.py)")
     ap.add_argument("--cameras", default="model,solve,refined",
                     help="comma-separated camera modes of encode (default: all three)")
     ap.add_argument("--heldout", action="store_true",

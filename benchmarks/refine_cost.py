@@ -14,9 +14,9 @@ the refinement and of the whole encode (one run, one thread: a ranking, not a ti
 refinement's steps (SIFT, matching, essential matrices, tracks, bundle adjustment,
 triangulation, the witness mapping) and their shares over the set.
 
-``--set`` takes ``scripts/camera_study.py``'s settings (a scalar or flat-tuple constant of a
-module of ``iris_runtime.cameras``, or ``refine.STAGE.FIELD``, a field of the refinement's
-``RefineOptions``). Needs the [train] extra (the held-out scenes).
+``--set`` takes the camera studies' settings (``benchmarks/camera_settings.py``: a scalar or
+flat-tuple constant of a module of ``iris_runtime.cameras``, or ``refine.STAGE.FIELD``, a field
+of the refinement's ``RefineOptions``). Needs the [train] extra (the held-out scenes).
 """
 from __future__ import annotations
 
@@ -70,7 +70,7 @@ def measure(model_dir: str, settings: list[str], profile: bool = False,
     import iris_runtime.cameras.replace as replace
     from benchmarks.camera_solve import SETS_64, pair_errors
     from iris_runtime import IrisRuntime
-    from scripts.camera_study import apply
+    from benchmarks.camera_settings import apply
     cv2.setNumThreads(1)
     apply(list(settings))
     counts = {"iterations": 0, "refine_s": 0.0}

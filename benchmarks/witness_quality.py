@@ -39,9 +39,10 @@ class _Asked(Exception):
 def _options(text: str) -> dict:
     """``FIELD=VALUE,...`` -> ``MapperOptions`` fields, each of its default's type."""
     from iris_runtime.cameras import MapperOptions
-    from scripts.camera_study import _value
+    from benchmarks.camera_settings import parse_value
     fields = dict(item.split("=", 1) for item in text.split(",") if item)
-    return {name: _value(value, getattr(MapperOptions(), name)) for name, value in fields.items()}
+    return {name: parse_value(value, getattr(MapperOptions(), name))
+            for name, value in fields.items()}
 
 
 def measure(model_dir: str, settings: list[dict]) -> dict:

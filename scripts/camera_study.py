@@ -16,7 +16,6 @@ scenes and the median seconds.
 from __future__ import annotations
 
 import argparse
-import importlib
 import os
 import sys
 from pathlib import Path
@@ -27,42 +26,9 @@ sys.path.insert(0, str(REPO))
 
 import numpy as np  # noqa: E402
 
-MODULES = ("features", "two_view", "tracks", "triangulation", "bundle", "locate", "mapper",
-           "solve", "replace", "refine")
-
-
-def _value(text: str, like):
-    if isinstance(like, tuple):
-        return tuple(type(like[0])(x) for x in text.split(","))
-    return type(like)(text)
-
-
-def apply(settings: list[str]):
-    """Apply ``--set`` settings; returns the ``MapperOptions`` to solve with."""
-    from iris_runtime.cameras import MapperOptions
-    fields = {}
-    for item in settings:
-        key, text = item.split("=", 1)
-        if key.startswith("refine.") and key.count(".") == 2:
-            # A field of one stage of the refinement: refine.STAGE.FIELD (RefineOptions).
-            import dataclasses
-
-            from iris_runtime.cameras.refine import ladder
-            _, stage, name = key.split(".")
-            group = getattr(ladder.DEFAULTS, stage)
-            group = dataclasses.replace(group, **{name: _value(text, getattr(group, name))})
-            ladder.DEFAULTS = dataclasses.replace(ladder.DEFAULTS, **{stage: group})
-        elif "." in key:
-            mod, name = key.rsplit(".", 1)
-            value = _value(text, getattr(importlib.import_module(f"iris_runtime.cameras.{mod}"),
-                                         name))
-            for m in MODULES:
-                module = importlib.import_module(f"iris_runtime.cameras.{m}")
-                if hasattr(module, name):
-                    setattr(module, name, value)
-        else:
-            fields[key] = _value(text, getattr(MapperOptions(), key))
-    return MapperOptions(**fields)
+# The settings live with the benchmarks, which take the same --set; imported here
+# for scripts/refine_signals.py too (from camera_study import apply).
+from benchmarks.camera_settings import apply  # noqa: E402
 
 
 def main(argv=None) -> int:
