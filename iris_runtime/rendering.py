@@ -2,10 +2,10 @@
 
 ``Rendering`` is a mixin of ``iris_runtime.runtime.IrisRuntime``, not a class of its own: it reads
 the runtime's ``manifest``, ``image_size``, ``near``, ``far``, ``samples``, ``cull``, ``workers``
-and ``default_quality``, runs graphs through its ``_session(name)``, and uses its checks
-(``_renderer_graph``, ``check_output_size``, ``_check_scene``) and its ``_encode`` for images
-given instead of a Scene. Those stay in the runtime (its sessions and shared checks), so a test or
-a benchmark that replaces one of them on an instance is obeyed here too.
+and ``default_quality``, runs graphs through its ``_session(name)`` and uses its checks
+(``_renderer_graph``, ``check_output_size``, ``_check_scene``); images given instead of a Scene
+are encoded by the other half (``iris_runtime.encoding``, ``_encode``). Those stay outside this
+module, so a test or a benchmark that replaces one of them on an instance is obeyed here too.
 
 The steps of a render: ``_render_job`` checks every argument and derives what the march needs
 once (a ``RenderJob``); the ray march is ``iris_runtime.raymarch`` (``_march_at`` builds a
