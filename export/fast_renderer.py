@@ -81,7 +81,7 @@ import torch.nn.functional as F
 
 from iris_train.layers import sinusoidal_encoding, validity_bias_where_free
 from iris_train.model import SAMPLERS as MODEL_SAMPLERS
-from iris_train.model import IrisModel
+from iris_train.model import IrisModel, blend_views
 from iris_train.ray_renderer import BLEND_EPS
 
 from .errors import ExportArgumentError
@@ -355,7 +355,8 @@ class FastRendererGraph(nn.Module):
                 colours: torch.Tensor | None = None):
         colours = self._check_colours(colours)
         return self._render(lambda bias: self._sample_slots(field_maps, grid, cues, colours, bias),
-                            field_maps.dtype, mask, positions, directions, colours)
+                            field_maps.dtype, mask, positions, directions, colours,
+                            cues[..., 3] if colours is not None else None)
 
     def _check_colours(self, colours):
         if self.model.cfg.explicit_rgb and colours is None:
@@ -363,9 +364,10 @@ class FastRendererGraph(nn.Module):
                                       "reference RGB sampled at the samples, [V', R, S, 3]")
         return colours if self.model.cfg.explicit_rgb else None
 
-    def _render(self, sample_slots, dtype, mask, positions, directions, colours):
+    def _render(self, sample_slots, dtype, mask, positions, directions, colours, cos=None):
         """Field and ray transformer on the view slots ``sample_slots(bias)`` (view-major, the
-        first slot with the mask ``bias`` added) of the points of ``mask [V, R, S]``."""
+        first slot with the mask ``bias`` added) of the points of ``mask [V, R, S]``; explicit
+        colour: ``colours [V, R, S, 3]`` and the cue's cosine ``cos [V, R, S]`` of each slot."""
         cfg = self.model.cfg
         V, R, S = mask.shape
         N = R * S
@@ -414,8 +416,11 @@ class FastRendererGraph(nn.Module):
             logits = renderer.sample_logit(normed).reshape(R, S) + key_bias             # [R, S]
             # Times the ray's largest sample weight (rows of no valid sample: uniform times 0).
             w = torch.softmax(logits, dim=-1) * sample_mask.amax(-1, keepdim=True)
-            mv = self._expand(m.reshape(V, R, S, 1), self.select_ones3)              # [V, R, S, 3]
-            mean_colour = _sum_views(colours * mv) / _sum_views(mv).clamp_min(1.0)      # [R, S, 3]
+            if cfg.blend_angle:         # the views weighted by angle (one formula: blend_views)
+                mean_colour = blend_views(colours, m.reshape(V, R, S), cos, cfg.blend_angle)
+            else:
+                mv = self._expand(m.reshape(V, R, S, 1), self.select_ones3)          # [V, R, S, 3]
+                mean_colour = _sum_views(colours * mv) / _sum_views(mv).clamp_min(1.0)  # [R, S, 3]
             blend = (w[:, None, :] @ mean_colour)[:, 0].clamp(BLEND_EPS, 1 - BLEND_EPS)
             rgb = torch.sigmoid(torch.log(blend) - torch.log1p(-blend) + renderer.rgb_head(h))
             return rgb, w
@@ -462,8 +467,12 @@ class SelectedViewsRendererGraph(FastRendererGraph):
             out = [gather(p) for p in per_pair]
             return [out[0] + bias[..., None], *out[1:]]
 
-        slot_colours = None if colours is None else gather(colours).reshape(K, R, S, 3)
-        return self._render(slots, field_maps.dtype, mask, positions, directions, slot_colours)
+        slot_colours = slot_cos = None
+        if colours is not None:
+            slot_colours = gather(colours).reshape(K, R, S, 3)
+            slot_cos = gather(cues[..., 3:]).reshape(K, R, S)
+        return self._render(slots, field_maps.dtype, mask, positions, directions, slot_colours,
+                            slot_cos)
 
 
 def _key_softmax(scores: torch.Tensor, key_bias: torch.Tensor,

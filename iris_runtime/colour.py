@@ -32,7 +32,7 @@ from . import geometry as G
 from .images import plan_crop_resize
 
 __all__ = ["MAX_PHOTO_SIDE", "BLEND_EPS", "keep_photo", "level_sizes", "choose_level",
-           "ColourSource", "mean_colour", "blend_residual", "compose"]
+           "ColourSource", "mean_colour", "angular_view_weights", "blend_residual", "compose"]
 
 #: Longest side of a reference photo kept for colour (pixels): 1024 x 1024 x 3 bytes = 3 MB a
 #: view; a larger photo is shrunk (``cv2.INTER_AREA``) when it is encoded.
@@ -176,11 +176,38 @@ def _level(photo: np.ndarray, size: tuple[int, int], levels: dict | None) -> np.
 # photos at the output's resolution.
 # ----------------------------------------------------------------------------------------------
 
-def mean_colour(colours: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """Each sample's reference colour as the renderer averages it: ``colours [V, ..., 3]`` and
-    validity weights ``mask [V, ...]`` -> ``sum_v m c / max(sum_v m, 1)`` float32 [..., 3]."""
-    m = mask[..., None]
-    return (colours * m).sum(axis=0) / np.maximum(m.sum(axis=0), f32(1.0))
+def mean_colour(colours: np.ndarray, mask: np.ndarray, cos: np.ndarray | None = None,
+                blend_angle: float = 0.0) -> np.ndarray:
+    """Each sample's reference colour as the renderer blends it over the views: ``colours
+    [V, ..., 3]``, validity weights ``mask [V, ...]`` -> float32 [..., 3].
+
+    With ``blend_angle`` 0 the validity-weighted mean, ``sum_v m c / max(sum_v m, 1)``. With
+    ``blend_angle`` > 0 (a model's ``ModelConfig.blend_angle``) each view also weighs
+    ``exp((cos_v - 1) / blend_angle)``, ``cos [V, ...]`` the cosine between the target's and the
+    view's rays at the sample (the geometric cue's last entry): where the views disagree at
+    fine scale -- a depth slightly off, a reflection -- the colour follows the views that look
+    along the target ray instead of averaging ghosts. The sum is renormalised to the
+    validity-weighted one, ``sum_v a c / sum_v a * min(sum_v m, 1)`` with ``a = m exp(...)``, so
+    a sample seen by few views fades as before and a large ``blend_angle`` is the plain mean.
+    ``angular_view_weights`` gives ``a``."""
+    m = mask.astype(f32)[..., None]
+    if not blend_angle:
+        return (colours * m).sum(axis=0) / np.maximum(m.sum(axis=0), f32(1.0))
+    a = angular_view_weights(mask, cos, blend_angle)[..., None]
+    total = a.sum(axis=0)
+    return ((colours * a).sum(axis=0) / np.maximum(total, f32(1e-30))
+            * np.minimum(m.sum(axis=0), f32(1.0)))
+
+
+def angular_view_weights(mask: np.ndarray, cos: np.ndarray, blend_angle: float) -> np.ndarray:
+    """``mask * exp((cos - c) / blend_angle)`` float32 [V, ...], ``c`` the largest ``cos`` among
+    the views with ``mask > 0`` (1 where none): the factor ``exp((c - 1) / blend_angle)`` common
+    to every view cancels in the blend and keeps the best view's weight at its mask, so far
+    angles underflow to 0 only beside a view that sees the point."""
+    mask, cos = mask.astype(f32), cos.astype(f32)
+    best = np.where(mask > 0, cos, f32(-np.inf)).max(axis=0)
+    best = np.where(np.isfinite(best), best, f32(1.0))
+    return mask * np.exp(np.minimum(cos - best, f32(0)) / f32(blend_angle))
 
 
 def _logit(x: np.ndarray) -> np.ndarray:

@@ -68,13 +68,15 @@ def compose_fine(coarse: CoarseField, height: int, width: int, K: np.ndarray,
                  world_from_cam: np.ndarray, z_bins: np.ndarray, ref_K: np.ndarray,
                  cam_from_world: np.ndarray, image_size: tuple[int, int],
                  colours: ColourSource, colour_samples: int,
-                 consistency: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+                 consistency: float | None = None,
+                 blend_angle: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """The ``height`` x ``width`` render (intrinsics ``K`` in its pixels, pose
     ``world_from_cam``) from ``coarse``: rgb float32 [H*W, 3] and depth float32 [H*W].
     ``z_bins [S]``: the march's depth bins; ``ref_K``, ``cam_from_world [V, 4, 4]``,
     ``image_size``: the references (model pixels); ``colours``: their photos at the output's
     scale; ``colour_samples``: depth windows kept per coarse ray (``ray_windows``);
-    ``consistency``: the spread scale of the candidates' weights (None: ``CONSISTENCY``)."""
+    ``consistency``: the spread scale of the candidates' weights (None: ``CONSISTENCY``);
+    ``blend_angle``: the model's angular weighting of the views (``colour.mean_colour``)."""
     tau = f32(CONSISTENCY if consistency is None else consistency)
     hc, wc = coarse.size
     pooled, centre = ray_windows(coarse.weights, z_bins, colour_samples)      # [Nc, nW] each
@@ -106,7 +108,8 @@ def compose_fine(coarse: CoarseField, height: int, width: int, K: np.ndarray,
         z = ((mass * centre[cand[ray], j[:, None]]).sum(axis=1)
              / np.maximum(mass.sum(axis=1), f32(1e-30)))
         points = origins[ray] + z[:, None] * directions[ray]                   # [P, 3]
-        mean, spread = _sample_colours(points, ref_K, cam_from_world, image_size, colours)
+        mean, spread = _sample_colours(points, ref_K, cam_from_world, image_size, colours,
+                                       pose32[:3, 3], blend_angle)
         slot = np.zeros((R, n_win), np.intp)
         slot[ray, j] = np.arange(len(ray))
         p = slot[np.arange(R)[:, None, None], cand_win]                        # [R, 4, M]
@@ -155,18 +158,26 @@ def _candidates(rows: np.ndarray, height: int, width: int, hc: int, wc: int):
 
 
 def _sample_colours(points: np.ndarray, ref_K: np.ndarray, cam_from_world: np.ndarray,
-                    image_size: tuple[int, int], colours: ColourSource):
-    """The references' mean colour float32 [P, 3] at world ``points [P, 3]`` (validity-weighted
-    as the renderer weighs them) and its spread float32 [P]: the weighted variance of the views'
-    colours, summed over RGB (0 where fewer than two views see the point)."""
+                    image_size: tuple[int, int], colours: ColourSource,
+                    target_centre: np.ndarray, blend_angle: float):
+    """The references' colour float32 [P, 3] at world ``points [P, 3]``, blended over the views
+    as the renderer blends them (``colour.mean_colour``: validity, and the angle to the ray from
+    ``target_centre`` with ``blend_angle``), and its spread float32 [P]: the validity-weighted
+    variance of the views' colours, summed over RGB (0 where fewer than two views see the
+    point)."""
     H, W = image_size
     V = cam_from_world.shape[0]
     uv, z, _ = G.project_points(points, ref_K, cam_from_world, H, W)           # [V, P, 2]
     weight = G.validity(uv, z, H, W)                                           # [V, P]
     sampled = colours.sample(G.pixels_to_grid(uv, H, W), np.arange(V))        # [V, P, 3]
-    mean = mean_colour(sampled, weight)
+    plain = mean_colour(sampled, weight)
+    cos = None
+    if blend_angle:
+        centres = np.linalg.inv(cam_from_world.astype(np.float64))[:, :3, 3].astype(f32)
+        cos = G.geometric_cue(points, target_centre, centres)[..., 3].T          # [V, P]
+    mean = mean_colour(sampled, weight, cos, blend_angle) if blend_angle else plain
     m = weight[..., None]
     count = m.sum(axis=0)
-    var = (m * (sampled - mean) ** 2).sum(axis=0) / np.maximum(count, f32(1e-12))
+    var = (m * (sampled - plain) ** 2).sum(axis=0) / np.maximum(count, f32(1e-12))
     spread = np.where(count[:, 0] > 1.0, var.sum(axis=1), f32(0))
     return mean.astype(f32), spread.astype(f32)

@@ -80,6 +80,12 @@ class Manifest:
     #: Optional in the file; "model" when absent (every model exported before it existed).
     cameras: str = "model"
 
+    @property
+    def blend_angle(self) -> float:
+        """config.blend_angle: the angular weighting of the views in the colour blend
+        (``colour.mean_colour``; absent = 0, the plain mean)."""
+        return float(self.config.get("blend_angle", 0.0))
+
 
 #: The cameras a renderer can be given: the encoder's ("model"), the camera solve of the photos
 #: ("solve": SIFT matches, incremental mapping and bundle adjustment,
@@ -285,6 +291,11 @@ def read_manifest(model_dir: str | os.PathLike, *, verify_hashes: bool = True) -
     if not isinstance(explicit_rgb, bool):
         raise ManifestError(f"{path}: config.explicit_rgb must be true or false, got "
                             f"{explicit_rgb!r}")
+    angle = config.get("blend_angle", 0.0)
+    if (isinstance(angle, bool) or not isinstance(angle, (int, float))
+            or not 0 <= angle < math.inf or (angle and not explicit_rgb)):
+        raise ManifestError(f"{path}: config.blend_angle must be a finite number >= 0, and 0 "
+                            f"without explicit_rgb, got {angle!r}")
 
     def number(key, kind=float):
         value = doc.get(key)

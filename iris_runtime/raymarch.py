@@ -81,6 +81,8 @@ class MarchPlan:
       field_maps:     float32 [V, C', h, w]
       colours:        ``colour.ColourSource`` or None: each view's reference photo (explicit
                                            colour) at the level of this render's scale
+      blend_angle:    float                the model's angular view weighting of the colours
+                                           (``colour.mean_colour``; 0: the plain mean)
     View sets:
       top_k:          int or None          views kept per sample point (None: every valid view)
       by_ray:         bool                 top_k chosen per ray (calls then shrink to top_k views)
@@ -128,6 +130,7 @@ class MarchPlan:
     mode_radius: float | None = None
     select_views: bool = False
     keep_weights: bool = False
+    blend_angle: float = 0.0
 
     @classmethod
     def build(cls, scene: Scene, world_from_cam: np.ndarray, K: np.ndarray, height: int,
@@ -137,7 +140,7 @@ class MarchPlan:
               levels: dict | None = None, pixel_index: np.ndarray | None = None,
               sample_window: np.ndarray | None = None,
               mode_radius: float | None = None, select_views: bool = False,
-              keep_weights: bool = False) -> "MarchPlan":
+              keep_weights: bool = False, blend_angle: float = 0.0) -> "MarchPlan":
         """The plan of rendering ``scene`` from ``world_from_cam`` (checked, float64 4x4) with
         intrinsics ``K`` (pixels of the ``height`` x ``width`` render); ``pixel_index``,
         ``sample_window``, ``mode_radius``: see the class (built by ``iris_runtime.adaptive``,
@@ -166,7 +169,8 @@ class MarchPlan:
                    sample_window=None if sample_window is None else _frozen(
                        np.asarray(sample_window, np.int64)),
                    mode_radius=None if mode_radius is None else float(mode_radius),
-                   select_views=bool(select_views), keep_weights=bool(keep_weights))
+                   select_views=bool(select_views), keep_weights=bool(keep_weights),
+                   blend_angle=float(blend_angle))
 
     @property
     def pixels(self) -> int:
@@ -372,7 +376,8 @@ def _march_block(plan: MarchPlan, session, start: int, rgb: np.ndarray, depth: n
             dense = np.zeros((len(rows), plan.samples), f32)
             np.put_along_axis(dense, np.searchsorted(plan.z_bins, z), weights, axis=1)
             kept[0][rows] = dense
-            mean = mean_colour(feed[COLOURS], feed[MASK])                     # [r, s, 3]
+            mean = mean_colour(feed[COLOURS], feed[MASK], feed[CUES][..., 3],
+                               plan.blend_angle)                                # [r, s, 3]
             kept[1][rows] = blend_residual(out_rgb, np.einsum("rs,rsc->rc", weights, mean))
         t3 = time.perf_counter()
         stats.rays_s += (t1 - t0) + (t3 - t2)

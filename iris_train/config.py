@@ -3,6 +3,7 @@ in one frozen dataclass that travels with the weights (a checkpoint's "config" a
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass
 
 from iris_runtime.errors import InputError    # an IrisError and a ValueError
@@ -41,6 +42,13 @@ class ModelConfig:
     # False: the paper's renderer (colour from the rgb head alone, depth from the last ray
     # attention), which is what checkpoints without this field hold.
     explicit_rgb: bool = False
+    # Explicit colour: the scale of the angular weighting of the views in the colour blend. Each
+    # view weighs its validity times exp((cos - 1) / blend_angle), cos between the target's and
+    # the view's rays at the sample, so that where the views disagree at fine scale the colour
+    # follows the views looking along the target ray instead of averaging ghosts
+    # (iris_runtime.colour.mean_colour). 0: the plain validity-weighted mean (what checkpoints
+    # without this field hold).
+    blend_angle: float = 0.0
     # Canonical-view marker (VGGT's first-frame tokens): a learnable embedding added to every token
     # of view 0, so that cross-view attention can tell the canonical view's patches from the
     # others'. Without it no token knows which view the poses are relative to, and the camera head
@@ -79,6 +87,11 @@ class ModelConfig:
                              f"{self.camera_head!r}")
         if self.correlation_scale not in (2, 4):
             raise InputError(f"correlation_scale: expected 2 or 4, got {self.correlation_scale!r}")
+        if not (isinstance(self.blend_angle, (int, float)) and 0 <= self.blend_angle < math.inf):
+            raise InputError(f"blend_angle: expected a finite number >= 0, got {self.blend_angle!r}")
+        if self.blend_angle and not self.explicit_rgb:
+            raise InputError("blend_angle: weights the explicit colour blend, so it needs "
+                             "explicit_rgb")
         if self.camera_head == "correlation" and self.patch_size % 8:
             raise InputError(f"camera_head 'correlation' needs patch_size a multiple of 8 (its "
                              f"stem has stride 4 and correlates at twice the token grid), got "
@@ -198,6 +211,9 @@ class TrainConfig:
     # Keep the camera head and its own encoder as they are (no gradient, no weight decay): a
     # renderer fine-tune of a model whose head was distilled apart (``camera_encoder``).
     freeze_cameras: bool = False
+    # Explicit colour: the model's ``blend_angle`` (ModelConfig): the angular weighting of the
+    # views in the colour blend. It holds no weights, so a fine-tune (``--init``) may change it.
+    blend_angle: float = 0.0
     seed: int = 0
     log_every: int = 10
     ckpt_every: int = 250

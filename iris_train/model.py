@@ -144,6 +144,25 @@ class RaySamples:
     colours: torch.Tensor | None = None  # [V, R, S, 3] or None
 
 
+def blend_views(colours: torch.Tensor, mask: torch.Tensor, cos: torch.Tensor,
+                blend_angle: float) -> torch.Tensor:
+    """Each sample's reference colour over the views, ``colours [V, ..., 3]``, validity ``mask
+    [V, ...]``, ``cos [V, ...]`` the cue's cosine between target and view rays ->
+    ``[..., 3]``: the validity-weighted mean, or with ``blend_angle`` > 0 each view also weighted
+    by ``exp((cos - 1) / blend_angle)`` (``iris_runtime.colour.mean_colour``, its twin, says why
+    and how a sample seen by few views still fades)."""
+    m = mask.to(colours.dtype)
+    if not blend_angle:
+        return (colours * m[..., None]).sum(0) / m.sum(0).clamp_min(1.0)[..., None]
+    # The common factor exp((c - 1) / blend_angle), c the best cosine of a seeing view, cancels.
+    best = torch.where(m > 0, cos, torch.full_like(cos, -2.0)).amax(0, keepdim=True)
+    best = torch.where(best > -2.0, best, torch.ones_like(best)).detach()
+    a = m * torch.exp((cos - best).clamp_max(0.0) / blend_angle)
+    total = a.sum(0)
+    return ((colours * a[..., None]).sum(0) / total.clamp_min(1e-30)[..., None]
+            * m.sum(0).clamp_max(1.0)[..., None])
+
+
 class IrisModel(nn.Module):
     def __init__(self, cfg: ModelConfig, encoder: MultiViewEncoder,
                  camera_head: CameraHead | CorrelationCameraHead,
@@ -260,8 +279,7 @@ class IrisModel(nn.Module):
             if colours is None:
                 raise ValueError("colours: this model (explicit_rgb) needs the reference RGB at "
                                  "the samples, [V, R, S, 3]")
-            m = mask.to(colours.dtype)[..., None]
-            mean_colour = (colours * m).sum(0) / m.sum(0).clamp_min(1.0)                # [R, S, 3]
+            mean_colour = blend_views(colours, mask, cues[..., 3], self.cfg.blend_angle)  # [R, S, 3]
             point_colours = colours.permute(1, 2, 0, 3).reshape(R * S, V, 3)
         # The field is point-major: [R*S, V, ...].
         f = self.field(sampled.permute(1, 2, 0, 3).reshape(R * S, V, -1),

@@ -95,6 +95,8 @@ def model_config(cfg: TrainConfig, start: dict | None = None) -> ModelConfig:
     or, when that is "", the head of the checkpoint the run starts from (``start``: its config
     dict; a checkpoint without the field has the token head), else the preset's own."""
     base = preset(cfg.preset)
+    if cfg.blend_angle:
+        base = dataclasses.replace(base, blend_angle=cfg.blend_angle)
     if cfg.camera_head or not isinstance(start, dict):
         return dataclasses.replace(base, camera_head=cfg.camera_head or base.camera_head)
     # The checkpoint's cameras as they are: its head, and its own camera encoder if it has one.
@@ -113,7 +115,7 @@ def load_init_weights(model: IrisModel, payload: dict, what: str = "init") -> li
     the state-dict keys left at their fresh initialisation (sorted; empty unless the head changes).
 
     The checkpoint's model config must be ``model.cfg`` up to the camera head's settings
-    (``camera_head``, ``correlation_scale``). Same head: every weight loads (strict). Another
+    (``camera_head``, ``correlation_scale``) and ``blend_angle`` (no weights). Same head: every weight loads (strict). Another
     head (a "tokens" checkpoint into a "correlation" model, the case this is for): every weight
     the two models share by name and shape loads, the new head's own parameters (keys under
     ``camera_head.`` the checkpoint lacks, or holds in another shape when the correlation grid
@@ -124,10 +126,12 @@ def load_init_weights(model: IrisModel, payload: dict, what: str = "init") -> li
         source = ModelConfig.from_dict(payload["config"])
     except (TypeError, ValueError) as exc:
         raise ValueError(f"{what}: unreadable model config ({exc})") from None
+    # The colour blend's angular weighting holds no weights: a fine-tune may change it.
+    source = dataclasses.replace(source, blend_angle=model.cfg.blend_angle)
     head = {"camera_head": model.cfg.camera_head, "correlation_scale": model.cfg.correlation_scale}
     if dataclasses.replace(source, **head) != model.cfg:
         raise ValueError(f"{what} holds another model config than this run's "
-                         f"(only the camera head's settings may differ)")
+                         f"(only the camera head's settings and blend_angle may differ)")
     state = payload["model"]
     if dataclasses.replace(source, **head) == source:
         model.load_state_dict(state)

@@ -27,15 +27,19 @@ def has_torch() -> bool:
     return True
 
 
-def random_model(preset_name: str = "tiny"):
-    """``torch.manual_seed(0); build_model(preset(preset_name))`` in eval mode; for explicit-colour
-    models the residual rgb head (zero at initialisation) then gets N(0, 0.2) weights."""
+def random_model(preset_name: str = "tiny", **config):
+    """``torch.manual_seed(0); build_model(preset(preset_name))`` (with ``config``'s fields
+    replaced) in eval mode; for explicit-colour models the residual rgb head (zero at
+    initialisation) then gets N(0, 0.2) weights."""
+    import dataclasses
+
     import torch
 
     import iris_train
 
     torch.manual_seed(0)
-    model = iris_train.build_model(iris_train.preset(preset_name)).eval()
+    cfg = dataclasses.replace(iris_train.preset(preset_name), **config)
+    model = iris_train.build_model(cfg).eval()
     if model.cfg.explicit_rgb:
         with torch.no_grad():
             for p in model.renderer.rgb_head[-1].parameters():
@@ -43,13 +47,14 @@ def random_model(preset_name: str = "tiny"):
     return model
 
 
-def _export_random_tiny(tmp_path_factory, name: str, quantize=None, preset_name: str = "tiny"):
+def _export_random_tiny(tmp_path_factory, name: str, quantize=None, preset_name: str = "tiny",
+                        **config):
     """(model_dir, IrisModel): a random tiny model (seed 0) exported once (needs torch and onnx)."""
     pytest.importorskip("torch")
     pytest.importorskip("onnx")
     from export.pipeline import export_model
 
-    model = random_model(preset_name)
+    model = random_model(preset_name, **config)
     out = tmp_path_factory.mktemp(name) / preset_name
     export_model(model, out, quick=True, progress=False, threads=1, quantize=quantize)
     return out, model
@@ -70,9 +75,12 @@ def torch_export_int8(tmp_path_factory):
 @pytest.fixture(scope="session")
 def torch_export_rgb(tmp_path_factory):
     """(model_dir, IrisModel): a random explicit-colour model (``tiny-rgb``) and its export, with
-    the int8 renderer (one export serves the float and the int8 tests)."""
+    the int8 renderer (one export serves the float and the int8 tests). It weights the views of
+    its colour blend by angle (``blend_angle`` 0.02), so the torch-free paths that blend colours
+    in numpy (two scales, the residual) are held to the graph's weighting; the shipped model,
+    which CI's torch-free environment tests, may blend them plainly."""
     return _export_random_tiny(tmp_path_factory, "iris_model_rgb", quantize="int8",
-                               preset_name="tiny-rgb")
+                               preset_name="tiny-rgb", blend_angle=0.02)
 
 
 def resolve_model_dir(request, export_fixture: str, env_var: str = "IRIS_TEST_MODEL_DIR") -> Path:

@@ -117,6 +117,8 @@ def _edit_manifest(d: Path, edit) -> None:
     (lambda d: d["graphs"]["renderer"].update(file=None), ManifestError, "file"),
     (lambda d: d.update(graphs=[]), ManifestError, "graphs"),
     (lambda d: d.update(cameras="colmap"), ManifestError, "cameras"),
+    (lambda d: d["config"].update(blend_angle=-1.0), ManifestError, "blend_angle"),
+    (lambda d: d["config"].update(blend_angle="wide"), ManifestError, "blend_angle"),
 ])
 def test_manifest_fields(model_copy, edit, error, match):
     _edit_manifest(model_copy, edit)

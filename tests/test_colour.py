@@ -107,6 +107,44 @@ def test_blend_residual_composes_back():
     np.testing.assert_allclose(mean_colour(colours, mask), want, rtol=0, atol=4 * F32_EPS)
 
 
+def test_mean_colour_weights_views_by_angle():
+    """blend_angle: the views looking along the target ray lead; fades, extremes and the plain
+    limit as documented (against the formula written out in float64)."""
+    rng = np.random.default_rng(4)
+    V, P = 4, 50
+    colours = rng.uniform(0, 1, (V, P, 3)).astype(np.float32)
+    mask = rng.choice([0.0, 0.3, 1.0], (V, P)).astype(np.float32)
+    cos = rng.uniform(-1, 1, (V, P)).astype(np.float32)
+    for angle in (0.3, 0.02):
+        a = mask * np.exp((cos.astype(np.float64) - 1) / angle)
+        want = ((colours * a[..., None]).sum(0) / np.maximum(a.sum(0), 1e-300)[..., None]
+                * np.minimum(mask.sum(0), 1)[..., None])
+        np.testing.assert_allclose(mean_colour(colours, mask, cos, angle), want, rtol=0,
+                                   atol=16 * F32_EPS)
+    # A very wide angle is the plain mean; the view along the ray takes over a narrow one.
+    np.testing.assert_allclose(mean_colour(colours, mask, cos, 1e6), mean_colour(colours, mask),
+                               rtol=0, atol=16 * F32_EPS)
+    full = np.ones((V, P), np.float32)
+    along = np.where(np.arange(V)[:, None] == 2, 1.0, 0.5).astype(np.float32) * full
+    np.testing.assert_allclose(mean_colour(colours, full, along, 1e-3), colours[2], rtol=0,
+                               atol=16 * F32_EPS)
+    # One view at half validity fades to half its colour, as in the plain mean.
+    half = np.zeros((V, P), np.float32)
+    half[1] = 0.5
+    np.testing.assert_allclose(mean_colour(colours, half, cos, 0.01), 0.5 * colours[1], rtol=0,
+                               atol=4 * F32_EPS)
+    # Far angles beside an unseeing view along the ray: no underflow to 0/0, no warning.
+    far = np.full((V, P), -1.0, np.float32)
+    far[0] = 1.0
+    seen = np.ones((V, P), np.float32)
+    seen[0] = 0.0
+    with np.errstate(all="raise"):
+        out = mean_colour(colours, seen, far, 1e-4)
+    np.testing.assert_allclose(out, mean_colour(colours, seen), rtol=0, atol=16 * F32_EPS)
+    nobody = mean_colour(colours, np.zeros((V, P), np.float32), cos, 0.01)
+    assert np.isfinite(nobody).all() and not nobody.any()
+
+
 def test_settings_of_two_scales_are_checked():
     RenderSettings(field_scale=0.25, colour_samples=4)
     for bad in (0.0, 1.5, float("nan"), "x"):

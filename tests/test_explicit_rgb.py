@@ -72,3 +72,38 @@ def test_subset_keeps_the_matching_photos(model):
     images = torch.rand(4, 3, 64, 64, dtype=torch.float64)
     sub = model.encode(images).subset([0, 2])
     torch.testing.assert_close(sub.images, images[[0, 2]])
+
+
+def test_blend_views_is_the_runtime_formula():
+    """The torch blend of the views (``iris_train.model.blend_views``, here in float64) and the
+    runtime's float32 one (``iris_runtime.colour.mean_colour``) agree on the same float32 inputs,
+    plain and by angle, to the float32 rounding of a few operations on values in [0, 1] (a wrong
+    weighting moves colours by > 1e-2)."""
+    import numpy as np
+
+    from iris_runtime.colour import mean_colour
+    from iris_train.model import blend_views
+    rng = np.random.default_rng(5)
+    colours = rng.uniform(0, 1, (5, 7, 9, 3)).astype(np.float32)
+    mask = rng.choice([0.0, 0.25, 1.0], (5, 7, 9)).astype(np.float32)
+    cos = rng.uniform(-1, 1, (5, 7, 9)).astype(np.float32)
+    eps32 = float(np.finfo(np.float32).eps)
+    for angle in (0.0, 0.05, 0.005):
+        got = blend_views(*(torch.from_numpy(x).double() for x in (colours, mask, cos)),
+                          angle).numpy()
+        # exp's argument (cos - best) / angle carries the float32 rounding of cos - best (at most
+        # eps of |cos - best| <= 2) divided by angle: a relative error of the weights of
+        # 2 eps / angle (2e-4 at 0.005), plus a few roundings of the blend.
+        tol = 4 * eps32 * (2.0 / angle if angle else 0.0) + 16 * eps32
+        np.testing.assert_allclose(got, mean_colour(colours, mask, cos, angle), rtol=0, atol=tol)
+
+
+@pytest.mark.parametrize("bad", [-0.1, float("nan"), float("inf"), "0.1"])
+def test_blend_angle_is_checked(bad):
+    import dataclasses
+
+    from iris_runtime.errors import InputError
+    with pytest.raises(InputError, match="blend_angle"):
+        dataclasses.replace(preset("tiny-rgb"), blend_angle=bad)
+    with pytest.raises(InputError, match="blend_angle.*explicit_rgb"):
+        dataclasses.replace(preset("tiny"), blend_angle=0.01)
