@@ -85,17 +85,13 @@ from iris_train.model import IrisModel, blend_views
 from iris_train.ray_renderer import BLEND_EPS
 
 from .errors import ExportArgumentError
+from .fast_weights import SELECTION_PREFIX, derive_weights
 from .graphs import RendererGraph, resolve_sampler
 
 #: Renderer graph kinds of ``export_model(..., renderer=...)``: "reference" is ``RendererGraph``
 #: (the model's render_samples traced as is), "fast" (the default) this module's graph
 #: in standard ONNX ops, "fast-contrib" the same with ONNX Runtime's com.microsoft fused ops.
 RENDERER_KINDS = ("reference", "fast", "fast-contrib")
-#: Buffers of the graph whose names start with this are selection matrices (copies, sums and
-#: broadcasts written as matmuls; 0/1, or one exact scale per column); ``export.graphs.
-#: quantize_int8`` leaves their MatMuls and Gemms in float (quantising them would quantise the
-#: tent weights, the coordinates and the attention weights they carry).
-SELECTION_PREFIX = "select_"
 
 
 class FastRendererGraph(nn.Module):
@@ -105,10 +101,11 @@ class FastRendererGraph(nn.Module):
 
     The model's modules (norms, MLPs, projections, heads) are used as they are; the weights this
     layout needs in another form (u/k/v slot rows, per-head q/k/v, folded scales and biases, the
-    split injection) are derived from the model's parameters here, at construction, as
-    non-persistent buffers, so that they are initializers of the exported graph rather than ops
-    on weights (the exporter folds no constant above a small size). Build the wrapper from the
-    model as it is to be exported (``export_fast_renderer`` does).
+    split injection) are derived from the model's parameters at construction
+    (``export.fast_weights``) and kept as non-persistent buffers, so that they are initializers
+    of the exported graph rather than ops on weights (the exporter folds no constant above a
+    small size). Build the wrapper from the model as it is to be exported
+    (``export_fast_renderer`` does).
     """
 
     def rewrite_onnx(self, proto) -> None:
@@ -133,97 +130,11 @@ class FastRendererGraph(nn.Module):
         self.register_buffer(name, tensor.detach().clone().contiguous(), persistent=False)
 
     def _derive(self) -> None:
-        cfg, field = self.model.cfg, self.model.field
-        W = cfg.field_width
-        # Slots of the field maps: u, then each view block's keys and values. Each slot's matmul
-        # B_slot = [maps_slot ; rows^T]: rows [W, 4 (+ 3)] multiply the cues (and colours); with
-        # explicit colour the constant of rgb_to_maps(colours - 0.5) is added to the maps.
-        self.slots = [slice(0, W)]
-        ref = field.proj.weight
-        cue_rows = [torch.zeros(W, 4, dtype=ref.dtype, device=ref.device)]
-        for i, block in enumerate(field.view_transformer.blocks):
-            base = W * (1 + 2 * i)
-            for j in range(2):                                                       # k, v
-                self.slots.append(slice(base + j * W, base + (j + 1) * W))
-                cue_rows.append(block.cue_to_kv.weight[j * W:(j + 1) * W])
-        for i, (ch, cue) in enumerate(zip(self.slots, cue_rows)):
-            rows, const = cue, None
-            if field.rgb_to_maps is not None:
-                wc = field.rgb_to_maps.weight[ch]                                     # [W, 3]
-                rows = torch.cat([cue, wc], dim=-1)
-                const = field.rgb_to_maps.bias[ch] - 0.5 * wc.sum(-1)                 # [W]
-                self._keep(f"slot{i}_const", const)
-            # The mask bias column: added to u (the masked max-pool's input), not to k or v.
-            rows = torch.cat([rows, torch.full_like(rows[:, :1], 1.0 if i == 0 else 0.0)], -1)
-            self._keep(f"slot{i}_rows", rows)
-        # The per-axis tent weights as Gemms: a pixel coordinate [N, 1] -> its differences to
-        # every row (column) centre [N, h] ([N, w]), a copy and one subtraction, so bit for bit
-        # ``tent_axes``' (gy - ys) without its broadcast Sub over a trailing axis of 1
-        # (docs/PERFORMANCE.md).
-        h, w = cfg.feature_grid
-        for axis, n in (("y", h), ("x", w)):
-            self._keep(f"select_tent_{axis}", torch.ones(n, 1, dtype=ref.dtype))
-            self._keep(f"tent_{axis}_centres", -torch.arange(n, dtype=ref.dtype))
-        # The design matrix A = [tent | extras] as (row part @ select_rows) * (wx @ select_cols):
-        # the 0/1 matmuls copy wy[y] and wx[x] to cell (y, x), so the tent columns are its outer
-        # product bit for bit, and the extras' columns are the extra times sum_x wx = 1 (the
-        # tent weights of a clamped coordinate sum to one, within one rounding). This replaces a
-        # short-span broadcast Mul and a Concat over [V, N, hw + E] (docs/PERFORMANCE.md) with
-        # two thin matmuls and one same-shape Mul.
-        E = rows.shape[-1]
-        select_rows = torch.zeros(h + E, h * w + E, dtype=ref.dtype)
-        select_rows[:h, :h * w] = torch.eye(h, dtype=ref.dtype).repeat_interleave(w, dim=1)
-        select_rows[h:, h * w:] = torch.eye(E, dtype=ref.dtype)
-        select_cols = torch.ones(w, h * w + E, dtype=ref.dtype)
-        select_cols[:, :h * w] = torch.eye(w, dtype=ref.dtype).repeat(1, h)
-        self._keep("select_rows", select_rows)                  # wy[y] -> (y, .), extras -> self
-        self._keep("select_cols", select_cols)                  # wx[x] -> (., x), sum -> extras
-        # Broadcasts over a trailing axis of 1 as matmuls with a row of ones (ONNX Runtime runs
-        # ``x [..., 1] * y [..., n]`` several times slower than the same-shape op).
-        for n in sorted({3, cfg.field_heads, W}):
-            self._keep(f"select_ones{n}", torch.ones(1, n, dtype=ref.dtype))
-        # Per-head sums and broadcasts in the view attention as 0/1 matmuls (a ReduceSum over
-        # the last axis and a broadcast Mul over heads in the layout ONNX Runtime runs slowly).
-        H = cfg.field_heads
-        head_of = torch.arange(W) // (W // H)
-        self._keep("select_head_sum", (head_of[:, None] == torch.arange(H)).to(ref.dtype))
-        self._keep("select_head_expand", self.select_head_sum.t())                    # [H, W]
-        # View blocks: the attention scale folded into the query projection.
-        for i, block in enumerate(field.view_transformer.blocks):
-            scale = (W // block.heads) ** -0.5
-            self._keep(f"view{i}_wq", block.to_q.weight * scale)
-            self._keep(f"view{i}_bq", block.to_q.bias * scale)
-        # Ray blocks: per-head q/k/v [H, W, Dh] (scale in q; the key bias dropped: it adds q . b_k
-        # to every logit of a row; the value bias folded into the output projection's bias: the
-        # rows of the attention sum to one).
-        rt = self.model.renderer.ray_transformer
-        P = 3 * (1 + 2 * rt.pos_freqs)
-        for i, (inject, block) in enumerate(zip(rt.inject, rt.blocks)):
-            H = block.heads
-            Dh = W // H
-            scale = Dh ** -0.5
-            wq, wk, wv = block.qkv.weight.split(W)
-            bq, _, bv = block.qkv.bias.split(W)
-
-            def per_head(weight, H=H, Dh=Dh):          # [W_out, W_in] -> [H, W_in, Dh]
-                return weight.reshape(H, Dh, W).transpose(1, 2)
-
-            # q on y = [normed, 1] [W + 1]: its bias from the 1, no Add over [R, H, S, Dh]. (The
-            # key mask stays an Add: an extra q . k component carrying it makes the projections
-            # 17 wide, which ONNX Runtime's kernels run slower than 16, docs/PERFORMANCE.md.)
-            wq_aug = torch.cat([per_head(wq * scale), (bq * scale).reshape(H, 1, Dh)], dim=1)
-            self._keep(f"ray{i}_wq", wq_aug)                                     # [H, W + 1, Dh]
-            self._keep(f"ray{i}_wk", per_head(wk))
-            self._keep(f"ray{i}_wv", per_head(wv))
-            self._keep(f"ray{i}_bproj", block.proj.bias + block.proj.weight @ bv)
-            # psi^(l) split into its per-sample (position) and per-ray (direction) parts.
-            self._keep(f"inject{i}_wpos", inject.weight[:, :P])
-            self._keep(f"inject{i}_wdir", inject.weight[:, P:])
-        # The position encoding's products x_c * 2^k pi as a matmul (one nonzero per column: the
-        # same products, bit for bit, without a broadcast Mul over a trailing axis of 1).
-        F_ = rt.pos_freqs
-        freqs = (2.0 ** torch.arange(F_, dtype=ref.dtype)) * torch.pi
-        self._keep("select_pos_freqs", torch.block_diag(*[freqs[None]] * 3))           # [3, 3F]
+        """Register ``export.fast_weights.derive_weights``' tensors as buffers and keep its
+        slots (the channels of u and of each view block's keys and values)."""
+        self.slots, weights = derive_weights(self.model)
+        for name, tensor in weights.items():
+            self._keep(name, tensor)
 
     # -- the latent field, view-major --------------------------------------------------------
     def _sample_slots(self, field_maps, grid, cues, colours, bias, groups=None):

@@ -73,6 +73,7 @@ from iris_train.model import IrisModel, sampler_for
 
 from . import io_spec
 from .errors import ExportArgumentError, ExportError
+from .fast_weights import SELECTION_PREFIX
 from .io_spec import DEFAULT_OPSET, MIN_OPSET
 
 EXPORTER = "torch.onnx.export(dynamo=True)"
@@ -333,7 +334,6 @@ def quantize_int8(src: str | Path, dst: str | Path) -> GraphFile:
             # bounds the int8 error; the figures: docs/PERFORMANCE.md, "int8").
             # The fast graphs' 0/1 selection matmuls stay float: they carry the bilinear and
             # attention weights, which 8 bits would round.
-            from .fast_renderer import SELECTION_PREFIX
             exclude = [n.name for n in proto.graph.node
                        if any(i.startswith(SELECTION_PREFIX) for i in n.input)]
             quantize_dynamic(proto, str(dst), weight_type=QuantType.QInt8, reduce_range=True,
