@@ -116,33 +116,13 @@ def export_model(model_or_ckpt: IrisModel | str | os.PathLike, out_dir: str | os
     """
     t0 = time.perf_counter()
     out_dir = Path(out_dir).absolute()
-    check_opset(opset)
-    if quantize not in (None, *QUANTIZE_CHOICES):
-        raise ExportArgumentError(f"quantize: expected one of {list(QUANTIZE_CHOICES)} or None, "
-                                  f"got {quantize!r}")
-    if renderer not in RENDERER_KINDS:
-        raise ExportArgumentError(f"renderer: expected one of {list(RENDERER_KINDS)}, got "
-                                  f"{renderer!r}")
-    threads = check_integer(threads, "threads", allow_none=True, error=ExportArgumentError)
-    if (out_dir.exists() or out_dir.is_symlink()) and not force:
-        raise OutputExistsError(f"output {str(out_dir)!r} already exists (use --force to replace it)")
+    threads = _check_arguments(out_dir, opset, quantize, renderer, threads, force)
 
     def say(msg: str) -> None:
         if progress:
             print(f"iris-export [{time.perf_counter() - t0:6.1f} s] {msg}", file=sys.stderr, flush=True)
 
-    if not isinstance(model_or_ckpt, (IrisModel, str, os.PathLike)):
-        raise ExportArgumentError(f"model_or_ckpt: expected an IrisModel or a checkpoint path, got "
-                                  f"{type(model_or_ckpt).__name__}")
-    if isinstance(model_or_ckpt, IrisModel):
-        model, source, trained, distilled = model_or_ckpt, {"checkpoint": None}, "model", False
-    else:
-        ckpt = Path(model_or_ckpt)
-        say(f"loading checkpoint {ckpt}")
-        model = _load(ckpt)
-        source = {"checkpoint": ckpt.name, "sha256": sha256_file(ckpt)}
-        payload = read_checkpoint(ckpt)
-        trained, distilled = trained_cameras(payload), "distill" in payload
+    model, source, trained, distilled = _model_and_source(model_or_ckpt, say)
     cameras = _default_cameras(camera_name(cameras), trained, distilled)
     was_training = model.training
     model.eval()
@@ -151,47 +131,10 @@ def export_model(model_or_ckpt: IrisModel | str | os.PathLike, out_dir: str | os
     tmp = out_dir.with_name(f".{out_dir.name}.tmp-{uuid.uuid4().hex[:8]}")
     tmp.mkdir()
     try:
-        files, entries = {}, {}
-        for graph in ("encoder", "renderer"):
-            spec = io_spec.GRAPHS[graph]
-            say(f"exporting {graph} ({EXPORTER}, opset {opset})")
-            alt = {"wrapper": renderer_wrapper(model, renderer)} \
-                if graph == "renderer" and renderer != "reference" else {}
-            result = export_graph(model, graph, tmp / spec["file"], opset, **alt)
-            say(f"exported {graph}: {result.nodes} nodes, {result.path.stat().st_size / 1e6:.1f} MB "
-                f"in {result.seconds:.1f} s")
-            files[graph], entries[graph] = result.path, result
-        if renderer != "reference":    # per-point pre-selected views (top_k_by="point")
-            spec = io_spec.spec_for("renderer_views", model.cfg.explicit_rgb)
-            say("exporting renderer_views (per-point pre-selected views)")
-            result = export_graph(model, "renderer_views", tmp / spec["file"], opset,
-                                  wrapper=SelectedViewsRendererGraph(
-                                      model, contrib=renderer == "fast-contrib"))
-            say(f"exported renderer_views: {result.nodes} nodes in {result.seconds:.1f} s")
-            files["renderer_views"], entries["renderer_views"] = result.path, result
-        if model.camera_encoder is not None:     # cameras without the field's encoder
-            spec = io_spec.spec_for("encoder_cameras")
-            say("exporting encoder_cameras (the camera head on its own encoder)")
-            result = export_graph(model, "encoder_cameras", tmp / spec["file"], opset)
-            say(f"exported encoder_cameras: {result.nodes} nodes in {result.seconds:.1f} s")
-            files["encoder_cameras"], entries["encoder_cameras"] = result.path, result
-        if quantize == "int8":
-            result = quantize_int8(files["renderer"], tmp / INT8_FILE)
-            say(f"quantised renderer to int8: {result.nodes} nodes, "
-                f"{result.path.stat().st_size / 1e6:.1f} MB in {result.seconds:.1f} s")
-            files["renderer_int8"], entries["renderer_int8"] = result.path, result
+        files, entries = _export_graphs(model, tmp, opset, renderer, quantize, say)
         say(f"validating against torch ({'quick' if quick else 'full'} probes)")
         report = validate(model, files, quick=quick, threads=threads, progress=say)
-        graphs = {}
-        for name, path in files.items():
-            base = io_spec.base_graph(name)
-            extra = {"variant_of": base, "precision": "int8",
-                     "quantization": "onnxruntime.quantization.quantize_dynamic(weight_type=QInt8)"} \
-                if name != base else {"precision": "float32"}
-            graphs[name] = graph_entry(path, io_spec.spec_for(base, model.cfg.explicit_rgb),
-                                       entries[name].nodes, **extra)
-            if name != base:          # measured and recorded, but not held to the fp32 tolerance
-                graphs[name]["tolerance"] = None
+        graphs = _graph_entries(model, files, entries)
         unexpected = sorted({p.name for p in tmp.iterdir()} - {p.name for p in files.values()})
         if unexpected:     # e.g. a side .data file: the graphs must be self-contained
             raise ExportError(f"unexpected files next to the graphs: {unexpected}")
@@ -210,5 +153,89 @@ def export_model(model_or_ckpt: IrisModel | str | os.PathLike, out_dir: str | os
     say(f"wrote {out_dir} ({', '.join(sorted(p.name for p in out_dir.iterdir()))})")
     return out_dir
 
+
+def _check_arguments(out_dir: Path, opset, quantize, renderer, threads, force) -> int | None:
+    """``export_model``'s options checked before anything is loaded or written -> ``threads``."""
+    check_opset(opset)
+    if quantize not in (None, *QUANTIZE_CHOICES):
+        raise ExportArgumentError(f"quantize: expected one of {list(QUANTIZE_CHOICES)} or None, "
+                                  f"got {quantize!r}")
+    if renderer not in RENDERER_KINDS:
+        raise ExportArgumentError(f"renderer: expected one of {list(RENDERER_KINDS)}, got "
+                                  f"{renderer!r}")
+    threads = check_integer(threads, "threads", allow_none=True, error=ExportArgumentError)
+    if (out_dir.exists() or out_dir.is_symlink()) and not force:
+        raise OutputExistsError(f"output {str(out_dir)!r} already exists (use --force to replace it)")
+    return threads
+
+
+def _model_and_source(model_or_ckpt, say) -> tuple[IrisModel, dict, str, bool]:
+    """The model to export -> ``(model, source, trained, distilled)``: the manifest's "source"
+    (the checkpoint's name and sha256), the cameras its renderer was trained with
+    (``trained_cameras``; "model" for a model given as such) and whether its camera head was
+    distilled from the solve."""
+    if not isinstance(model_or_ckpt, (IrisModel, str, os.PathLike)):
+        raise ExportArgumentError(f"model_or_ckpt: expected an IrisModel or a checkpoint path, got "
+                                  f"{type(model_or_ckpt).__name__}")
+    if isinstance(model_or_ckpt, IrisModel):
+        return model_or_ckpt, {"checkpoint": None}, "model", False
+    ckpt = Path(model_or_ckpt)
+    say(f"loading checkpoint {ckpt}")
+    model = _load(ckpt)
+    source = {"checkpoint": ckpt.name, "sha256": sha256_file(ckpt)}
+    payload = read_checkpoint(ckpt)
+    return model, source, trained_cameras(payload), "distill" in payload
+
+
+def _export_graphs(model: IrisModel, tmp: Path, opset: int, renderer: str, quantize, say):
+    """Every graph of ``model`` written to ``tmp`` -> ``(files, entries)`` by graph name: the
+    encoder, the renderer of kind ``renderer``, the selected-views renderer (fast kinds), the
+    camera graph (a camera head with its own encoder) and the int8 renderer (``quantize``)."""
+    files, entries = {}, {}
+    for graph in ("encoder", "renderer"):
+        spec = io_spec.GRAPHS[graph]
+        say(f"exporting {graph} ({EXPORTER}, opset {opset})")
+        alt = {"wrapper": renderer_wrapper(model, renderer)} \
+            if graph == "renderer" and renderer != "reference" else {}
+        result = export_graph(model, graph, tmp / spec["file"], opset, **alt)
+        say(f"exported {graph}: {result.nodes} nodes, {result.path.stat().st_size / 1e6:.1f} MB "
+            f"in {result.seconds:.1f} s")
+        files[graph], entries[graph] = result.path, result
+    if renderer != "reference":    # per-point pre-selected views (top_k_by="point")
+        spec = io_spec.spec_for("renderer_views", model.cfg.explicit_rgb)
+        say("exporting renderer_views (per-point pre-selected views)")
+        result = export_graph(model, "renderer_views", tmp / spec["file"], opset,
+                              wrapper=SelectedViewsRendererGraph(
+                                  model, contrib=renderer == "fast-contrib"))
+        say(f"exported renderer_views: {result.nodes} nodes in {result.seconds:.1f} s")
+        files["renderer_views"], entries["renderer_views"] = result.path, result
+    if model.camera_encoder is not None:     # cameras without the field's encoder
+        spec = io_spec.spec_for("encoder_cameras")
+        say("exporting encoder_cameras (the camera head on its own encoder)")
+        result = export_graph(model, "encoder_cameras", tmp / spec["file"], opset)
+        say(f"exported encoder_cameras: {result.nodes} nodes in {result.seconds:.1f} s")
+        files["encoder_cameras"], entries["encoder_cameras"] = result.path, result
+    if quantize == "int8":
+        result = quantize_int8(files["renderer"], tmp / INT8_FILE)
+        say(f"quantised renderer to int8: {result.nodes} nodes, "
+            f"{result.path.stat().st_size / 1e6:.1f} MB in {result.seconds:.1f} s")
+        files["renderer_int8"], entries["renderer_int8"] = result.path, result
+    return files, entries
+
+
+def _graph_entries(model: IrisModel, files: dict, entries: dict) -> dict:
+    """The manifest's "graphs": each file's entry (``manifest.graph_entry``); a variant (int8)
+    names its base graph and has no tolerance (measured and recorded, not enforced)."""
+    graphs = {}
+    for name, path in files.items():
+        base = io_spec.base_graph(name)
+        extra = {"variant_of": base, "precision": "int8",
+                 "quantization": "onnxruntime.quantization.quantize_dynamic(weight_type=QInt8)"} \
+            if name != base else {"precision": "float32"}
+        graphs[name] = graph_entry(path, io_spec.spec_for(base, model.cfg.explicit_rgb),
+                                   entries[name].nodes, **extra)
+        if name != base:          # measured and recorded, but not held to the fp32 tolerance
+            graphs[name]["tolerance"] = None
+    return graphs
 
 __all__ = ["export_model", "QUANTIZE_CHOICES", "INT8_FILE"]
