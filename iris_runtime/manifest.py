@@ -258,7 +258,42 @@ def read_manifest(model_dir: str | os.PathLike, *, verify_hashes: bool = True) -
     path = model_dir / MANIFEST_NAME
     doc = read_json(path, what=f"the {MANIFEST_NAME} manifest written by iris-export",
                     error=ManifestError)
+    version = _check_format(path, doc)
+    config, explicit_rgb = _check_config(path, doc)
+    size = doc.get("image_size")
+    if (not isinstance(size, (list, tuple)) or len(size) != 2
+            or not all(isinstance(s, int) and not isinstance(s, bool) and s > 0 for s in size)):
+        raise ManifestError(f"{path}: 'image_size' must be [height, width] positive integers, "
+                            f"got {size!r}")
+    near, far = _number(path, doc, "near"), _number(path, doc, "far")
+    if not 0 < near < far:
+        raise ManifestError(f"{path}: need 0 < near < far, got near={near}, far={far}")
+    samples = _number(path, doc, "samples", kind=int)
+    field_channels = _number(path, doc, "field_channels", kind=int)
+    root = model_dir.resolve()
+    graphs = _graph_entries(path, root, doc.get("graphs"), explicit_rgb)
+    cameras = camera_name(doc.get("cameras", "model"))
+    if cameras not in CAMERAS:
+        raise ManifestError(f"{path}: 'cameras' must be one of {list(CAMERAS)}, got "
+                            f"{cameras!r}")
+    manifest = Manifest(model_dir=root, version=version, config=MappingProxyType(dict(config)),
+                        image_size=(int(size[0]), int(size[1])), near=near, far=far,
+                        samples=samples, field_channels=field_channels,
+                        graphs=MappingProxyType(graphs),
+                        raw=MappingProxyType(doc), explicit_rgb=explicit_rgb, cameras=cameras)
+    if verify_hashes:
+        for entry in graphs.values():
+            if not entry.path.is_file():
+                raise ModelFileError(f"{entry.path}: {entry.name} graph file is missing "
+                                     f"(listed in {path})")
+            data = entry.path.read_bytes()
+            _check_digest(entry, sha256_bytes(data))
+            check_self_contained(entry, data)
+    return manifest
 
+
+def _check_format(path: Path, doc: dict) -> int:
+    """The manifest's format, version and I/O spec version checked -> its version."""
     fmt, version = doc.get("format"), doc.get("version")
     if fmt != FORMAT_NAME:
         raise ModelFormatError(f"{path}: format {fmt!r}, expected {FORMAT_NAME!r} "
@@ -283,7 +318,11 @@ def read_manifest(model_dir: str | os.PathLike, *, verify_hashes: bool = True) -
         raise ModelFormatError(f"{path}: I/O spec version {io_version!r}; this runtime feeds I/O "
                                f"spec version {IO_SPEC_VERSION} (re-export with iris-export, or "
                                f"upgrade iris_runtime)")
+    return version
 
+
+def _check_config(path: Path, doc: dict) -> tuple[dict, bool]:
+    """The manifest's "config" checked -> ``(config, explicit_rgb)``."""
     config = doc.get("config")
     if not isinstance(config, dict):
         raise ManifestError(f"{path}: 'config' must be an object, got {type(config).__name__}")
@@ -296,33 +335,27 @@ def read_manifest(model_dir: str | os.PathLike, *, verify_hashes: bool = True) -
             or not 0 <= angle < math.inf or (angle and not explicit_rgb)):
         raise ManifestError(f"{path}: config.blend_angle must be a finite number >= 0, and 0 "
                             f"without explicit_rgb, got {angle!r}")
+    return config, explicit_rgb
 
-    def number(key, kind=float):
-        value = doc.get(key)
-        ok = (isinstance(value, (int, float)) and not isinstance(value, bool)
-              and math.isfinite(value))
-        if kind is int:
-            ok = ok and float(value).is_integer() and value > 0
-        if not ok:
-            what = "a positive integer" if kind is int else "a finite number"
-            raise ManifestError(f"{path}: {key!r} must be {what}, got {value!r}")
-        return kind(value)
 
-    size = doc.get("image_size")
-    if (not isinstance(size, (list, tuple)) or len(size) != 2
-            or not all(isinstance(s, int) and not isinstance(s, bool) and s > 0 for s in size)):
-        raise ManifestError(f"{path}: 'image_size' must be [height, width] positive integers, "
-                            f"got {size!r}")
-    near, far = number("near"), number("far")
-    if not 0 < near < far:
-        raise ManifestError(f"{path}: need 0 < near < far, got near={near}, far={far}")
-    samples = number("samples", kind=int)
-    field_channels = number("field_channels", kind=int)
+def _number(path: Path, doc: dict, key: str, kind=float):
+    """``doc[key]`` as a finite float, or (``kind=int``) a positive integer."""
+    value = doc.get(key)
+    ok = (isinstance(value, (int, float)) and not isinstance(value, bool)
+          and math.isfinite(value))
+    if kind is int:
+        ok = ok and float(value).is_integer() and value > 0
+    if not ok:
+        what = "a positive integer" if kind is int else "a finite number"
+        raise ManifestError(f"{path}: {key!r} must be {what}, got {value!r}")
+    return kind(value)
 
-    graphs_doc = doc.get("graphs")
+
+def _graph_entries(path: Path, root: Path, graphs_doc, explicit_rgb: bool) -> dict[str, GraphEntry]:
+    """The manifest's "graphs" checked -> ``GraphEntry`` by name: the required graphs, the
+    optional ones listed, and the variants of a required one."""
     if not isinstance(graphs_doc, dict):
         raise ManifestError(f"{path}: 'graphs' must be an object with 'encoder' and 'renderer'")
-    root = model_dir.resolve()
     graphs = {}
     required_io = required_io_for(explicit_rgb)
     for name, required in required_io.items():
@@ -351,25 +384,7 @@ def read_manifest(model_dir: str | os.PathLike, *, verify_hashes: bool = True) -
             raise ManifestError(f"{path}: graphs.{name}.inputs lists {sorted(EXPLICIT_RGB_INPUTS)}, "
                                 f"but config.explicit_rgb is not true (a renderer without explicit "
                                 f"colour takes no reference RGB)")
-
-    cameras = camera_name(doc.get("cameras", "model"))
-    if cameras not in CAMERAS:
-        raise ManifestError(f"{path}: 'cameras' must be one of {list(CAMERAS)}, got "
-                            f"{cameras!r}")
-    manifest = Manifest(model_dir=root, version=version, config=MappingProxyType(dict(config)),
-                        image_size=(int(size[0]), int(size[1])), near=near, far=far,
-                        samples=samples, field_channels=field_channels,
-                        graphs=MappingProxyType(graphs),
-                        raw=MappingProxyType(doc), explicit_rgb=explicit_rgb, cameras=cameras)
-    if verify_hashes:
-        for entry in graphs.values():
-            if not entry.path.is_file():
-                raise ModelFileError(f"{entry.path}: {entry.name} graph file is missing "
-                                     f"(listed in {path})")
-            data = entry.path.read_bytes()
-            _check_digest(entry, sha256_bytes(data))
-            check_self_contained(entry, data)
-    return manifest
+    return graphs
 
 
 def _graph_entry(path: Path, root: Path, name: str, entry: dict, required: dict) -> GraphEntry:

@@ -109,99 +109,17 @@ class Scene:
     _levels: dict = field(default_factory=dict, init=False, repr=False)
 
     def __post_init__(self):
-        arrays = {}
-        for name, dtype in (("field_maps", np.float32), ("world_from_cam", np.float64),
-                            ("focal", np.float64), ("K", np.float64)):
-            try:
-                arrays[name] = _readonly(getattr(self, name), dtype)
-            except (TypeError, ValueError):
-                raise InputError(f"{name}: expected an array of numbers, got "
-                                 f"{type(getattr(self, name)).__name__}") from None
-            if not np.all(np.isfinite(arrays[name])):
-                raise InputError(f"{name}: contains NaN or inf")
-        maps, poses, focal, K = (arrays[k] for k in ("field_maps", "world_from_cam", "focal", "K"))
-        if maps.ndim != 4 or maps.shape[0] == 0:
-            raise InputError(f"field_maps: expected [V, C', h, w] with V >= 1, got {maps.shape}")
+        # Every field checked once, here, in the order of its errors; then the read-only copies
+        # replace the values given (a frozen dataclass: through object.__setattr__).
+        maps, poses, focal, K, size = _check_cameras(self)
         V = maps.shape[0]
-        if poses.shape != (V, 4, 4):
-            raise InputError(f"world_from_cam: expected [{V}, 4, 4], got {poses.shape}")
-        if focal.shape != (2,) or K.shape != (3, 3):
-            raise InputError(f"focal, K: expected [2] and [3, 3], got {focal.shape} and {K.shape}")
-        if not np.all(focal > 0) or K[0, 0] <= 0 or K[1, 1] <= 0:
-            raise InputError(f"focal, K: expected positive focal lengths, got focal "
-                             f"{focal.tolist()} and K diagonal {np.diag(K).tolist()}")
-        check_world_from_cam(poses, "world_from_cam", batch=True)
-        size = tuple(int(s) for s in self.image_size)
-        if len(size) != 2 or min(size) <= 0:
-            raise InputError(f"image_size: expected (H, W) positive, got {self.image_size!r}")
-        refs = self.reference_images
-        if refs is not None:
-            try:
-                refs = _readonly(refs, np.float32)
-            except (TypeError, ValueError):
-                raise InputError(f"reference_images: expected an array of numbers or None, got "
-                                 f"{type(self.reference_images).__name__}") from None
-            if refs.ndim != 4 or refs.shape[0] == 0 or refs.shape[1:] != (3, *size):
-                raise InputError(f"reference_images: expected [N, 3, {size[0]}, {size[1]}] with "
-                                 f"N >= 1, got {refs.shape}")
-            if not (np.all(np.isfinite(refs)) and refs.min() >= 0.0 and refs.max() <= 1.0):
-                raise InputError("reference_images: expected values in [0, 1] (no NaN or inf)")
-        index = self.image_index
-        if index is not None:
-            if refs is None:
-                raise InputError("image_index: given without reference_images (it indexes them)")
-            try:
-                index = np.asarray(index)
-            except (TypeError, ValueError):
-                index = np.asarray(None, dtype=object)
-            if index.shape != (V,) or not np.issubdtype(index.dtype, np.integer) \
-                    or index.min() < 0 or index.max() >= refs.shape[0]:
-                raise InputError(f"image_index: expected {V} integers in 0..{refs.shape[0] - 1} "
-                                 f"(the reference image of each view), got {self.image_index!r}")
-            index = _readonly(index, np.int64)
-        elif refs is not None and refs.shape[0] == V:
-            index = _readonly(np.arange(V), np.int64)
+        refs, index = _check_references(self.reference_images, self.image_index, V, size)
         if not isinstance(self.camera_source, str) or self.camera_source not in CAMERA_SOURCES:
             raise InputError(f"camera_source: expected one of {list(CAMERA_SOURCES)}, got "
                              f"{self.camera_source!r}")
-        enc_focal = self.encoder_focal
-        if enc_focal is not None:
-            try:
-                enc_focal = _readonly(enc_focal, np.float64)
-            except (TypeError, ValueError):
-                raise InputError(f"encoder_focal: expected [2] numbers or None, got "
-                                 f"{type(self.encoder_focal).__name__}") from None
-            if enc_focal.shape != (2,) or not (np.all(np.isfinite(enc_focal))
-                                               and np.all(enc_focal > 0)):
-                raise InputError(f"encoder_focal: expected [2] positive finite numbers or None, "
-                                 f"got {enc_focal.tolist()}")
-        enc_poses = self.encoder_world_from_cam
-        if enc_poses is not None:
-            enc_poses = check_world_from_cam(enc_poses, "encoder_world_from_cam", batch=True)
-            if enc_poses.shape != (V, 4, 4):
-                raise InputError(f"encoder_world_from_cam: expected [{V}, 4, 4] (one pose per "
-                                 f"view) or None, got {enc_poses.shape}")
-            enc_poses = _readonly(enc_poses, np.float64)
-        cam_size = self.camera_size
-        if cam_size is not None:
-            try:
-                cam_size = tuple(int(x) for x in cam_size)
-            except (TypeError, ValueError):
-                cam_size = ()
-            if len(cam_size) != 2 or min(cam_size) <= 0:
-                raise InputError(f"camera_size: expected (H, W) positive or None, got "
-                                 f"{self.camera_size!r}")
-        if self.camera_solve is not None:
-            from .cameras import CameraSolve
-            if not isinstance(self.camera_solve, CameraSolve):
-                raise InputError(f"camera_solve: expected an iris_runtime.cameras.CameraSolve or "
-                                 f"None, got {type(self.camera_solve).__name__}")
-        status = self.camera_status
-        if status is not None:
-            status = tuple(status) if not isinstance(status, str) else ()
-            if len(status) != V or any(x not in CAMERA_STATUSES for x in status):
-                raise InputError(f"camera_status: expected {V} values of {list(CAMERA_STATUSES)} "
-                                 f"or None, got {self.camera_status!r}")
+        enc_focal, enc_poses = _check_encoder_cameras(self.encoder_focal,
+                                                      self.encoder_world_from_cam, V)
+        cam_size, status = _check_solve(self.camera_size, self.camera_solve, self.camera_status, V)
         photos = self.photos
         if photos is not None:
             photos = _check_photos(photos, refs, size)
@@ -264,6 +182,121 @@ class Scene:
         return (f"Scene(views={self.num_views}, field_maps={tuple(self.field_maps.shape)}, "
                 f"image_size={self.image_size}, focal={np.round(self.focal, 4).tolist()}, "
                 f"camera_source={self.camera_source!r}{solved})")
+
+
+def _check_cameras(scene: Scene):
+    """``Scene``'s field maps, cameras and image size checked -> read-only ``(field_maps
+    float32 [V, C', h, w], world_from_cam float64 [V, 4, 4], focal float64 [2], K float64 [3, 3],
+    image_size (H, W))``."""
+    arrays = {}
+    for name, dtype in (("field_maps", np.float32), ("world_from_cam", np.float64),
+                        ("focal", np.float64), ("K", np.float64)):
+        try:
+            arrays[name] = _readonly(getattr(scene, name), dtype)
+        except (TypeError, ValueError):
+            raise InputError(f"{name}: expected an array of numbers, got "
+                             f"{type(getattr(scene, name)).__name__}") from None
+        if not np.all(np.isfinite(arrays[name])):
+            raise InputError(f"{name}: contains NaN or inf")
+    maps, poses, focal, K = (arrays[k] for k in ("field_maps", "world_from_cam", "focal", "K"))
+    if maps.ndim != 4 or maps.shape[0] == 0:
+        raise InputError(f"field_maps: expected [V, C', h, w] with V >= 1, got {maps.shape}")
+    V = maps.shape[0]
+    if poses.shape != (V, 4, 4):
+        raise InputError(f"world_from_cam: expected [{V}, 4, 4], got {poses.shape}")
+    if focal.shape != (2,) or K.shape != (3, 3):
+        raise InputError(f"focal, K: expected [2] and [3, 3], got {focal.shape} and {K.shape}")
+    if not np.all(focal > 0) or K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise InputError(f"focal, K: expected positive focal lengths, got focal "
+                         f"{focal.tolist()} and K diagonal {np.diag(K).tolist()}")
+    check_world_from_cam(poses, "world_from_cam", batch=True)
+    size = tuple(int(s) for s in scene.image_size)
+    if len(size) != 2 or min(size) <= 0:
+        raise InputError(f"image_size: expected (H, W) positive, got {scene.image_size!r}")
+    return maps, poses, focal, K, size
+
+
+def _check_references(reference_images, image_index, V: int, size: tuple[int, int]):
+    """``Scene.reference_images`` and ``image_index`` checked -> read-only ``(float32 [N, 3, H,
+    W] or None, int64 [V] or None)``; the index defaults to ``arange(V)`` for V images."""
+    refs = reference_images
+    if refs is not None:
+        try:
+            refs = _readonly(refs, np.float32)
+        except (TypeError, ValueError):
+            raise InputError(f"reference_images: expected an array of numbers or None, got "
+                             f"{type(reference_images).__name__}") from None
+        if refs.ndim != 4 or refs.shape[0] == 0 or refs.shape[1:] != (3, *size):
+            raise InputError(f"reference_images: expected [N, 3, {size[0]}, {size[1]}] with "
+                             f"N >= 1, got {refs.shape}")
+        if not (np.all(np.isfinite(refs)) and refs.min() >= 0.0 and refs.max() <= 1.0):
+            raise InputError("reference_images: expected values in [0, 1] (no NaN or inf)")
+    index = image_index
+    if index is not None:
+        if refs is None:
+            raise InputError("image_index: given without reference_images (it indexes them)")
+        try:
+            index = np.asarray(index)
+        except (TypeError, ValueError):
+            index = np.asarray(None, dtype=object)
+        if index.shape != (V,) or not np.issubdtype(index.dtype, np.integer) \
+                or index.min() < 0 or index.max() >= refs.shape[0]:
+            raise InputError(f"image_index: expected {V} integers in 0..{refs.shape[0] - 1} "
+                             f"(the reference image of each view), got {image_index!r}")
+        index = _readonly(index, np.int64)
+    elif refs is not None and refs.shape[0] == V:
+        index = _readonly(np.arange(V), np.int64)
+    return refs, index
+
+
+def _check_encoder_cameras(encoder_focal, encoder_world_from_cam, V: int):
+    """``Scene.encoder_focal`` and ``encoder_world_from_cam`` checked -> read-only ``(float64 [2]
+    or None, float64 [V, 4, 4] or None)``."""
+    enc_focal = encoder_focal
+    if enc_focal is not None:
+        try:
+            enc_focal = _readonly(enc_focal, np.float64)
+        except (TypeError, ValueError):
+            raise InputError(f"encoder_focal: expected [2] numbers or None, got "
+                             f"{type(encoder_focal).__name__}") from None
+        if enc_focal.shape != (2,) or not (np.all(np.isfinite(enc_focal))
+                                           and np.all(enc_focal > 0)):
+            raise InputError(f"encoder_focal: expected [2] positive finite numbers or None, "
+                             f"got {enc_focal.tolist()}")
+    enc_poses = encoder_world_from_cam
+    if enc_poses is not None:
+        enc_poses = check_world_from_cam(enc_poses, "encoder_world_from_cam", batch=True)
+        if enc_poses.shape != (V, 4, 4):
+            raise InputError(f"encoder_world_from_cam: expected [{V}, 4, 4] (one pose per "
+                             f"view) or None, got {enc_poses.shape}")
+        enc_poses = _readonly(enc_poses, np.float64)
+    return enc_focal, enc_poses
+
+
+def _check_solve(camera_size, camera_solve, camera_status, V: int):
+    """``Scene.camera_size``, ``camera_solve`` and ``camera_status`` checked -> ``(camera_size
+    (H, W) or None, camera_status tuple of V or None)``."""
+    cam_size = camera_size
+    if cam_size is not None:
+        try:
+            cam_size = tuple(int(x) for x in cam_size)
+        except (TypeError, ValueError):
+            cam_size = ()
+        if len(cam_size) != 2 or min(cam_size) <= 0:
+            raise InputError(f"camera_size: expected (H, W) positive or None, got "
+                             f"{camera_size!r}")
+    if camera_solve is not None:
+        from .cameras import CameraSolve
+        if not isinstance(camera_solve, CameraSolve):
+            raise InputError(f"camera_solve: expected an iris_runtime.cameras.CameraSolve or "
+                             f"None, got {type(camera_solve).__name__}")
+    status = camera_status
+    if status is not None:
+        status = tuple(status) if not isinstance(status, str) else ()
+        if len(status) != V or any(x not in CAMERA_STATUSES for x in status):
+            raise InputError(f"camera_status: expected {V} values of {list(CAMERA_STATUSES)} "
+                             f"or None, got {camera_status!r}")
+    return cam_size, status
 
 
 def _check_photos(photos, refs: np.ndarray | None, size: tuple[int, int]) -> tuple:
