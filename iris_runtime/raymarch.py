@@ -57,7 +57,7 @@ from .point_views import select_point_views
 from .scene import Scene
 
 __all__ = ["MarchPlan", "focal_ratio", "Block", "Call", "MarchStats", "MarchResult", "march",
-           "trace_block", "plan_calls", "call_feed", "empty_ray_rgb"]
+           "trace_block", "plan_calls", "call_feed"]
 
 f32 = np.float32
 
@@ -487,17 +487,3 @@ def call_feed(plan: MarchPlan, block: Block, call: Call,
     if plan.colours is not None:       # explicit colour: the photos at the same grid
         feed[COLOURS] = plan.colours.sample(grid, block.views[call.views])
     return (select_point_views(feed) if plan.select_views else feed), z
-
-
-def empty_ray_rgb(session, field_maps_shape: tuple[int, ...], explicit_rgb: bool) -> np.ndarray:
-    """The renderer's colour for a ray with no valid sample, float32 [3], read-only (a constant
-    of the model: every input is masked, so nothing of the scene reaches it)."""
-    _, C, h, w = field_maps_shape
-    feed = {FIELD_MAPS: np.zeros((1, C, h, w), f32), GRID: np.zeros((1, 1, 1, 2), f32),
-            CUES: np.zeros((1, 1, 1, 4), f32), MASK: np.zeros((1, 1, 1), f32),
-            POSITIONS: np.zeros((1, 1, 3), f32), DIRECTIONS: np.array([[0, 0, 1]], f32)}
-    if explicit_rgb:                   # masked: the blend of nothing, whatever colour
-        feed[COLOURS] = np.zeros((1, 1, 1, 3), f32)
-    rgb = session.run([RGB], feed)[0][0]
-    rgb.setflags(write=False)
-    return rgb

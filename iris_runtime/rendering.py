@@ -29,6 +29,7 @@ from . import quality as Q
 from . import raymarch
 from .colour import ColourSource
 from .errors import InputError
+from .io_spec import COLOURS, CUES, DIRECTIONS, FIELD_MAPS, GRID, MASK, POSITIONS, RGB
 from .quality import RenderSettings
 from .scene import RenderJob, RenderResult, Scene, check_pose
 from .validation import check_intrinsics
@@ -250,11 +251,26 @@ class Rendering:
 
     # .. the renderer's constants ..............................................................
     def _empty_ray_rgb(self, scene: Scene, graph: str) -> np.ndarray:
-        """The renderer's colour for a ray with no valid sample (``raymarch.empty_ray_rgb``),
-        asked of each graph once."""
+        """The renderer's colour for a ray with no valid sample (``empty_ray_rgb``), asked of
+        each graph once."""
         rgb = self._empty_rgb.get(graph)
         if rgb is None:
-            rgb = raymarch.empty_ray_rgb(self._session(graph), scene.field_maps.shape,
-                                         self.manifest.explicit_rgb)
+            rgb = empty_ray_rgb(self._session(graph), scene.field_maps.shape,
+                                self.manifest.explicit_rgb)
             self._empty_rgb[graph] = rgb       # idempotent: a race computes the same value twice
         return rgb
+
+
+def empty_ray_rgb(session, field_maps_shape: tuple[int, ...], explicit_rgb: bool) -> np.ndarray:
+    """The renderer's colour for a ray with no valid sample, float32 [3], read-only (a constant
+    of the model: every input is masked, so nothing of the scene reaches it)."""
+    _, C, h, w = field_maps_shape
+    f32 = np.float32
+    feed = {FIELD_MAPS: np.zeros((1, C, h, w), f32), GRID: np.zeros((1, 1, 1, 2), f32),
+            CUES: np.zeros((1, 1, 1, 4), f32), MASK: np.zeros((1, 1, 1), f32),
+            POSITIONS: np.zeros((1, 1, 3), f32), DIRECTIONS: np.array([[0, 0, 1]], f32)}
+    if explicit_rgb:                   # masked: the blend of nothing, whatever colour
+        feed[COLOURS] = np.zeros((1, 1, 1, 3), f32)
+    rgb = session.run([RGB], feed)[0][0]
+    rgb.setflags(write=False)
+    return rgb
