@@ -271,6 +271,15 @@ def cue_from_vectors(t: np.ndarray, s: np.ndarray, s_norm: np.ndarray,
     return out
 
 
+def cue_cosine(points: np.ndarray, target_centre: np.ndarray,
+               source_centres: np.ndarray) -> np.ndarray:
+    """The last entry of ``geometric_cue`` alone, ``t . s`` -> ``[V, ...]`` (view-major), bit for
+    bit: the angular weighting of the colour blend needs only it (``colour.mean_colour``)."""
+    t, s, s_norm = cue_vectors(points, target_centre, source_centres)
+    cos = _dot3(t[..., None, :], s / s_norm)[..., 0]                      # [..., V]
+    return np.moveaxis(cos, -1, 0)
+
+
 def _dot3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """``(a * b).sum(-1, keepdims=True)`` over a last axis of 3, summed in the same order
     (bit for bit) without numpy's slow reduction over a short axis (the cue and the view

@@ -574,7 +574,10 @@ def test_graph_replaced_after_check(model_copy):
     (lambda d: d["graphs"]["renderer"]["inputs"].pop("colours"), ManifestError, "colours"),
     (lambda d: d["graphs"]["renderer_int8"]["inputs"].pop("colours"), ManifestError, "colours"),
     (lambda d: d["config"].update(explicit_rgb="yes"), ManifestError, "explicit_rgb"),
-    (lambda d: d["config"].update(explicit_rgb=False), ManifestError, "colours"),
+    # (blend_angle, which weights the explicit colour, set to the plain mean with it)
+    (lambda d: d["config"].update(explicit_rgb=False, blend_angle=0.0), ManifestError, "colours"),
+    (lambda d: d["config"].update(explicit_rgb=False, blend_angle=0.5), ManifestError,
+     "blend_angle"),
 ])
 def test_bad_rgb_manifest(rgb_model_dir, tmp_path, edit, error, match):
     """An explicit-colour manifest must say so consistently (config and the renderers' inputs)
