@@ -26,25 +26,9 @@ REPO = Path(__file__).resolve().parents[1]
 PACKAGES = ("iris_runtime", "export", "iris_train")
 MAX_LINES = 500
 
-#: Being split by their owners (the issue "A codebase the next maintainer can live in"): exempt
-#: from the three checks until their split lands; each owner removes their entry with it. An
-#: entry covers the module and, while it turns into a package of the same name, that package's
-#: modules.
-BEING_SPLIT = (
-    "iris_train/train.py",
-    "iris_train/pseudo_poses.py",
-    "iris_runtime/cameras/refine.py",
-)
-
-
 def _module_name(path: Path) -> str:
     parts = list(path.relative_to(REPO).with_suffix("").parts)
     return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
-
-
-def _is_being_split(module: str) -> bool:
-    return any(module == m or module.startswith(m + ".")
-               for m in (_module_name(REPO / p) for p in BEING_SPLIT))
 
 
 def _all_modules() -> dict[str, Path]:
@@ -55,7 +39,7 @@ def _all_modules() -> dict[str, Path]:
 
 def _modules() -> dict[str, Path]:
     """Every module of the packages by dotted name, the ones being split left out."""
-    return {name: path for name, path in _all_modules().items() if not _is_being_split(name)}
+    return _all_modules()
 
 
 def _imports(module: str, path: Path, modules) -> dict[str, int]:
@@ -132,13 +116,6 @@ def _cycles(graph: dict[str, dict[str, int]]) -> list[list[str]]:
             path.append(nxt)
             seen.add(nxt)
     return cycles
-
-
-def test_the_being_split_list_names_files_that_exist_or_were_split():
-    for entry in BEING_SPLIT:
-        path = REPO / entry
-        assert path.is_file() or path.with_suffix("").is_dir(), \
-            f"{entry} is neither a file nor a package: remove it from BEING_SPLIT"
 
 
 def test_no_package_file_is_over_the_line_limit():

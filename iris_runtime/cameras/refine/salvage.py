@@ -9,7 +9,7 @@ docs/CAMERAS.md, "Salvaging the views two starts agree on").
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import cv2
 import numpy as np
@@ -18,12 +18,11 @@ from ..locate import PNP_MIN_INLIERS, pose_from_points
 from ..mapper import MapperOptions, Reconstruction
 from ..triangulation import triangulate
 from . import confirm, rounds
+from .confirm import AgreementOptions
 from .pairs import Evidence
 
-if TYPE_CHECKING:
-    from .ladder import RefineOptions
-
-__all__ = ["CappedPnP", "SalvageOptions", "salvage_core", "salvage_agreed_views"]
+__all__ = ["CappedPnP", "SalvageOptions", "SalvageStages", "salvage_core",
+           "salvage_agreed_views"]
 
 
 @dataclass(frozen=True)
@@ -76,9 +75,16 @@ def salvage_core(best: Reconstruction, witnesses: list[Reconstruction],
         else None
 
 
+class SalvageStages(Protocol):
+    """The stages' options a salvage reads (``ladder.RefineOptions`` has them by these names)."""
+    salvage: SalvageOptions
+    adjust: rounds.AdjustOptions
+    agreement: AgreementOptions
+
+
 def salvage_agreed_views(best: Reconstruction, witnesses: list[Reconstruction],
                          evidence: Evidence, opts: MapperOptions,
-                         stages: RefineOptions) -> Reconstruction | None:
+                         stages: SalvageStages) -> Reconstruction | None:
     """Where no start confirms the ``best`` one: its views in ``salvage_core`` are kept, their
     points triangulated again from those views alone, the other views posed against them by PnP
     RANSAC as the mapper registers a view (their poses in ``best`` are what no witness

@@ -11,15 +11,13 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 from ..mapper import MapperOptions, Reconstruction, incremental_mapping
 from ..two_view import TwoViewGeometry, intrinsics, median_triangulation_angle
 from . import confirm, salvage
+from .salvage import SalvageStages
 from .pairs import Evidence
-
-if TYPE_CHECKING:
-    from .ladder import RefineOptions
 
 __all__ = ["WitnessOptions", "witness_mapping", "witness_verdict"]
 
@@ -39,8 +37,13 @@ class WitnessOptions:
     iterations: tuple[int, int] = (5, 20)
 
 
+class WitnessStages(SalvageStages, Protocol):
+    """The stages' options the witness reads (``ladder.RefineOptions`` has them by these names)."""
+    witness: WitnessOptions
+
+
 def witness_mapping(evidence: Evidence, focal: float, opts: MapperOptions, useful_views: int,
-                    stages: RefineOptions) -> Reconstruction | None:
+                    stages: WitnessStages) -> Reconstruction | None:
     """The incremental mapper's reconstruction of the refinement's tracks (``incremental_mapping``
     at ``focal``, ``WitnessOptions.trials`` starting pairs, PnP by ``SalvageOptions.pnp``, the
     refinement's ``fast_bundle_adjust``), started from its pairs' essential matrices: the
@@ -68,19 +71,16 @@ def witness_mapping(evidence: Evidence, focal: float, opts: MapperOptions, usefu
 
 def witness_verdict(best: Reconstruction, ends: list[Reconstruction],
                     mapped: Reconstruction | None, evidence: Evidence | None,
-                    opts: MapperOptions | None, stages: RefineOptions | None = None,
+                    opts: MapperOptions | None, stages: WitnessStages | None = None,
                     ) -> Reconstruction | None:
     """The first of ``best`` and the other starts' ``ends`` that the witness mapping ``mapped``
     confirms (``confirm.agreement`` on ``AgreementOptions.min_share`` of the pairs either of
     them poses); else ``best`` salvaged on the views ``mapped`` agrees with it on
-    (``salvage.salvage_agreed_views``, with ``evidence`` and ``opts``); None when there is no
-    witness or neither holds."""
+    (``salvage.salvage_agreed_views``, with ``evidence``, ``opts`` and ``stages``; without
+    ``stages`` the verdict alone, no salvage); None when there is no witness or neither holds."""
     if mapped is None:
         return None
-    if stages is None:
-        from .ladder import RefineOptions
-        stages = RefineOptions()
-    agreement = stages.agreement
+    agreement = confirm.AgreementOptions() if stages is None else stages.agreement
     for rec in (best, *ends):
         # Both ways: a start that leaves a view unposed is not confirmed by a witness that
         # poses it, nor a start by a witness that poses fewer of its views.
@@ -89,4 +89,6 @@ def witness_verdict(best: Reconstruction, ends: list[Reconstruction],
                confirm.agreement(mapped.R, mapped.t, mapped.registered, rec.R, rec.t,
                                  rec.registered, agreement.degrees)) >= agreement.min_share:
             return rec
+    if stages is None:                  # the verdict alone: no stages to salvage with
+        return None
     return salvage.salvage_agreed_views(best, [mapped], evidence, opts, stages)
