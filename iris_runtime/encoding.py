@@ -164,7 +164,9 @@ class Encoding:
                  photos come in. Where the photos cannot constrain the cameras
                  (fewer than two views keep enough observations), view 0 is not refined, or the
                  adjustment from no other start agrees with the one kept (a wrong minimum,
-                 ``cameras.refine.AgreementOptions``), the solve replaces them as with "solve".
+                 ``cameras.refine.AgreementOptions``), the solve replaces them as with "solve";
+                 where it cannot pose view 0 either, the start is kept (``camera_source``
+                 "model"), and the encoder's own cameras beside it when they differ.
                  As accurate as the encoder's start is close (docs/CAMERAS.md, "Refining the
                  model's cameras").
         """
@@ -210,12 +212,19 @@ class Encoding:
                 cams = replace_model_cameras(photos, poses64, focal64, (H, W),
                                              (self.near, self.far))
         timings["cameras"] = timings.get("cameras", 0.0) + (time.perf_counter() - t2)
+        # The encoder's own cameras (what locate checks the references against) are kept
+        # wherever the scene's are others: the solve's, the refinement's, and also the model's
+        # when they are the refinement's start in canonical_order (another run of the head:
+        # another focal and frame) that its fallback kept because the solve could not pose
+        # view 0 either.
+        own = (cams.source == "model" and np.array_equal(cams.world_from_cam, poses64)
+               and np.array_equal(cams.focal, focal64))
         return Scene(maps, cams.world_from_cam, cams.focal, cams.K, (H, W), model_id, batch,
                      camera_source=cams.source,
-                     encoder_focal=None if cams.source == "model" else focal64,
+                     encoder_focal=None if own else focal64,
                      camera_size=cams.camera_size, camera_status=cams.status,
                      camera_solve=cams.solve,
-                     encoder_world_from_cam=None if cams.source == "model" else poses64,
+                     encoder_world_from_cam=None if own else poses64,
                      photos=kept)
 
     # -- locate ------------------------------------------------------------------------------

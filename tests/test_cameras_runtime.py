@@ -245,6 +245,47 @@ def test_runtime_model_cameras_are_bitwise_unchanged(corner, model_dir):
     np.testing.assert_array_equal(rt.render(default, 1), rt.render(model, 1))
 
 
+def test_refined_fallback_keeps_the_encoders_cameras_for_locate(model_dir, monkeypatch):
+    """When ``encode(cameras="refined")`` falls back to the model's cameras (the refinement
+    gives up and the solve cannot pose view 0), the Scene keeps the refinement's start (the
+    camera head on the photos in canonical_order, another run with another focal) and beside it
+    the encoder's own cameras of the photos as given, which ``locate`` checks the reference
+    images against: it locates a photo as on the model's scene, and still refuses a scene whose
+    reference images are not the ones it was encoded from."""
+    import dataclasses
+    from types import SimpleNamespace
+
+    import iris_runtime.cameras.replace as replace
+    from iris_runtime import IrisRuntime
+    from iris_runtime.cameras import canonical_order, canonical_start
+    rng = np.random.default_rng(0)
+    photos = [rng.integers(0, 256, (64, 64, 3), dtype=np.uint8) for _ in range(4)]
+    if np.array_equal(canonical_order(photos), np.arange(4)):
+        photos = photos[::-1]             # the start must be a second run of the head
+    monkeypatch.setattr(replace, "refine_cameras", lambda *a, **k: None)
+    monkeypatch.setattr(replace, "solve_cameras",      # view 0 unposed: the model's cameras
+                        lambda copies, depth_range: SimpleNamespace(status=("unposed",) * 4))
+    rt = IrisRuntime(model_dir, threads=1)
+    model = rt.encode(photos, cameras="model")
+    scene = rt.encode(photos, cameras="refined")
+    assert scene.camera_source == "model" and scene.camera_status == ("unposed",) * 4
+    start, start_focal = canonical_start(
+        photos, model.world_from_cam, model.focal,
+        lambda perm: rt._run_cameras(model.reference_images[perm], np.ones(len(perm), bool)))
+    np.testing.assert_array_equal(scene.world_from_cam, start)
+    np.testing.assert_array_equal(scene.focal, start_focal)
+    assert np.abs(scene.focal - model.focal).max() > 1e-6          # what locate cannot match
+    np.testing.assert_array_equal(scene.encoder_focal, model.focal)
+    np.testing.assert_array_equal(scene.encoder_world_from_cam, model.world_from_cam)
+    np.testing.assert_array_equal(rt.locate(scene, photos[1]), rt.locate(model, photos[1]))
+    refs = scene.reference_images.copy()
+    refs[1] = 1.0 - refs[1]
+    for bad in (dataclasses.replace(scene, reference_images=refs),
+                dataclasses.replace(scene, reference_images=model.reference_images[::-1])):
+        with pytest.raises(InputError, match="reference_images give focal"):
+            rt.locate(bad, photos[1])
+
+
 def test_bad_camera_values_raise_typed_errors(model_dir):
     from iris_runtime import IrisRuntime
     from iris_runtime.runtime import Scene
