@@ -12,6 +12,7 @@ from __future__ import annotations
 import os
 import shutil
 import sys
+import threading
 import time
 import uuid
 from pathlib import Path
@@ -118,40 +119,77 @@ def export_model(model_or_ckpt: IrisModel | str | os.PathLike, out_dir: str | os
     out_dir = Path(out_dir).absolute()
     threads = _check_arguments(out_dir, opset, quantize, renderer, threads, force)
 
-    def say(msg: str) -> None:
-        if progress:
-            print(f"iris-export [{time.perf_counter() - t0:6.1f} s] {msg}", file=sys.stderr, flush=True)
-
-    model, source, trained, distilled = _model_and_source(model_or_ckpt, say)
-    cameras = _default_cameras(camera_name(cameras), trained, distilled)
-    was_training = model.training
-    model.eval()
-
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out_dir.with_name(f".{out_dir.name}.tmp-{uuid.uuid4().hex[:8]}")
-    tmp.mkdir()
+    say = _Progress(t0) if progress else _Progress(None)
     try:
-        files, entries = _export_graphs(model, tmp, opset, renderer, quantize, say)
-        say(f"validating against torch ({'quick' if quick else 'full'} probes)")
-        report = validate(model, files, quick=quick, threads=threads, progress=say)
-        graphs = _graph_entries(model, files, entries)
-        unexpected = sorted({p.name for p in tmp.iterdir()} - {p.name for p in files.values()})
-        if unexpected:     # e.g. a side .data file: the graphs must be self-contained
-            raise ExportError(f"unexpected files next to the graphs: {unexpected}")
-        ir_version = onnx.load_model(str(files["encoder"]), load_external_data=False).ir_version
-        manifest = build_manifest(model.cfg, graphs, report, opset=opset, ir_version=ir_version,
-                                  exporter=EXPORTER, source=source, cameras=cameras,
-                                  renderer_sampler=RendererGraph(model).sampler,
-                                  renderer_graph=renderer)
-        write_manifest(tmp / MANIFEST_NAME, manifest)
-        _publish(tmp, out_dir, force)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+        model, source, trained, distilled = _model_and_source(model_or_ckpt, say)
+        cameras = _default_cameras(camera_name(cameras), trained, distilled)
+        was_training = model.training
+        model.eval()
+
+        out_dir.parent.mkdir(parents=True, exist_ok=True)
+        tmp = out_dir.with_name(f".{out_dir.name}.tmp-{uuid.uuid4().hex[:8]}")
+        tmp.mkdir()
+        try:
+            files, entries = _export_graphs(model, tmp, opset, renderer, quantize, say)
+            say(f"validating against torch ({'quick' if quick else 'full'} probes)")
+            report = validate(model, files, quick=quick, threads=threads, progress=say)
+            graphs = _graph_entries(model, files, entries)
+            unexpected = sorted({p.name for p in tmp.iterdir()} - {p.name for p in files.values()})
+            if unexpected:     # e.g. a side .data file: the graphs must be self-contained
+                raise ExportError(f"unexpected files next to the graphs: {unexpected}")
+            ir_version = onnx.load_model(str(files["encoder"]), load_external_data=False).ir_version
+            manifest = build_manifest(model.cfg, graphs, report, opset=opset, ir_version=ir_version,
+                                      exporter=EXPORTER, source=source, cameras=cameras,
+                                      renderer_sampler=RendererGraph(model).sampler,
+                                      renderer_graph=renderer)
+            write_manifest(tmp / MANIFEST_NAME, manifest)
+            _publish(tmp, out_dir, force)
+        except BaseException:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
+        finally:
+            model.train(was_training)
+        say(f"wrote {out_dir} ({', '.join(sorted(p.name for p in out_dir.iterdir()))})")
+        return out_dir
     finally:
-        model.train(was_training)
-    say(f"wrote {out_dir} ({', '.join(sorted(p.name for p in out_dir.iterdir()))})")
-    return out_dir
+        say.close()
+
+
+class _Progress:
+    """``say(msg)``: a progress line on stderr, and while a step runs silently (one
+    ``torch.onnx.export`` takes half a minute on 2 cores) a line every ``EVERY`` seconds saying
+    it still runs, so that a log shows life. ``t0`` None: silent."""
+    EVERY = 10.0
+
+    def __init__(self, t0: float | None):
+        self.t0, self.step = t0, ""
+        self.last = self.since = time.perf_counter()
+        self.stop = threading.Event()
+        self.thread = None
+        if t0 is not None:
+            self.thread = threading.Thread(target=self._beat, name="iris-export-progress",
+                                           daemon=True)
+            self.thread.start()
+
+    def _print(self, msg: str) -> None:
+        self.last = time.perf_counter()
+        print(f"iris-export [{self.last - self.t0:6.1f} s] {msg}", file=sys.stderr, flush=True)
+
+    def __call__(self, msg: str) -> None:
+        if self.t0 is not None:
+            self.step, self.since = msg, time.perf_counter()
+            self._print(msg)
+
+    def _beat(self) -> None:
+        while not self.stop.wait(1.0):
+            now = time.perf_counter()
+            if now - self.last >= self.EVERY and self.step:
+                self._print(f"... working, {now - self.since:.0f} s since: {self.step}")
+
+    def close(self) -> None:
+        self.stop.set()
+        if self.thread is not None:
+            self.thread.join()
 
 
 def _check_arguments(out_dir: Path, opset, quantize, renderer, threads, force) -> int | None:

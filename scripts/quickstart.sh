@@ -9,11 +9,29 @@ SCENE=${IRIS_SCENE:-samples/heldout-1000003-256}
 SIZE=${IRIS_SIZE:-256x256}
 OUT=${IRIS_OUT:-out}
 
+# Run "$@", printing a line every 10 s while it runs silently (pip unpacks torch for a minute or
+# more); its exit status is the step's.
+with_heartbeat() {
+  local what=$1; shift
+  "$@" &
+  local pid=$! start=$SECONDS next=$((SECONDS + 10))
+  while kill -0 "$pid" 2>/dev/null; do
+    sleep 1
+    if [ "$SECONDS" -ge "$next" ]; then
+      echo "   ... $what ($((SECONDS - start)) s)"
+      next=$((next + 10))
+    fi
+  done
+  wait "$pid"
+}
+
 if [ ! -x .venv/bin/python ]; then
   echo "== setting up .venv (torch pinned to the CPU build: an unpinned torch pulls a CUDA build)"
   $PY -m venv .venv
-  .venv/bin/pip install -q --disable-pip-version-check torch==2.13.0
-  .venv/bin/pip install -q --disable-pip-version-check -e ".[train]"
+  with_heartbeat "installing torch 2.13.0 (CPU)" \
+    .venv/bin/pip install -q --disable-pip-version-check torch==2.13.0
+  with_heartbeat "installing iris-nvs[train]" \
+    .venv/bin/pip install -q --disable-pip-version-check -e ".[train]"
 fi
 
 echo "== 1/2 export $MODEL -> $OUT/model (two ONNX graphs + iris.json, validated against torch)"
