@@ -97,7 +97,7 @@ CAMERAS = ("model", "solve", "refined")
 #: Former names of those cameras, the one place they are kept: wherever a name is read (a
 #: manifest, ``encode``, a command line, a request, a checkpoint's training config) it goes
 #: through ``camera_name``, so that old manifests, requests and checkpoints keep working.
-#: "epipolar": the solve's name until 2026-12-06.
+#: "epipolar": the solve's former name (docs/record/cameras-refactor.md).
 CAMERA_ALIASES = {"epipolar": "solve"}
 
 

@@ -33,6 +33,15 @@ def _readonly(a, dtype) -> np.ndarray:
     return out
 
 
+def _readonly_numbers(value, dtype, name: str, expected: str) -> np.ndarray:
+    """``_readonly(value, dtype)``, or ``InputError`` "NAME: expected EXPECTED, got TYPE" where
+    ``value`` is not numbers."""
+    try:
+        return _readonly(value, dtype)
+    except (TypeError, ValueError):
+        raise InputError(f"{name}: expected {expected}, got {type(value).__name__}") from None
+
+
 def check_pose(pose, name: str = "pose") -> np.ndarray:
     """``pose`` as a float64 4x4 rigid ``world_from_cam``, or ``InputError`` naming ``name`` and
     what is wrong (``validation.check_world_from_cam``, tolerance ``RIGID_ATOL``)."""
@@ -191,11 +200,8 @@ def _check_cameras(scene: Scene):
     arrays = {}
     for name, dtype in (("field_maps", np.float32), ("world_from_cam", np.float64),
                         ("focal", np.float64), ("K", np.float64)):
-        try:
-            arrays[name] = _readonly(getattr(scene, name), dtype)
-        except (TypeError, ValueError):
-            raise InputError(f"{name}: expected an array of numbers, got "
-                             f"{type(getattr(scene, name)).__name__}") from None
+        arrays[name] = _readonly_numbers(getattr(scene, name), dtype, name,
+                                         "an array of numbers")
         if not np.all(np.isfinite(arrays[name])):
             raise InputError(f"{name}: contains NaN or inf")
     maps, poses, focal, K = (arrays[k] for k in ("field_maps", "world_from_cam", "focal", "K"))
@@ -221,11 +227,8 @@ def _check_references(reference_images, image_index, V: int, size: tuple[int, in
     W] or None, int64 [V] or None)``; the index defaults to ``arange(V)`` for V images."""
     refs = reference_images
     if refs is not None:
-        try:
-            refs = _readonly(refs, np.float32)
-        except (TypeError, ValueError):
-            raise InputError(f"reference_images: expected an array of numbers or None, got "
-                             f"{type(reference_images).__name__}") from None
+        refs = _readonly_numbers(refs, np.float32, "reference_images",
+                                 "an array of numbers or None")
         if refs.ndim != 4 or refs.shape[0] == 0 or refs.shape[1:] != (3, *size):
             raise InputError(f"reference_images: expected [N, 3, {size[0]}, {size[1]}] with "
                              f"N >= 1, got {refs.shape}")
@@ -254,11 +257,8 @@ def _check_encoder_cameras(encoder_focal, encoder_world_from_cam, V: int):
     or None, float64 [V, 4, 4] or None)``."""
     enc_focal = encoder_focal
     if enc_focal is not None:
-        try:
-            enc_focal = _readonly(enc_focal, np.float64)
-        except (TypeError, ValueError):
-            raise InputError(f"encoder_focal: expected [2] numbers or None, got "
-                             f"{type(encoder_focal).__name__}") from None
+        enc_focal = _readonly_numbers(enc_focal, np.float64, "encoder_focal",
+                                      "[2] numbers or None")
         if enc_focal.shape != (2,) or not (np.all(np.isfinite(enc_focal))
                                            and np.all(enc_focal > 0)):
             raise InputError(f"encoder_focal: expected [2] positive finite numbers or None, "
