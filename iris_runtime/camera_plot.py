@@ -85,15 +85,17 @@ def _half_extents(focal, n: int, name: str) -> np.ndarray:
     f = np.asarray(focal, dtype=np.float64)
     if f.ndim == 0 or f.shape == (1,):
         f = np.repeat(f.reshape(1), 2)
+    # A zero, subnormal or non-finite focal divides to inf or NaN (or overflows): intended, since
+    # every camera whose extents are not finite and ordered gets the default ones below (`bad`).
     if f.shape == (2,):
-        with np.errstate(divide="ignore", invalid="ignore"):
+        with np.errstate(divide="ignore", over="ignore", invalid="ignore"):
             h = 0.5 / f
         out = np.array([[-h[0], h[0]], [-h[1], h[1]]])
         out = np.broadcast_to(out, (n, 2, 2)).copy()
     elif f.shape == (3, 3) or (f.ndim == 3 and f.shape[1:] == (3, 3) and f.shape[0] == n):
         Ks = np.broadcast_to(f, (n, 3, 3))
         fx, fy, cx, cy = Ks[:, 0, 0], Ks[:, 1, 1], Ks[:, 0, 2], Ks[:, 1, 2]
-        with np.errstate(divide="ignore", invalid="ignore"):
+        with np.errstate(divide="ignore", over="ignore", invalid="ignore"):
             out = np.stack([np.stack([-cx / fx, cx / fx], -1), np.stack([-cy / fy, cy / fy], -1)], 1)
     else:
         raise InputError(f"{name}: expected K [3, 3] or [N, 3, 3], a normalised focal (fx/W) or "

@@ -245,6 +245,20 @@ def test_extreme_coordinates_neither_warn_nor_lose_the_alignment(magnitude):
     np.testing.assert_allclose(aligned[:, :3, 3] / magnitude, true[:, :3, 3] / magnitude, atol=1e-9)
 
 
+@pytest.mark.parametrize("focal", [0.0, 1e-320, [1e-310, 1e300], np.nan,
+                                   np.array([[1e-310, 0, 1e300], [0, 1e-310, 1e300], [0, 0, 1]])],
+                         ids=["zero", "subnormal", "subnormal-pair", "nan", "subnormal-K"])
+def test_a_degenerate_focal_draws_the_default_frustums_without_warning(focal):
+    """0.5 / f or cx / fx of such a focal is inf or NaN (a subnormal one overflowed with a
+    RuntimeWarning): the frustums fall back to the default extents, silently."""
+    import warnings
+    true = arc()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        img = draw_cameras(true, focal, size=(120, 160))
+    np.testing.assert_array_equal(img, draw_cameras(true, None, size=(120, 160)))
+
+
 def test_picture_is_deterministic_and_scale_free():
     true = arc()
     a = draw_cameras(true, K)
