@@ -848,12 +848,18 @@ def test_trained_model_runtime_matches_torch(shipped_pair):
     EDGE_FADE pixels outside each image): where a ray's last samples fade out near a reference
     camera, float32 rounding of the cameras moves a pixel by more than 1e-5 in torch too (this
     sample is held-out scene 1000003, the ill-conditioned one of ``benchmarks/pose_sensitivity.py``:
-    torch float32 there is 7.4e-5 from float64)."""
+    torch float32 there is 7.4e-5 from float64).
+
+    The renders are 32 x 32 (the model's aspect, so the same intrinsics path as its 64 x 64:
+    ``Scene.intrinsics``): a ray's colour does not depend on how many others are rendered, and
+    a quarter of the rays, spread over the whole frame, are checked at a quarter of the cost
+    (torch float64 takes ~40 s of one core per 64 x 64 render, and each target needs two)."""
     import copy
     import dataclasses
 
     import torch
     runtime, scene, model, tscene = shipped_pair
+    size = (32, 32)
     assert np.abs(scene.world_from_cam - tscene.world_from_cam.double().numpy()).max() <= 1e-5
     assert np.abs(scene.focal - tscene.focal.double().numpy()).max() <= 1e-5
     model64 = copy.deepcopy(model).double()
@@ -864,19 +870,17 @@ def test_trained_model_runtime_matches_torch(shipped_pair):
         t64, t32 = model64.encode(x.double()), model.encode(x)
     refs = [0, 2, 3, 5, 7]
     for target in (1, 4, 6):
-        res = runtime.render(scene.subset(refs), scene.world_from_cam[target], depth=True)
+        res = runtime.render(scene.subset(refs), scene.world_from_cam[target], height=size[0],
+                             width=size[1], depth=True)
         with torch.no_grad():
-            rgb, depth = model64.render(t64.subset(refs), t64.world_from_cam[[target]],
-                                        *runtime.image_size)
-            rgb32, _ = model.render(t32.subset(refs), t32.world_from_cam[[target]],
-                                    *runtime.image_size)
+            rgb, depth = model64.render(t64.subset(refs), t64.world_from_cam[[target]], *size)
+            rgb32, _ = model.render(t32.subset(refs), t32.world_from_cam[[target]], *size)
             # The same float64 render from the runtime's cameras: how much the cameras' float32
             # difference moves this ill-conditioned scene (a slope of the validity fade near a
             # reference camera), measured rather than assumed from one CPU's run.
             rc = dataclasses.replace(t64, world_from_cam=torch.from_numpy(scene.world_from_cam),
                                      focal=torch.from_numpy(scene.focal))
-            rgb_rc, _ = model64.render(rc.subset(refs), rc.world_from_cam[[target]],
-                                       *runtime.image_size)
+            rgb_rc, _ = model64.render(rc.subset(refs), rc.world_from_cam[[target]], *size)
         float32_err = np.abs(rgb32[0].double().numpy() - rgb[0].numpy()).max()
         camera_err = np.abs(rgb_rc[0].numpy() - rgb[0].numpy()).max()
         assert np.abs(res.image_float - rgb[0].numpy()).max() <= (1e-5 + 2 * float32_err
