@@ -685,6 +685,20 @@ def test_pose_from_points_is_exact_and_refuses_too_few_inliers():
     assert pose_from_points(X, junk, FOCAL, SIZE, max_error=1.0) is None
 
 
+def test_points_on_or_just_in_front_of_the_camera_are_not_inliers_and_do_not_warn():
+    """Their projection divides by a zero or subnormal depth (inf or NaN; the subnormal one
+    overflowed with a RuntimeWarning): such points are outliers, silently."""
+    import warnings
+
+    from iris_runtime.cameras.locate import _reprojects
+    obj = np.array([[1.0, 0.0, 1e-320], [1.0, 0.0, 0.0], [0.0, 0.0, 0.0], [1.0, 0.0, -1.0],
+                    [0.0, 0.0, 1.0]])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        inliers = _reprojects(obj, np.zeros((5, 2)), np.eye(3), np.eye(3), np.zeros(3), 2.0)
+    assert inliers.tolist() == [False, False, False, False, True]
+
+
 def test_a_confident_stop_ends_the_pnp_search_as_the_full_search_ends():
     """``confident_stop``: the RANSAC runs ``confident_iterations``, after which a pose with
     ``min_inliers`` inliers would have been drawn with the RANSAC's confidence. Wherever OpenCV's

@@ -114,7 +114,10 @@ def _reprojects(obj: np.ndarray, img: np.ndarray, K: np.ndarray, R: np.ndarray, 
     """bool [N]: the points ``obj [N, 3]`` in front of camera (R, t) that reproject within
     ``max_error`` pixels of ``img [N, 2]``."""
     Y = obj @ R.T + t
-    with np.errstate(divide="ignore", invalid="ignore"):
+    # A point on or behind the camera (z <= 0) divides to inf or NaN, one just in front of it
+    # (a subnormal z) overflows: intended, since such points are not counted (z > 0 below, and
+    # inf or NaN is never <= max_error).
+    with np.errstate(divide="ignore", over="ignore", invalid="ignore"):
         err = np.linalg.norm(K[0, 0] * Y[:, :2] / Y[:, 2:] + K[:2, 2] - img, axis=1)
     return (Y[:, 2] > 0) & (err <= max_error)
 
