@@ -66,10 +66,41 @@ def torch_export(tmp_path_factory):
     return _export_random_tiny(tmp_path_factory, "iris_model")
 
 
+def copy_graphs_from(src_dir):
+    """An ``export.graphs.export_graph`` stand-in that copies the graphs already exported to
+    ``src_dir`` (of a model with the same weights): ``export_model`` with it still quantises,
+    validates those graphs against the model it is given (so a graph of other weights fails) and
+    writes the manifest, without tracing again (torch.onnx.export: 15-60 s a graph)."""
+    import shutil
+
+    import onnx
+
+    from export import io_spec
+    from export.graphs import GraphFile
+
+    def fake_export_graph(model, graph, path, opset=io_spec.DEFAULT_OPSET, wrapper=None):
+        src = Path(src_dir) / io_spec.spec_for(graph)["file"]
+        shutil.copyfile(src, path)
+        return GraphFile(graph, Path(path), len(onnx.load(str(src)).graph.node), 0.0)
+    return fake_export_graph
+
+
 @pytest.fixture(scope="session")
-def torch_export_int8(tmp_path_factory):
-    """Like ``torch_export``, also with the int8 renderer (``--quantize int8``)."""
-    return _export_random_tiny(tmp_path_factory, "iris_model_int8", quantize="int8")
+def torch_export_int8(torch_export, tmp_path_factory):
+    """Like ``torch_export``, also with the int8 renderer (``--quantize int8``). The same model
+    (a fresh copy: seed 0), so its float graphs are ``torch_export``'s, copied rather than traced
+    again (``copy_graphs_from``); the int8 renderer is quantised from them and every graph is
+    validated against the model as in any export."""
+    pytest.importorskip("torch")
+    pytest.importorskip("onnx")
+    from export import pipeline
+
+    model = random_model("tiny")
+    out = tmp_path_factory.mktemp("iris_model_int8") / "tiny"
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(pipeline, "export_graph", copy_graphs_from(torch_export[0]))
+        pipeline.export_model(model, out, quick=True, progress=False, threads=1, quantize="int8")
+    return out, model
 
 
 @pytest.fixture(scope="session")

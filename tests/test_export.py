@@ -32,7 +32,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import pickle
-import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -53,12 +52,13 @@ from iris_train.model import CheckpointError, save_checkpoint              # noq
 from export import io_spec, pipeline                                        # noqa: E402
 from export.cli import main as cli_main                                     # noqa: E402
 from export.errors import ExportArgumentError, OutputExistsError, ValidationError  # noqa: E402
-from export.graphs import EncoderGraph, GraphFile, RendererGraph            # noqa: E402
+from export.graphs import EncoderGraph, RendererGraph                       # noqa: E402
 from export.manifest import FORMAT, MANIFEST_NAME, VERSION, read_manifest, sha256_file  # noqa: E402
 from export.pipeline import export_model                                    # noqa: E402
 from export.validate import renderer_inputs, scene_images, scene_rays      # noqa: E402
 from iris_train.geometry import sample_bilinear_dense as sample_dense        # noqa: E402
 
+from .conftest import copy_graphs_from                                       # noqa: E402
 from .tolerances import encoder_terms, encoder_tol, f32_tol, render_tol, renderer_terms     # noqa: E402
 
 pytestmark = pytest.mark.torch
@@ -91,15 +91,6 @@ def checkpoint(model, tmp_path_factory):
     return path
 
 
-def _copy_graphs_from(src_dir: Path):
-    """An ``export_graph`` stand-in that copies already exported graphs (same weights)."""
-    def fake_export_graph(model, graph, path, opset=io_spec.DEFAULT_OPSET, wrapper=None):
-        src = Path(src_dir) / io_spec.spec_for(graph)["file"]
-        shutil.copyfile(src, path)
-        return GraphFile(graph, Path(path), len(onnx.load(str(src)).graph.node), 0.0)
-    return fake_export_graph
-
-
 @pytest.fixture(scope="module")
 def exported(torch_export, checkpoint, tmp_path_factory):
     """``iris-export CKPT OUT --quantize int8`` on the checkpoint of the session's model.
@@ -110,7 +101,7 @@ def exported(torch_export, checkpoint, tmp_path_factory):
     """
     out = tmp_path_factory.mktemp("export") / "model"
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(pipeline, "export_graph", _copy_graphs_from(torch_export[0]))
+        mp.setattr(pipeline, "export_graph", copy_graphs_from(torch_export[0]))
         rc = cli_main([str(checkpoint), str(out), "--quick", "--quantize", "int8", "--threads", "1", "-q"])
     assert rc == 0
     return out
@@ -146,7 +137,7 @@ def model_and_sessions(request):
 @pytest.fixture
 def copy_graphs(monkeypatch, exported):
     """Make ``export_model`` reuse the module's graphs instead of exporting again."""
-    monkeypatch.setattr(pipeline, "export_graph", _copy_graphs_from(exported))
+    monkeypatch.setattr(pipeline, "export_graph", copy_graphs_from(exported))
 
 
 def _siblings(path: Path) -> list[str]:
