@@ -114,6 +114,25 @@ def torch_export_rgb(tmp_path_factory):
                                preset_name="tiny-rgb", blend_angle=0.02)
 
 
+#: The shipped, trained model (explicit colour, a camera head on its own encoder, plain blend).
+SHIPPED = Path(__file__).resolve().parents[1] / "models" / "iris-tiny-rgb.pt"
+
+
+@pytest.fixture(scope="session")
+def shipped_export(tmp_path_factory):
+    """(model_dir, IrisModel): ``SHIPPED`` exported once per session (``export_model`` with its
+    defaults, quick probes) and loaded in torch; skips without torch, onnx or the checkpoint."""
+    pytest.importorskip("torch")
+    pytest.importorskip("onnx")
+    if not SHIPPED.is_file():
+        pytest.skip("no shipped model")
+    from export.pipeline import export_model
+    from iris_train import load_model
+    out = export_model(SHIPPED, tmp_path_factory.mktemp("shipped") / "model", quick=True,
+                       progress=False, threads=1)
+    return out, load_model(SHIPPED)
+
+
 def resolve_model_dir(request, export_fixture: str, env_var: str = "IRIS_TEST_MODEL_DIR") -> Path:
     """``env_var`` if set, else the export made by ``export_fixture`` (needs torch)."""
     env = os.environ.get(env_var)

@@ -16,12 +16,13 @@ torch renderer, laid out for ONNX Runtime's CPU kernels.
   ``Where`` node and, after ONNX Runtime's optimisations, no Transpose but the ray attentions'
   head merges;
 * the export option: ``export_model(..., renderer="fast")`` records it in the manifest and
-  ``IrisRuntime`` renders that model like torch (``slow``: a full export with the encoder),
+  ``IrisRuntime`` renders that model like torch (the session's export of the shipped model),
   unknown kinds are refused, ``iris-export --renderer`` parses.
 """
 from __future__ import annotations
 
 import collections
+import json
 import tempfile
 from pathlib import Path
 
@@ -216,11 +217,30 @@ def test_selected_views_match_the_masked_renderer(model, V, R, S, k):
     assert max(_errors(got, want)) <= TOL
 
 
-def test_selected_views_graph_in_onnx_runtime(model, tmp_path):
+def _session_graph(request, model, graph: str):
+    """The file of ``graph`` in conftest's ``torch_export`` when ``model`` is that model (the
+    seed-0 random ``tiny``, exported by ``export_model`` with its default ``renderer="fast"``:
+    ``FastRendererGraph(model)`` and ``SelectedViewsRendererGraph(model)`` through
+    ``export_graph`` at the default opset, as below), else None: the same graph is not traced
+    again (torch.onnx.export: 15-60 s a graph)."""
+    if model.cfg.explicit_rgb:               # the session's tiny-rgb blends by angle: not this one
+        return None
+    model_dir, twin = request.getfixturevalue("torch_export")
+    mine, theirs = model.state_dict(), twin.state_dict()
+    if (model.cfg != twin.cfg or mine.keys() != theirs.keys()
+            or not all(torch.equal(mine[k], theirs[k]) for k in mine)):
+        return None
+    assert json.loads((model_dir / "iris.json").read_text())["export"]["renderer_graph"] == "fast"
+    return model_dir / io_spec.spec_for(graph, model.cfg.explicit_rgb)["file"]
+
+
+def test_selected_views_graph_in_onnx_runtime(model, tmp_path, request):
     """The exported selected-views graph: I/O of io_spec.RENDERER_VIEWS, ONNX Runtime within TOL of
     torch through its dynamic axes (V, M, K, R, S)."""
-    path = tmp_path / "renderer_views.onnx"
-    export_graph(model, "renderer_views", path, wrapper=SelectedViewsRendererGraph(model))
+    path = _session_graph(request, model, "renderer_views")
+    if path is None:
+        path = tmp_path / "renderer_views.onnx"
+        export_graph(model, "renderer_views", path, wrapper=SelectedViewsRendererGraph(model))
     sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
     spec = io_spec.spec_for("renderer_views", model.cfg.explicit_rgb)
     assert [i.name for i in sess.get_inputs()] == list(spec["inputs"])
@@ -270,12 +290,16 @@ def test_wrapper_arguments(model):
 
 # -- ONNX export + ONNX Runtime -------------------------------------------------------------------
 @pytest.fixture(scope="module")
-def exported(tmp_path_factory, model):
-    """{kind: path} of the fast graphs of ``model`` ("fast", "fast-contrib")."""
+def exported(tmp_path_factory, model, request):
+    """{kind: path} of the fast graphs of ``model`` ("fast", "fast-contrib"); the random tiny
+    model's "fast" graph is the session export's renderer (``_session_graph``)."""
     out = tmp_path_factory.mktemp("fast_renderer")
     name = "rgb" if model.cfg.explicit_rgb else "paper"
-    return {kind: export_fast_renderer(model, out / f"{name}-{kind}.onnx", contrib=contrib).path
-            for kind, contrib in (("fast", False), ("fast-contrib", True))}
+    paths = {}
+    for kind, contrib in (("fast", False), ("fast-contrib", True)):
+        paths[kind] = (None if contrib else _session_graph(request, model, "renderer")) or \
+            export_fast_renderer(model, out / f"{name}-{kind}.onnx", contrib=contrib).path
+    return paths
 
 
 def _session(path):
@@ -451,25 +475,37 @@ def test_cli_renderer_option():
         parser.parse_args(["c.pt", "out", "--renderer", "fastest"])
 
 
-@pytest.mark.slow
-def test_export_model_with_fast_renderer_runs_in_the_runtime(tmp_path):
+def test_export_model_with_fast_renderer_runs_in_the_runtime(request, tmp_path):
     """``export_model(..., renderer="fast")``: validated, recorded in the manifest, and
-    ``IrisRuntime`` renders it (culling, packed calls, empty rays) like torch."""
+    ``IrisRuntime`` renders it (culling, packed calls, empty rays) like torch. The model is an
+    explicit-colour one with the plain colour blend: the shipped model, whose session export
+    (conftest ``shipped_export``: ``export_model`` with its default renderer, "fast", checked
+    here) is shared rather than a second full export traced; without it, a random ``tiny-rgb``
+    exported here."""
+    import inspect
+
     from export.manifest import read_manifest
     from export.pipeline import export_model
     from iris_runtime import IrisRuntime
 
-    model = random_model("tiny-rgb")
-    out = export_model(model, tmp_path / "fast", renderer="fast", quick=True, progress=False,
-                       threads=1)
+    from .conftest import SHIPPED
+    if SHIPPED.is_file():
+        assert inspect.signature(export_model).parameters["renderer"].default == "fast"
+        out, model = request.getfixturevalue("shipped_export")
+    else:
+        model = random_model("tiny-rgb")
+        out = export_model(model, tmp_path / "fast", renderer="fast", quick=True, progress=False,
+                           threads=1)
+    assert model.cfg.explicit_rgb and not model.cfg.blend_angle
     m = read_manifest(out)
+    assert m["validation"]["renderer"]["passed"]
     assert m["export"]["renderer_graph"] == "fast"
     assert op_histogram(out / "renderer.onnx")["Where"] == 0
     rt = IrisRuntime(out, threads=1)
     H, W = rt.image_size
     images = [np.asarray(x.permute(1, 2, 0).numpy() * 255, dtype=np.uint8)
               for x in scene_images(3, H, W, torch.Generator().manual_seed(2))]
-    scene = rt.encode(images)
+    scene = rt.encode(images, cameras="model")          # the encoder graph's, as torch's encode
     pose = np.eye(4)
     c, s = np.cos(0.6), np.sin(0.6)                        # sideways: part of the view is empty
     pose[:3, :3] = [[c, 0, s], [0, 1, 0], [-s, 0, c]]

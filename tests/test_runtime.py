@@ -813,22 +813,14 @@ def test_cli_locate(model_dir, tmp_path):
 # Parity on the shipped, trained model and the committed held-out sample scene
 # ----------------------------------------------------------------------------------------------
 
-REPO = Path(__file__).resolve().parents[1]
-SHIPPED = REPO / "models" / "iris-tiny-rgb.pt"
 SAMPLE = REPO / "samples" / "heldout-1000003"
 
 
 @pytest.fixture(scope="session")
-def shipped_pair(tmp_path_factory):
-    """(runtime, runtime scene, IrisModel, torch scene) for the trained default model."""
-    pytest.importorskip("torch")
-    pytest.importorskip("onnx")
-    if not SHIPPED.is_file():
-        pytest.skip("no shipped model")
-    from export.pipeline import export_model
-    from iris_train import load_model
-    out = export_model(SHIPPED, tmp_path_factory.mktemp("shipped") / "model", quick=True,
-                       progress=False, threads=1)
+def shipped_pair(shipped_export):
+    """(runtime, runtime scene, IrisModel, torch scene) for the trained default model (its export:
+    conftest ``shipped_export``)."""
+    out, model = shipped_export
     runtime = IrisRuntime(out, threads=1)
     # The shipped renderer was trained on solved cameras and its head distilled from the solve:
     # its export's default refines the head's cameras into the solve's terms.
@@ -836,7 +828,6 @@ def shipped_pair(tmp_path_factory):
     paths = sorted(SAMPLE.glob("frame_*.png"))
     scene = runtime.encode(paths, cameras="model")     # the graphs against torch: the head's cameras
     from iris_runtime.images import load_image
-    model = load_model(SHIPPED)
     return runtime, scene, model, _torch_scene(model, [load_image(p) for p in paths])
 
 
