@@ -15,15 +15,17 @@ model's own size and focal therefore reads the model-resolution images exactly a
 same float32 values, bit for bit). The choice assumes the reference sees the surface at about
 the target's distance, which is what neighbouring views of a capture do.
 
-Sampling is ``geometry.sample_taps`` on each level's taps (bilinear, align_corners=False,
-border-clamped, on the normalised grid the renderer's field maps use, so any level size works).
-Levels above the model's are kept as uint8 taps (12 bytes a pixel instead of 48) and scaled to
-[0, 1] after the interpolation.
+Sampling is bilinear, align_corners=False and border-clamped, on the normalised grid the
+renderer's field maps use, so any level size works. The ray march reads through
+``geometry.sample_taps`` (bit for bit the renderer's ``grid_sample`` at the model's level); the
+two-scale pass, which reads many more samples, through ``cv2.remap`` on float32 images
+(``ColourSource.read``; the same values to float32 rounding). Levels above the model's are kept
+as uint8 (3 bytes a pixel) and made float32 (12 bytes a pixel) for the views a render reads.
 """
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -93,15 +95,19 @@ def choose_level(sizes: list[tuple[int, int]], model_size: tuple[int, int],
 class ColourSource:
     """Each view's colour level for one render.
 
-    model_taps: float32 [V, 4, 3, H*W] or None   the model-resolution photos' taps (views
-                                                  that read the model's level), as
-                                                  ``geometry.bilinear_taps``
-    fine:       per view None (the model's level) or (uint8 taps [1, 4, 3, h*w], (h, w))
-    model_size: (H, W)
+    model_photos: float32 [V, 3, H, W]   the model-resolution photos (the encoder's input)
+    fine:         per view None (the model's level) or uint8 [h, w, 3], the level it reads
+    model_size:   (H, W)
+
+    Two readers of the same levels: ``sample`` (the ray march's, on normalised grids, bit for bit
+    the renderer's ``grid_sample``) and ``read`` (the two-scale pass's, on model pixels, through
+    ``cv2.remap``). Each builds what it needs on first use (bilinear taps, float32 images) and
+    keeps it for the render.
     """
-    model_taps: np.ndarray | None
+    model_photos: np.ndarray
     fine: tuple
     model_size: tuple[int, int]
+    _made: dict = field(default_factory=dict, repr=False)
 
     @classmethod
     def build(cls, model_photos: np.ndarray, photos: tuple | None, focal_ratio: float,
@@ -120,36 +126,78 @@ class ColourSource:
                 sizes = level_sizes(photo.shape[:2], model_size)
                 level = choose_level(sizes, model_size, focal_ratio)
                 if level < len(sizes) - 1:
-                    size = sizes[level]
-                    image = _level(photo, size, levels)
-                    entry = (G.bilinear_taps(image.transpose(2, 0, 1)[None]), size)
+                    entry = _level(photo, sizes[level], levels)
             fine.append(entry)
-        needs_model = any(e is None for e in fine)
-        taps = G.bilinear_taps(model_photos) if needs_model else None
-        return cls(taps, tuple(fine), model_size)
+        return cls(model_photos, tuple(fine), model_size)
 
     @property
     def sizes(self) -> list[tuple[int, int]]:
         """The level size each view reads."""
-        return [self.model_size if e is None else e[1] for e in self.fine]
+        return [self.model_size if e is None else e.shape[:2] for e in self.fine]
 
     def sample(self, grid: np.ndarray, views: np.ndarray) -> np.ndarray:
         """Colours float32 [v, ..., 3] in [0, 1] of views ``views`` [v] at ``grid [v, ..., 2]``
-        (normalised, align_corners=False)."""
+        (normalised, align_corners=False): ``geometry.sample_taps`` on the level's taps, so a
+        view at the model's level reads exactly what the renderer's ``grid_sample`` would."""
         if all(self.fine[int(v)] is None for v in views):   # the model's level: one call
-            return G.sample_taps(self.model_taps, self.model_size, grid, views)
+            return G.sample_taps(self._model_taps(), self.model_size, grid, views)
         out = np.empty(grid.shape[:-1] + (3,), f32)
         first = np.zeros(1, np.intp)
         for k, view in enumerate(views):
-            entry = self.fine[int(view)]
-            if entry is None:
-                out[k] = G.sample_taps(self.model_taps, self.model_size, grid[k:k + 1],
+            level = self.fine[int(view)]
+            if level is None:
+                out[k] = G.sample_taps(self._model_taps(), self.model_size, grid[k:k + 1],
                                        np.asarray([view]))[0]
             else:
-                taps, size = entry
-                out[k] = G.sample_taps(taps, size, grid[k:k + 1], first)[0]
+                taps = self._cached(("taps", int(view)),
+                                    lambda: G.bilinear_taps(level.transpose(2, 0, 1)[None]))
+                out[k] = G.sample_taps(taps, level.shape[:2], grid[k:k + 1], first)[0]
                 out[k] *= f32(1.0 / 255.0)
         return out
+
+    def read(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """Colours float32 [V, P, 3] in [0, 1] of every view ``k`` at ``(u[k], v[k])`` float32
+        [V, P], positions in the model's pixels (``geometry.project_points``' convention: the
+        image spans [0, W] x [0, H]): bilinear, border-clamped, as ``sample`` reads them (to
+        float32 rounding). ``cv2.remap`` on each level in float32 (12 bytes a pixel, made once
+        per render): several times faster than the taps' gathers for the many samples of a
+        large output (benchmarks/two_scale.py)."""
+        V, P = u.shape
+        H, W = self.model_size
+        cols = min(P, 8192)                 # remap's maps must stay below 32767 on a side
+        rows = -(-P // cols)
+        pad = rows * cols - P
+        out = np.empty((V, P, 3), f32)
+        for k in range(V):
+            image = self._image(k)
+            h, w = image.shape[:2]
+            # Model pixel -> the level's pixel centres (align_corners=False), clamped to the
+            # outermost centres as grid_sample's border padding clamps.
+            x = np.clip(u[k] * f32(w / W) - f32(0.5), f32(0), f32(w - 1))
+            y = np.clip(v[k] * f32(h / H) - f32(0.5), f32(0), f32(h - 1))
+            if pad:
+                x, y = np.pad(x, (0, pad)), np.pad(y, (0, pad))
+            got = cv2.remap(image, x.reshape(rows, cols), y.reshape(rows, cols),
+                            cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+            out[k] = got.reshape(-1, 3)[:P]
+        return out
+
+    def _model_taps(self) -> np.ndarray:
+        return self._cached("model_taps", lambda: G.bilinear_taps(self.model_photos))
+
+    def _image(self, view: int) -> np.ndarray:
+        """View ``view``'s level as float32 [h, w, 3] in [0, 1], C-contiguous."""
+        level = self.fine[view]
+        if level is None:
+            return self._cached(("image", view), lambda: np.ascontiguousarray(
+                self.model_photos[view].transpose(1, 2, 0), dtype=f32))
+        return self._cached(("image", view), lambda: level.astype(f32) * f32(1.0 / 255.0))
+
+    def _cached(self, key, make):
+        hit = self._made.get(key)
+        if hit is None:
+            hit = self._made[key] = make()
+        return hit
 
 
 def _level(photo: np.ndarray, size: tuple[int, int], levels: dict | None) -> np.ndarray:

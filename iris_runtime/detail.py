@@ -172,18 +172,32 @@ def _sample_colours(points: np.ndarray, ref_K: np.ndarray, cam_from_world: np.nd
     as the renderer blends them (``colour.mean_colour``: validity, and the angle to the ray from
     ``target_centre`` with ``blend_angle``), and its spread float32 [P]: the validity-weighted
     variance of the views' colours, summed over RGB (0 where fewer than two views see the
-    point)."""
+    point).
+
+    The projection, validity and cue cosine are those of ``geometry.project_points``,
+    ``geometry.validity`` and ``geometry.cue_cosine``, fused for the many samples of a large
+    output (to float32 rounding): the distance from a view's centre is the norm of the point in
+    that camera's coordinates, which the projection computes anyway."""
     H, W = image_size
-    V = cam_from_world.shape[0]
-    uv, z, _ = G.project_points(points, ref_K, cam_from_world, H, W)           # [V, P, 2]
-    weight = G.validity(uv, z, H, W)                                           # [V, P]
-    sampled = colours.sample(G.pixels_to_grid(uv, H, W), np.arange(V))        # [V, P, 3]
+    rot, shift = cam_from_world[:, :3, :3], cam_from_world[:, :3, 3]
+    cam = np.matmul(points, np.swapaxes(rot, -1, -2)) + shift[:, None, :]      # [V, P, 3]
+    z = cam[..., 2]
+    z_safe = np.maximum(z, f32(G.DEPTH_EPS))
+    u = ref_K[0, 0] * cam[..., 0] / z_safe + ref_K[0, 2]
+    v = ref_K[1, 1] * cam[..., 1] / z_safe + ref_K[1, 2]
+    weight = G.edge_validity(u, v, z, H, W)                                    # [V, P]
+    sampled = colours.read(u, v)                                               # [V, P, 3]
     plain = mean_colour(sampled, weight)
-    cos = None
+    mean = plain
     if blend_angle:
-        centres = np.linalg.inv(cam_from_world.astype(np.float64))[:, :3, 3].astype(f32)
-        cos = G.cue_cosine(points, target_centre, centres)                      # [V, P]
-    mean = mean_colour(sampled, weight, cos, blend_angle) if blend_angle else plain
+        # cos between unit(target - x) and unit(c_v - x) = (t . c_v - t . x) / |R (x - c_v)|
+        t = target_centre.astype(f32) - points
+        t /= np.maximum(np.sqrt((t * t).sum(axis=1, keepdims=True)), f32(G.NORM_EPS))
+        centres = -np.matmul(np.swapaxes(rot, -1, -2), shift[..., None])[..., 0]   # [V, 3]
+        along = (t @ centres.T).T - (t * points).sum(axis=1)                   # [V, P]
+        dist = np.sqrt((cam * cam).sum(axis=-1))
+        cos = along / np.maximum(dist, f32(G.NORM_EPS))
+        mean = mean_colour(sampled, weight, cos, blend_angle)
     m = weight[..., None]
     count = m.sum(axis=0)
     var = (m * (sampled - plain) ** 2).sum(axis=0) / np.maximum(count, f32(1e-12))

@@ -139,10 +139,16 @@ def validity(uv: np.ndarray, z: np.ndarray, height: int, width: int) -> np.ndarr
     ``clip(1 - d / EDGE_FADE, 0, 1)`` with d the distance in pixels outside the image
     [0, W] x [0, H] (0 inside): 1 wherever ``project_points``' ``valid`` is True. The renderer's
     ``mask`` input (io_spec)."""
-    u, v = uv[..., 0], uv[..., 1]
+    return edge_validity(uv[..., 0], uv[..., 1], z, height, width)
+
+
+def edge_validity(u: np.ndarray, v: np.ndarray, z: np.ndarray, height: int,
+                  width: int) -> np.ndarray:
+    """``validity`` of pixel positions given as ``u``, ``v`` and depths ``z``, each ``[V, ...]``
+    (bit for bit)."""
     d = np.maximum(np.maximum(np.maximum(-u, u - width), np.maximum(-v, v - height)), 0.0)
-    w = np.clip(1.0 - d / uv.dtype.type(EDGE_FADE), 0.0, 1.0).astype(uv.dtype)
-    return np.where(z > DEPTH_EPS, w, uv.dtype.type(0.0))
+    w = np.clip(1.0 - d / u.dtype.type(EDGE_FADE), 0.0, 1.0).astype(u.dtype)
+    return np.where(z > DEPTH_EPS, w, u.dtype.type(0.0))
 
 
 def pixels_to_grid(uv: np.ndarray, height: int, width: int) -> np.ndarray:

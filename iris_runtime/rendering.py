@@ -173,13 +173,15 @@ class Rendering:
         scene = job.scene
         colours = ColourSource.build(job.photos, job.kept_photos,
                                      raymarch.focal_ratio(job.K, scene.K), scene._levels)
-        rgb, depth = detail.compose_fine(
-            detail.CoarseField((hc, wc), coarse.weights, coarse.residual, coarse.depth), h, w,
-            job.K, job.world_from_cam, G.sample_depths(self.near, self.far, job.samples, 1,
-                                                       dtype=np.float32)[0],
-            scene.K.astype(np.float32), G.invert_pose(scene.world_from_cam).astype(np.float32),
-            scene.image_size, colours, job.settings.colour_samples,
-            blend_angle=self.manifest.blend_angle)
+        with self._opencv_threads():          # the photos are read with cv2.remap
+            rgb, depth = detail.compose_fine(
+                detail.CoarseField((hc, wc), coarse.weights, coarse.residual, coarse.depth),
+                h, w, job.K, job.world_from_cam,
+                G.sample_depths(self.near, self.far, job.samples, 1, dtype=np.float32)[0],
+                scene.K.astype(np.float32),
+                G.invert_pose(scene.world_from_cam).astype(np.float32),
+                scene.image_size, colours, job.settings.colour_samples,
+                blend_angle=self.manifest.blend_angle)
         timings["colour"] = time.perf_counter() - t0
         work = {"coarse_rays": hc * wc, "pixels": h * w}
         return raymarch.MarchResult(rgb, depth, coarse.stats), work

@@ -228,6 +228,22 @@ class IrisRuntime(Encoding, Rendering):
             self._blas = ThreadpoolController()
         return self._blas.limit(limits=self.threads, user_api="blas")
 
+    @contextlib.contextmanager
+    def _opencv_threads(self):
+        """A context in which OpenCV runs at most ``threads`` threads (the two-scale pass's
+        ``cv2.remap``), for the reason of ``_blas_threads``; process-wide while it holds, the
+        previous count restored after. With ``threads`` None, nothing changes."""
+        if self.threads is None:
+            yield
+            return
+        import cv2
+        before = cv2.getNumThreads()
+        cv2.setNumThreads(self.threads)
+        try:
+            yield
+        finally:
+            cv2.setNumThreads(before)
+
     # -- the checks both halves share --------------------------------------------------------
     def _check_scene(self, scene: Scene, name: str = "images_or_scene") -> None:
         enc = self.manifest.graphs["encoder"].sha256

@@ -90,6 +90,14 @@ def test_colour_source_samples_each_views_level():
     np.testing.assert_allclose(got, want, rtol=0, atol=16 * F32_EPS)
     # Views in another order read their own photos.
     np.testing.assert_array_equal(fine.sample(grid[::-1], np.array([1, 0])), got[::-1])
+    # The two-scale reader (cv2.remap, model pixels) reads the same values: against the same
+    # float64 reference at both levels, to the same few ulps.
+    uv = (grid.reshape(2, -1, 2) + 1) * np.float32(32)                     # model pixels
+    for source, images in ((at_model, model.transpose(0, 2, 3, 1)), (fine, np.stack(photos) / 255)):
+        read = source.read(uv[..., 0], uv[..., 1])
+        want = np.stack([_bilinear_f64(im, g.reshape(-1, 2)) for im, g in zip(images, grid)])
+        assert read.shape == (2, 350, 3) and read.dtype == np.float32
+        np.testing.assert_allclose(read, want, rtol=0, atol=16 * F32_EPS)
 
 
 def test_blend_residual_composes_back():
