@@ -213,20 +213,29 @@ def test_fit_scores_a_head_against_the_teacher_by_baseline():
     assert rot == sorted(rot) and rot[-1] > 20.0 and identity["rpa@15"] < 0.5
 
 
-def test_separate_camera_encoder_keeps_the_renderer_and_takes_the_head(tmp_path):
+def test_separate_camera_encoder_keeps_the_renderer_and_takes_the_head(tmp_path, torch_export_rgb):
     """``ship_checkpoint.py --camera-head-from``: the merged model's features (what the renderer
     reads) are bit for bit the source's and its cameras the other checkpoint's; it exports and
-    its graphs match torch (``iris-export``'s validation)."""
+    its graphs match torch (``iris-export``'s validation).
+
+    The source's field and renderer are those of the session's random explicit-colour model
+    (conftest ``torch_export_rgb``, whose config this one is but for the camera head), so the
+    export traces the two encoder graphs only and takes the renderer graphs from that export;
+    its validation holds them to the merged model as it would traced ones."""
     import dataclasses
     import subprocess
     import sys
 
     from iris_train import build_model, load_model
-    from iris_train.config import preset
     from iris_train.model import save_checkpoint
-    cfg = dataclasses.replace(preset("tiny-rgb"), camera_head="correlation")
+
+    from .conftest import copy_graphs_from
+    twin_dir, twin = torch_export_rgb
+    cfg = dataclasses.replace(twin.cfg, camera_head="correlation")
     torch.manual_seed(1)
     renderer = build_model(cfg).eval()
+    renderer.field.load_state_dict(twin.field.state_dict())
+    renderer.renderer.load_state_dict(twin.renderer.state_dict())
     torch.manual_seed(2)
     cameras = build_model(cfg).eval()
     with torch.no_grad():                # cameras a little off the identity
@@ -253,8 +262,15 @@ def test_separate_camera_encoder_keeps_the_renderer_and_takes_the_head(tmp_path)
     again = load_model(tmp_path / "m2.pt")
     for k, v in merged.state_dict().items():
         assert torch.equal(v, again.state_dict()[k]), k
-    from export.pipeline import export_model
-    export_model(tmp_path / "m.pt", tmp_path / "out", quick=True, progress=False, threads=1)
+    from export import pipeline
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(pipeline, "export_graph",
+                   copy_graphs_from(twin_dir, trace=("encoder", "encoder_cameras")))
+        pipeline.export_model(tmp_path / "m.pt", tmp_path / "out", quick=True, progress=False,
+                              threads=1)
+    manifest = json.loads((tmp_path / "out" / "iris.json").read_text())
+    assert set(manifest["graphs"]) == {"encoder", "encoder_cameras", "renderer", "renderer_views"}
+    assert all(manifest["validation"][g]["passed"] for g in manifest["graphs"])
     from iris_runtime import IrisRuntime
     rt = IrisRuntime(tmp_path / "out", threads=1)
     x = (images[0].permute(0, 2, 3, 1).numpy() * 255).round().astype(np.uint8)
