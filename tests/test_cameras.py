@@ -579,9 +579,37 @@ def test_bundle_adjustment_ends_where_scipy_least_squares_cannot_lower_the_cost(
         # the adjustment's, log(1 + |r|^2 / s^2) per observation.
         return np.linalg.norm((f * Y[..., :2] / Y[..., 2:] + centre - uv)[active], axis=1)
 
+    # least_squares' own Jacobian ("2-point": the same steps and differences), its columns
+    # differenced in 10 groups rather than one at a time: a residual (point p in view v) reads
+    # view v's rotation and translation, the focal and point p, so the k-th rotation (or
+    # translation) component of every view, and the k-th coordinate of every point, can move
+    # together without two of them reaching one residual (scipy's grouped differences,
+    # ``jac_sparsity``, would also switch its solver to LSMR; this keeps the exact one).
+    pv = np.argwhere(active)                                    # (point, view) of each residual
+    n_w, n_t = 3 * (V - 1), int(free_t.sum())
+    view_of = np.r_[np.repeat(np.arange(1, V), 3), np.nonzero(free_t)[0], -1, np.full(3 * P, -1)]
+    point_of = np.r_[np.full(n_w + n_t + 1, -1), np.repeat(np.arange(P), 3)]
+    group = np.r_[np.tile(np.arange(3), V - 1), 3 + np.nonzero(free_t)[1], 6,
+                  7 + np.arange(3 * P) % 3]
+    reads = ((view_of[None] == pv[:, 1:]) | (point_of[None] == pv[:, :1])
+             | (np.arange(view_of.size) == n_w + n_t)[None])          # [residuals, unknowns]
+    assert (np.stack([reads[:, group == g].sum(1) for g in range(10)]) <= 1).all()
+
+    def jacobian(x):
+        f0 = residuals(x)
+        h = np.finfo(float).eps ** 0.5 * np.where(x >= 0, 1.0, -1.0) * np.maximum(1.0, np.abs(x))
+        h = (x + h) - x
+        J = np.zeros((f0.size, x.size))
+        for g in range(10):
+            cols = group == g
+            xg = x.copy()
+            xg[cols] += h[cols]
+            J[:, cols] = np.where(reads[:, cols], (residuals(xg) - f0)[:, None] / h[cols], 0.0)
+        return J
+
     x0 = np.r_[np.zeros(3 * (V - 1)), res.t[free_t], res.focal, res.points.ravel()]
-    ref = least_squares(residuals, x0, loss="cauchy", f_scale=2.0, method="trf", xtol=1e-12,
-                        ftol=1e-12, gtol=1e-12, max_nfev=200)
+    ref = least_squares(residuals, x0, jac=jacobian, loss="cauchy", f_scale=2.0, method="trf",
+                        xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=200)
     assert ref.cost >= res.cost * (1 - 1e-7)
     assert res.cost == pytest.approx(ref.cost, rel=1e-7)
     R, t, f, _ = unpack(ref.x)
