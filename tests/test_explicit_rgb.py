@@ -54,10 +54,13 @@ def test_new_model_renders_its_blend_and_weights_are_a_distribution(model):
 
 def test_render_follows_the_reference_pixels(model):
     """Changing a reference photo changes the render (through the sampled RGB, not only through
-    the patch features) and a uniform grey scene renders grey."""
+    the patch features) and a uniform grey scene renders grey: every ray, here those of a
+    16 x 16 render (the model's aspect, rays spread over the whole frame; a float64 64 x 64
+    render costs ~25 s of one core)."""
     grey = torch.full((3, 3, 64, 64), 0.3, dtype=torch.float64)
     scene = model.encode(grey)
-    rgb, _ = model.render(scene, scene.world_from_cam[:1])
+    rgb, _ = model.render(scene, scene.world_from_cam[:1], 16, 16)
+    assert rgb.shape == (1, 16, 16, 3)
     torch.testing.assert_close(rgb, torch.full_like(rgb, 0.3), rtol=0, atol=1e-9)
 
 
