@@ -100,6 +100,51 @@ def test_colour_source_samples_each_views_level():
         np.testing.assert_allclose(read, want, rtol=0, atol=16 * F32_EPS)
 
 
+def test_fine_pass_samples_as_the_march_does():
+    """The two-scale pass's fused sampler (``detail._sample_colours``: projection, validity, cue
+    cosine and the photos read with cv2.remap) against the same quantities computed in float64
+    from their definitions: the views' blend and the spread, points in front of, beside and
+    behind the views."""
+    from iris_runtime.detail import _sample_colours
+    rng = np.random.default_rng(3)
+    photos = [keep_photo(p, (64, 64)) for p in _photos(3, 256)]
+    model = np.stack([cv2.resize(p, (64, 64), interpolation=cv2.INTER_AREA)
+                      for p in photos]).transpose(0, 3, 1, 2).astype(np.float32) / 255
+    source = ColourSource.build(model, tuple(photos), 4.0)
+    K = np.array([[70.0, 0, 32], [0, 70.0, 32], [0, 0, 1]])
+    world_from_cam = np.stack([np.eye(4)] * 3)
+    for v, angle in enumerate((0.0, 0.15, -0.2)):
+        c, s_ = np.cos(angle), np.sin(angle)
+        world_from_cam[v, :3, :3] = [[c, 0, s_], [0, 1, 0], [-s_, 0, c]]
+        world_from_cam[v, :3, 3] = [0.3 * v, 0.05 * v, -0.1 * v]
+    cam_from_world = np.linalg.inv(world_from_cam)
+    points = rng.uniform([-1.5, -1.5, -0.5], [1.5, 1.5, 3.0], (500, 3))
+    target = np.array([0.1, -0.05, -0.2])
+    for angle in (0.0, 0.02):
+        mean, spread = _sample_colours(points.astype(np.float32), K.astype(np.float32),
+                                       cam_from_world.astype(np.float32), (64, 64), source,
+                                       target.astype(np.float32), angle)
+        # float64 from the definitions: geometry.project_points / validity / cue_cosine, and
+        # the photos read by the float64 bilinear reference.
+        uv, z, _ = G.project_points(points, K, cam_from_world, 64, 64)
+        weight = G.validity(uv, z, 64, 64)
+        grid = G.pixels_to_grid(uv, 64, 64)
+        colours = np.stack([_bilinear_f64(p, g) for p, g in zip(photos, grid)]) / 255
+        cos = G.cue_cosine(points, target, world_from_cam[:, :3, 3])
+        want = mean_colour(colours, weight, cos, angle) if angle else mean_colour(colours, weight)
+        m = weight[..., None]
+        count = m.sum(axis=0)
+        plain = (colours * m).sum(axis=0) / np.maximum(count, 1)
+        var = (m * (colours - plain) ** 2).sum(axis=(0, 2)) / np.maximum(count[:, 0], 1e-12)
+        want_spread = np.where(count[:, 0] > 1, var, 0)
+        assert 0 < (count[:, 0] > 1).mean() < 1            # seen by several views, and not
+        # float32 positions: a projection of points O(1) through a focal of 70 px rounds to a
+        # few ulps of 70 px, read at 4 level pixels a model pixel on stripes of slope < 2.
+        tol = 70 * 8 * F32_EPS
+        np.testing.assert_allclose(mean, want, rtol=0, atol=tol)
+        np.testing.assert_allclose(spread, want_spread, rtol=0, atol=2 * tol)
+
+
 def test_blend_residual_composes_back():
     rng = np.random.default_rng(2)
     rgb = rng.uniform(0.01, 0.99, (100, 3)).astype(np.float32)
