@@ -185,7 +185,7 @@ QUALITY_PRESETS: dict[str, RenderSettings] = {
     "exact": RenderSettings(),
     "balanced": RenderSettings(samples=32, top_k=8, top_k_by="ray"),
     "fast": RenderSettings(samples=16, top_k=2, top_k_by="ray", scale=0.5, upsample="cubic",
-                           field_scale=0.25, colour_samples=4),
+                           field_scale=0.125, colour_samples=4),
     "adaptive": RenderSettings(upsample="cubic", coarse=0.25, refine=0.1, refine_budget=0.12),
 }
 

@@ -98,7 +98,7 @@ def test_presets_exist_and_map_to_documented_settings():
     assert QUALITY_PRESETS["balanced"] == RenderSettings(samples=32, top_k=8, top_k_by="ray")
     assert QUALITY_PRESETS["fast"] == RenderSettings(samples=16, top_k=2, top_k_by="ray",
                                                      scale=0.5, upsample="cubic",
-                                                     field_scale=0.25, colour_samples=4)
+                                                     field_scale=0.125, colour_samples=4)
     assert Q.TWO_SCALE_PRESETS == ("auto", "fast")
     assert QUALITY_PRESETS["adaptive"] == RenderSettings(upsample="cubic", coarse=0.25, refine=0.1,
                                                          refine_budget=0.12)
