@@ -5,8 +5,8 @@ Every folder of ``SCENES_DIR`` that holds photos is a scene (its photos in file-
 folder without any is a failing scene); ``OUT/<folder>`` gets exactly what ``iris-render MODEL_DIR
 photos... -o OUT/<folder> --orbit N`` writes — the orbit's PNGs (and depth), ``orbit.mp4``,
 ``orbit_poses.json``, the inputs' cameras (``transforms.json``, ``colmap/``, ``cameras.png``) —
-because each scene *is* an ``iris-render`` run (``iris_runtime.cli.run``) on a runtime loaded
-once per worker.
+because each scene *is* an ``iris-render`` run (``iris_runtime.render_job.render_scene``, the
+function ``iris-render`` calls after parsing its arguments) on a runtime loaded once per worker.
 
 - Serial (no ``--ray``): one ``IrisRuntime`` in this process renders the scenes in order.
 - ``--ray local`` starts a Ray cluster on this machine, ``--ray ADDRESS`` joins one: ``--actors``
@@ -43,8 +43,9 @@ from .errors import InputError, IrisError
 from .fileio import atomic_write_json
 from .manifest import CAMERAS, camera_name
 from .quality import QUALITY_PRESETS
+from .render_job import RenderOptions, render_scene
 
-__all__ = ["SceneRenderer", "find_scenes", "render_argv", "write_scene", "main"]
+__all__ = ["SceneRenderer", "find_scenes", "render_options", "write_scene", "main"]
 
 PHOTO_SUFFIXES = (".png", ".jpg", ".jpeg", ".webp", ".bmp", ".tif", ".tiff")
 
@@ -65,19 +66,12 @@ def read_photos(scene: Path) -> dict[str, bytes]:
             if p.is_file() and p.suffix.lower() in PHOTO_SUFFIXES}
 
 
-def render_argv(args: argparse.Namespace) -> list[str]:
-    """The iris-render options of one scene (after MODEL_DIR PHOTOS... -o DIR)."""
-    argv = ["--orbit", str(args.orbit), "--fps", str(args.fps), "--precision", args.precision,
-            "-q"]
-    if args.quality:
-        argv += ["--quality", args.quality]
-    if args.size:
-        argv += ["--size", f"{args.size[0]}x{args.size[1]}"]
-    if args.cameras:
-        argv += ["--cameras", args.cameras]
-    if args.no_depth:
-        argv.append("--no-depth")
-    return argv
+def render_options(args: argparse.Namespace) -> RenderOptions:
+    """The render options of every scene, from iris-batch's parsed ``args``: its orbit, quietly
+    (what ``iris-render ... --orbit N -q`` with the same options renders)."""
+    return RenderOptions(orbit=args.orbit, fps=args.fps, precision=args.precision, quiet=True,
+                         quality=args.quality, size=args.size, cameras=args.cameras,
+                         depth=not args.no_depth)
 
 
 class SceneRenderer:
@@ -86,12 +80,12 @@ class SceneRenderer:
 
     def __init__(self, model_dir: str, threads: int, precision: str, providers=None):
         from .runtime import IrisRuntime
-        self.model_dir = str(model_dir)
         self.rt = IrisRuntime(model_dir, threads=threads, precision=precision, providers=providers)
 
-    def render(self, name: str, photos: dict[str, bytes], argv: list[str]) -> dict:
-        """``iris-render`` on ``photos`` with ``argv`` -> ``{"scene", "error", "files":
-        {relative path: bytes}, "seconds"}``; every failure is returned, never raised."""
+    def render(self, name: str, photos: dict[str, bytes], options: RenderOptions) -> dict:
+        """``render_scene`` of scene ``name`` (its photos: file name -> bytes, rendered in this
+        order) with ``options`` -> ``{"scene", "error", "files": {relative path: bytes},
+        "worker", "seconds"}``; every failure is returned, never raised."""
         t0 = time.perf_counter()
         with tempfile.TemporaryDirectory(prefix="iris-batch-") as tmp:
             src, out = Path(tmp) / "photos", Path(tmp) / "out"
@@ -103,9 +97,7 @@ class SceneRenderer:
                 for file_name, data in photos.items():
                     (src / file_name).write_bytes(data)
                     paths.append(str(src / file_name))
-                args = cli.build_parser().parse_args([self.model_dir, *paths, "-o", str(out),
-                                                      *argv])
-                cli.run(args, runtime=self.rt)
+                render_scene(self.rt, paths, out, options)
                 files = {p.relative_to(out).as_posix(): p.read_bytes()
                          for p in sorted(out.rglob("*")) if p.is_file()}
                 return {"scene": name, "error": None, "files": files, "worker": os.getpid(),
@@ -143,9 +135,9 @@ def write_scene(out_root: Path, name: str, files: dict[str, bytes], force: bool)
 
 def _serial(args, scenes: list[Path]):
     renderer = SceneRenderer(args.model_dir, args.threads, args.precision, args.providers)
-    argv = render_argv(args)
+    options = render_options(args)
     for scene in scenes:
-        yield renderer.render(scene.name, read_photos(scene), argv)
+        yield renderer.render(scene.name, read_photos(scene), options)
 
 
 def _on_ray(args, scenes: list[Path]):
@@ -164,12 +156,13 @@ def _on_ray(args, scenes: list[Path]):
         actor_class = ray.remote(num_cpus=args.threads)(SceneRenderer)
         idle = [actor_class.remote(args.model_dir, args.threads, args.precision, args.providers)
                 for _ in range(count)]
-        argv = render_argv(args)
+        options = render_options(args)
         queue, pending = deque(scenes), {}
         while queue or pending:
             while idle and queue:
                 scene, actor = queue.popleft(), idle.pop()
-                pending[actor.render.remote(scene.name, read_photos(scene), argv)] = (scene, actor)
+                ref = actor.render.remote(scene.name, read_photos(scene), options)
+                pending[ref] = (scene, actor)
             if not pending:                     # every actor died: the rest cannot be rendered
                 for scene in queue:
                     yield {"scene": scene.name, "error": "not rendered: every Ray actor died",

@@ -1,6 +1,8 @@
 """``iris-render MODEL_DIR IMAGES... -o OUT``: novel views from a few unposed photos, torch-free.
 
-A thin command line over ``IrisRuntime``. It encodes the input images once, then renders:
+A thin command line over ``IrisRuntime``: its arguments become a ``render_job.RenderOptions`` for
+``render_job.render_scene`` (the code ``iris-batch`` runs for each scene too), which encodes the
+input images once, then renders:
 
 - ``--view i`` (repeatable): the predicted pose of input view i (a reconstruction of it);
 - ``--pose FILE``: JSON, one 4x4 ``world_from_cam`` or a list of them, in the canonical frame
@@ -53,23 +55,13 @@ print one line on stderr and exit with code 2, without a traceback.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
-import time
-from dataclasses import dataclass
-from pathlib import Path
-from typing import TYPE_CHECKING
-
-import numpy as np
 
 from .manifest import CAMERAS, camera_name
 from .quality import PRECISIONS, QUALITY_PRESETS
-
-if TYPE_CHECKING:
-    from .runtime import IrisRuntime
+from .render_job import RenderOptions, render_scene
 
 EXIT_ERROR = 2
-VIDEO_NAME = "orbit.mp4"
 
 
 class _Parser(argparse.ArgumentParser):
@@ -181,291 +173,21 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _read_poses(path: str) -> list[np.ndarray]:
-    """The poses of a ``--pose`` JSON file, each checked (and, if rigid only to a few printed
-    decimals, snapped) by ``validation.snap_world_from_cam``, the one reader-side rigidity rule."""
-    from .errors import InputError
-    from .validation import snap_world_from_cam
-    try:
-        doc = json.loads(Path(path).read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise InputError(f"--pose {path}: no such file") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"--pose {path}: cannot read: {exc}") from None
-    except json.JSONDecodeError as exc:
-        raise InputError(f"--pose {path}: not valid JSON ({exc})") from None
-    try:
-        arr = np.asarray(doc, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise InputError(f"--pose {path}: expected a 4x4 matrix or a list of 4x4 matrices "
-                         f"(nested lists of numbers)") from None
-    if arr.shape == (4, 4):
-        arr = arr[None]
-    if arr.ndim != 3 or arr.shape[1:] != (4, 4) or len(arr) == 0:
-        raise InputError(f"--pose {path}: expected a 4x4 matrix or a non-empty list of 4x4 "
-                         f"matrices, got shape {arr.shape}")
-    return [snap_world_from_cam(T, f"--pose {path}[{k}]") for k, T in enumerate(arr)]
+def options_from_args(args: argparse.Namespace) -> RenderOptions:
+    """The ``RenderOptions`` of ``iris-render``'s parsed ``args`` (``build_parser``)."""
+    return RenderOptions(
+        views=tuple(args.view), pose_files=tuple(args.pose), orbit=args.orbit,
+        locate=tuple(args.locate), cameras=args.cameras, size=args.size, fps=args.fps,
+        depth=not args.no_depth, threads=args.threads, chunk_rays=args.chunk_rays,
+        providers=None if args.providers is None else tuple(args.providers),
+        precision=args.precision, quality=args.quality, quiet=args.quiet)
 
 
-class _Progress:
-    """A tqdm bar over rays when tqdm is installed and stderr is a terminal; silent otherwise."""
-
-    def __init__(self, total: int, enabled: bool):
-        self.bar = None
-        self.base = 0
-        if enabled:
-            try:
-                from tqdm import tqdm
-            except ImportError:            # tqdm is optional: not a runtime dependency
-                tqdm = None
-            if tqdm is not None:
-                self.bar = tqdm(total=total, unit="ray", unit_scale=True, desc="rendering",
-                                leave=False, disable=None, dynamic_ncols=True)
-
-    def frame(self, base: int):
-        self.base = base
-
-    def __call__(self, done: int, total: int):
-        if self.bar is not None:
-            self.bar.n = self.base + done
-            self.bar.refresh()
-
-    def close(self):
-        if self.bar is not None:
-            self.bar.close()
-
-
-def _write_png(path: Path, rgb: np.ndarray) -> None:
-    from PIL import Image
-    Image.fromarray(rgb).save(path)
-
-
-def depth_uint16(depth: np.ndarray, far: float) -> np.ndarray:
-    """Soft depth [H, W] as the 16-bit values of NAME_depth.png: round(depth / far * 65535)."""
-    return np.rint(np.clip(depth / far, 0.0, 1.0) * 65535.0).astype(np.uint16)
-
-
-def _write_depth(path_png: Path, path_npy: Path, depth: np.ndarray, far: float) -> None:
-    import cv2
-    scaled = depth_uint16(depth, far)
-    if not cv2.imwrite(str(path_png), scaled):
-        raise OSError(f"{path_png}: cv2.imwrite failed")
-    np.save(path_npy, depth.astype(np.float32))
-
-
-@dataclass(frozen=True)
-class _Request:
-    """An ``iris-render`` invocation, checked before anything is written."""
-    rt: "IrisRuntime"
-    size: tuple[int, int]                     # output (height, width)
-    inputs: list[np.ndarray]                  # the input photos at the model's resolution
-    originals: list[np.ndarray]               # ... at their own (the camera solve's)
-    poses: list[np.ndarray]                   # from the --pose files
-    photos: list[np.ndarray]                  # the --locate photos
-
-
-def run(args: argparse.Namespace, runtime=None) -> int:
-    """iris-render with parsed ``args``; ``runtime``: an ``IrisRuntime`` of ``args.model_dir`` to
-    use instead of loading one (``iris-batch`` renders many scenes with one model load)."""
-    say = (lambda *a: None) if args.quiet else (lambda *a: print("iris-render:", *a, flush=True))
-    t_all = time.perf_counter()
-    t0 = time.perf_counter()
-    req = _check_request(args, runtime)                          # 1. everything, before writing anything
-    scene, located = _encode(req, args, say, time.perf_counter() - t0)       # 2. encode once
-    jobs, orbit = _jobs(req, args, scene, located)
-    out = _write_cameras(Path(args.out), req, scene, orbit, located)        # 3. the inputs' cameras
-    rendered = _render_jobs(req, args, scene, jobs, out, say)              # 4. render
-    _summary(req, args, jobs, out, orbit, located, rendered, say)
-    say(f"total {time.perf_counter() - t_all:.2f} s")
+def run(args: argparse.Namespace) -> int:
+    """iris-render with parsed ``args`` (``build_parser``): ``render_job.render_scene`` of
+    ``args.model_dir``, ``args.images`` into ``args.out`` -> exit code 0 (errors are raised)."""
+    render_scene(args.model_dir, args.images, args.out, options_from_args(args))
     return 0
-
-
-def _check_request(args: argparse.Namespace, runtime=None) -> _Request:
-    """The model, the request limits (``iris_runtime.limits``, checked by the same functions
-    ``IrisRuntime`` uses), the images, view indices and pose files: every error before a file is
-    written."""
-    from . import limits as L
-    from .errors import InputError
-    from .images import fit_to_model, load_image
-    from .runtime import IrisRuntime
-
-    rt = runtime or IrisRuntime(args.model_dir, threads=args.threads, precision=args.precision,
-                                providers=args.providers)
-    H, W = rt.image_size
-    size = rt.check_output_size(*args.size) if args.size else (H, W)
-    if args.chunk_rays is not None:
-        samples = QUALITY_PRESETS[args.quality or rt.default_quality].samples or rt.samples
-        L.check_chunk_rays(args.chunk_rays, size[0] * size[1], samples, len(args.images),
-                           name="--chunk-rays")
-    originals = [load_image(p, p) for p in args.images]          # own resolution: the solve's
-    inputs = [fit_to_model(photo, H, W)[0] for photo in originals]
-    V = len(inputs)
-    bad = [i for i in args.view if i >= V]
-    if bad:
-        raise InputError(f"--view {bad[0]}: out of range, {V} input image(s) give views 0..{V - 1}")
-    poses = [T for f in args.pose for T in _read_poses(f)]
-    photos = [load_image(p, f"--locate {p}") for p in args.locate]
-    return _Request(rt, size, inputs, originals, poses, photos)
-
-
-def _encode(req: _Request, args: argparse.Namespace, say, t_load: float):
-    """The Scene of the inputs (``--cameras``) and the --locate photos' poses in its frame."""
-    rt = req.rt
-    t0 = time.perf_counter()
-    scene = rt.encode(req.originals, cameras=args.cameras)   # too many images: refused here
-    H, W = rt.image_size
-    say(f"encoded {len(req.inputs)} view(s) at {H}x{W} in {time.perf_counter() - t0:.2f} s "
-        f"(model check + image loading {t_load:.2f} s); focal fx/W={scene.focal[0]:.4f} "
-        f"fy/H={scene.focal[1]:.4f}")
-    if (args.cameras or rt.default_cameras) != "model":
-        unposed = [i for i, st in enumerate(scene.camera_status or ()) if st == "unposed"]
-        say(f"cameras of the inputs: {scene.camera_source}"
-            + {"solve": f" (every view solved from the photos at {_hw_text(scene.camera_size)})",
-               "refined": f" (every view's camera refined by the photos at "
-                          f"{_hw_text(scene.camera_size)})",
-               "mixed": f" (solved at {_hw_text(scene.camera_size)}; views {unposed} could not be "
-                        f"posed and keep the model's camera)",
-               "model": " (the solve could not pose view 0: the model's cameras)"}
-            [scene.camera_source]
-            + ("" if scene.encoder_focal is None else
-               f"; the model's focal was fx/W={scene.encoder_focal[0]:.4f}"))
-    if not req.photos:
-        return scene, None
-    t0 = time.perf_counter()
-    located = rt.locate(scene, req.photos)                       # [Q, 4, 4], scene unchanged
-    say(f"located {len(req.photos)} photo(s) in the inputs' frame in "
-        f"{time.perf_counter() - t0:.2f} s")
-    for path, T in zip(args.locate, located):
-        say(f"located {path}: world_from_cam {json.dumps(np.round(T, 6).tolist())}")
-    return scene, located
-
-
-def _jobs(req: _Request, args: argparse.Namespace, scene, located):
-    """``[(name, pose or view index), ...]`` to render, and the orbit's poses (or None)."""
-    from .orbit import orbit_poses
-
-    jobs: list[tuple[str, np.ndarray | int]] = []
-    jobs += [(f"view_{i:03d}", i) for i in args.view]
-    jobs += [(f"pose_{k:03d}", T) for k, T in enumerate(req.poses)]
-    if located is not None:
-        jobs += [(f"located_{k:03d}", T) for k, T in enumerate(located)]
-    orbit = None
-    if args.orbit:
-        orbit = orbit_poses(scene.world_from_cam, args.orbit, near=req.rt.near, far=req.rt.far)
-        jobs += [(f"orbit_{k:04d}", T) for k, T in enumerate(orbit)]
-    if not jobs:
-        jobs = [(f"view_{i:03d}", i) for i in range(len(req.inputs))]
-    return jobs, orbit
-
-
-def _write_cameras(out: Path, req: _Request, scene, orbit, located) -> Path:
-    """The inputs as the model saw them, their cameras (nerfstudio, COLMAP, a picture) and the
-    orbit's and located poses, in ``out`` (created) -> ``out``."""
-    from . import camera_io
-    from .camera_plot import draw_cameras
-
-    H, W = req.rt.image_size
-    V = len(req.inputs)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "inputs").mkdir(exist_ok=True)
-    names = [f"{i:03d}.png" for i in range(V)]
-    for name, rgb in zip(names, req.inputs, strict=True):
-        _write_png(out / "inputs" / name, rgb)
-    cams = scene.world_from_cam                 # rigid (checked by Scene): written as rendered
-    camera_io.write_transforms_json(out / "transforms.json", cams, scene.K, (H, W),
-                                    [f"inputs/{n}" for n in names])
-    camera_io.write_colmap_text(out / "colmap", cams, scene.K, (H, W), names)
-    (out / "cameras.json").write_text(json.dumps({
-        "source": scene.camera_source,
-        "solved_at": None if scene.camera_size is None else list(scene.camera_size),
-        "status": None if scene.camera_status is None else list(scene.camera_status),
-        "focal": scene.focal.tolist(),
-        "encoder_focal": (scene.focal if scene.encoder_focal is None
-                          else scene.encoder_focal).tolist(),
-        "encoder_world_from_cam": (cams if scene.encoder_world_from_cam is None
-                                   else scene.encoder_world_from_cam).tolist()},
-        indent=1) + "\n")
-    what = "predicted" if scene.camera_source == "model" else scene.camera_source
-    _write_png(out / "cameras.png", draw_cameras(cams, scene.K, size=(480, 640),
-                                                 title=f"{what} cameras of the {V} input(s)"))
-    if orbit is not None:
-        (out / "orbit_poses.json").write_text(json.dumps(orbit.tolist()) + "\n")
-    if located is not None:
-        (out / "located_poses.json").write_text(json.dumps(located.tolist()) + "\n")
-    return out
-
-
-def _render_jobs(req: _Request, args: argparse.Namespace, scene, jobs, out: Path, say) -> dict:
-    """Render and write every job (PNG, depth, the orbit's video frames) -> seconds per stage
-    (``rays``, ``renderer``, ``write``, ``total``) and whether the video was written."""
-    height, width = req.size
-    progress = _Progress(total=len(jobs) * height * width, enabled=not args.quiet)
-    totals = {"rays": 0.0, "renderer": 0.0, "write": 0.0}
-    t_render = time.perf_counter()
-    writer = None
-    try:
-        for k, (name, pose) in enumerate(jobs):
-            progress.frame(k * height * width)
-            res = req.rt.render(scene, pose, height=height, width=width, depth=True,
-                                chunk_rays=args.chunk_rays, progress=progress,
-                                quality=args.quality)
-            totals["rays"] += res.timings["rays"]
-            totals["renderer"] += res.timings["renderer"]
-            t0 = time.perf_counter()
-            _write_png(out / f"{name}.png", res.image)
-            if not args.no_depth:
-                _write_depth(out / f"{name}_depth.png", out / f"{name}_depth.npy", res.depth,
-                             req.rt.far)
-            if name.startswith("orbit_"):
-                if writer is None:
-                    writer = open_video(out / VIDEO_NAME, args.fps, req.size)
-                if writer is not None:
-                    writer.write(res.image[..., ::-1].copy())         # OpenCV wants BGR
-            totals["write"] += time.perf_counter() - t0
-            if progress.bar is None or progress.bar.disable:
-                # No live bar (stderr is not a terminal: CI logs, | tee): a line per frame.
-                say(f"  frame {k + 1}/{len(jobs)} {name}: {time.perf_counter() - t_render:.1f} s")
-    finally:
-        progress.close()
-        if writer is not None:
-            writer.release()
-    return {**totals, "total": time.perf_counter() - t_render, "video": writer is not None}
-
-
-def _summary(req: _Request, args, jobs, out: Path, orbit, located, rendered: dict, say) -> None:
-    """What was written where, and how long it took."""
-    say(f"rendered {len(jobs)} view(s) at {req.size[0]}x{req.size[1]} in "
-        f"{rendered['total']:.2f} s (rays {rendered['rays']:.2f} s, renderer "
-        f"{rendered['renderer']:.2f} s, writing {rendered['write']:.2f} s)")
-    first, last = jobs[0][0], jobs[-1][0]
-    say(f"images: {out}/{first}.png" + (f" ... {last}.png" if len(jobs) > 1 else "")
-        + ("" if args.no_depth else f", depth in NAME_depth.png (16-bit, depth / far * 65535, "
-                                    f"far = {req.rt.far:g}) and NAME_depth.npy (float32)"))
-    if rendered["video"]:
-        say(f"video: {out / VIDEO_NAME} ({len(orbit)} frames at {args.fps} fps)")
-    elif orbit is not None:
-        say(f"video: not written (OpenCV has no mp4v encoder here); frames are in {out}")
-    say(f"cameras of the inputs: {out / 'transforms.json'}, {out / 'colmap'} "
-        f"(images in {out / 'inputs'}; picture {out / 'cameras.png'})")
-    if located is not None:
-        say(f"located poses: {out / 'located_poses.json'} (one 4x4 world_from_cam per --locate "
-            f"photo, usable with --pose)")
-
-
-def _hw_text(hw) -> str:
-    return "?" if hw is None else f"{hw[1]}x{hw[0]}"
-
-
-def open_video(path: Path, fps: int, size: tuple[int, int]):
-    """An OpenCV ``mp4v`` writer of ``size`` (H, W) frames at ``path`` (frames in BGR), or None
-    when this OpenCV has no such encoder."""
-    import cv2
-    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), float(fps),
-                             (size[1], size[0]))
-    if not writer.isOpened():
-        writer.release()
-        return None
-    return writer
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -96,7 +96,7 @@ def test_snap_keeps_rigid_poses_bitwise_and_snaps_rounded_ones():
 def test_cli_pose_files_use_the_reader_rule(tmp_path):
     """iris-render --pose: checked when read (before anything is written), snapped like a camera
     file; a full-precision file (orbit_poses.json) is read bit for bit."""
-    from iris_runtime.cli import _read_poses
+    from iris_runtime.render_job import _read_poses
     exact, rounded = _pose(), np.round(_pose(0.5), 3)
     (tmp_path / "p.json").write_text(json.dumps([exact.tolist(), rounded.tolist()]))
     a, b = _read_poses(str(tmp_path / "p.json"))

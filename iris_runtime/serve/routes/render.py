@@ -11,7 +11,7 @@ import numpy as np
 from fastapi import APIRouter, Query, Request
 from fastapi.responses import Response
 
-from ... import cli as render_cli
+from ... import render_job
 from ...errors import InputError
 from ...orbit import orbit_poses, scene_centre
 from ...runtime import IrisRuntime
@@ -45,7 +45,7 @@ def _render_png(rt: IrisRuntime, scene: Scene, pose: np.ndarray, req: RenderRequ
                            precision=req.precision, depth=True)
     except InputError as exc:
         raise _as_request_field(exc) from None
-    return png(render_cli.depth_uint16(result.depth, rt.far))
+    return png(render_job.depth_uint16(result.depth, rt.far))
 
 
 @router.post("/{scene_id}/render", response_class=Response,
@@ -85,7 +85,7 @@ def _orbit_video(rt: IrisRuntime, scene: Scene, req: OrbitRequest, h: int, w: in
     poses = orbit_poses(scene.world_from_cam, req.frames, near=rt.near, far=rt.far)
     with tempfile.TemporaryDirectory(prefix="iris-orbit-") as tmp:
         path = Path(tmp) / "orbit.mp4"
-        writer = render_cli.open_video(path, req.fps, (h, w))
+        writer = render_job.open_video(path, req.fps, (h, w))
         if writer is None:
             raise Unsupported("orbit.mp4: this server's OpenCV has no mp4v encoder")
         try:
