@@ -36,6 +36,7 @@ from .config import ModelConfig
 from .correlation import CorrelationCameraHead
 from .encoder import MultiViewEncoder
 from .latent_field import LatentField
+from .layers import MASK_FILL
 from .ray_renderer import RayRenderer
 
 CHECKPOINT_FORMAT = "iris-checkpoint"
@@ -155,8 +156,11 @@ def blend_views(colours: torch.Tensor, mask: torch.Tensor, cos: torch.Tensor,
     if not blend_angle:
         return (colours * m[..., None]).sum(0) / m.sum(0).clamp_min(1.0)[..., None]
     # The common factor exp((c - 1) / blend_angle), c the best cosine of a seeing view, cancels.
-    best = torch.where(m > 0, cos, torch.full_like(cos, -2.0)).amax(0, keepdim=True)
-    best = torch.where(best > -2.0, best, torch.ones_like(best)).detach()
+    # Views that do not see the sample are pushed down by MASK_FILL (an add, not a Where: the
+    # fast renderer graph has none); where no view sees it, cos - best is huge, clamped to 0,
+    # and the mask zeroes the weights as the numpy twin's best = 1 does.
+    unseen = (m <= 0).to(cos.dtype) * MASK_FILL
+    best = (cos + unseen).amax(0, keepdim=True).detach()
     a = m * torch.exp((cos - best).clamp_max(0.0) / blend_angle)
     total = a.sum(0)
     return ((colours * a[..., None]).sum(0) / total.clamp_min(1e-30)[..., None]
