@@ -478,7 +478,7 @@ def test_cli_renderer_option():
 def test_export_model_with_fast_renderer_runs_in_the_runtime(request, tmp_path):
     """``export_model(..., renderer="fast")``: validated, recorded in the manifest, and
     ``IrisRuntime`` renders it (culling, packed calls, empty rays) like torch. The model is an
-    explicit-colour one with the plain colour blend: the shipped model, whose session export
+    explicit-colour one: the shipped model (its views blended by angle), whose session export
     (conftest ``shipped_export``: ``export_model`` with its default renderer, "fast", checked
     here) is shared rather than a second full export traced; without it, a random ``tiny-rgb``
     exported here."""
@@ -496,7 +496,7 @@ def test_export_model_with_fast_renderer_runs_in_the_runtime(request, tmp_path):
         model = random_model("tiny-rgb")
         out = export_model(model, tmp_path / "fast", renderer="fast", quick=True, progress=False,
                            threads=1)
-    assert model.cfg.explicit_rgb and not model.cfg.blend_angle
+    assert model.cfg.explicit_rgb
     m = read_manifest(out)
     assert m["validation"]["renderer"]["passed"]
     assert m["export"]["renderer_graph"] == "fast"
