@@ -26,13 +26,8 @@ from __future__ import annotations
 import argparse
 import io
 import json
-import os
-import signal
 import struct
-import subprocess
 import sys
-import tempfile
-import threading
 import time
 import zlib
 from collections import Counter
@@ -46,6 +41,11 @@ from hypothesis import strategies as st
 from PIL import Image
 
 REPO = Path(__file__).resolve().parents[1]
+if str(REPO) not in sys.path:
+    sys.path.insert(0, str(REPO))
+
+from benchmarks.serve_process import ServeProcess  # noqa: E402
+
 PHOTOS = sorted((REPO / "samples" / "heldout-1000003").glob("frame_*.png"))
 TOKEN = "fuzz-token"
 SERVER_ARGS = ("--workers", "1", "--queue", "4", "--max-photos", "4", "--max-upload-mb", "1",
@@ -56,48 +56,12 @@ TRACEBACK_MARKS = ("Traceback (most recent call last)", 'File "')
 
 # -- the server -----------------------------------------------------------------------------------
 
-class FuzzServer:
-    """``iris-serve MODEL_DIR --port 0 --token-file ... SERVER_ARGS`` on 127.0.0.1: ``url``,
-    ``lines`` (its JSON log), ``stop()``."""
+class FuzzServer(ServeProcess):
+    """``iris-serve MODEL_DIR --port 0 --token-file ... SERVER_ARGS ARGS`` on 127.0.0.1 with the
+    token ``TOKEN`` (``ServeProcess``: ``url``, ``lines``, ``error_lines()``, ``stop()``)."""
 
     def __init__(self, model_dir, *args: str, timeout: float = 180.0):
-        self._tmp = tempfile.TemporaryDirectory(prefix="iris-fuzz-")
-        token_file = Path(self._tmp.name) / "token"
-        token_file.write_text(TOKEN + "\n")
-        cmd = [sys.executable, "-m", "iris_runtime.serve.cli", str(model_dir), "--host",
-               "127.0.0.1", "--port", "0", "--token-file", str(token_file), *SERVER_ARGS, *args]
-        self.proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.DEVNULL,
-                                     stderr=subprocess.PIPE, text=True,
-                                     env={**os.environ, "OMP_NUM_THREADS": "1"})
-        self.lines: list[str] = []
-        self.port: int | None = None
-        ready = threading.Event()
-
-        def drain():
-            for line in self.proc.stderr:
-                self.lines.append(line.rstrip("\n"))
-                if self.port is None and '"listening"' in line:
-                    self.port = json.loads(line)["port"]
-                    ready.set()
-            ready.set()
-        threading.Thread(target=drain, daemon=True).start()
-        if not ready.wait(timeout) or self.port is None:
-            self.stop()
-            raise RuntimeError("iris-serve did not start:\n" + "\n".join(self.lines[-20:]))
-        self.url = f"http://127.0.0.1:{self.port}"
-
-    def error_lines(self) -> list[str]:
-        return [line for line in self.lines if '"level": "error"' in line]
-
-    def stop(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
-            try:
-                self.proc.wait(30)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait(10)
-        self._tmp.cleanup()
+        super().__init__(model_dir, *SERVER_ARGS, *args, token=TOKEN, timeout=timeout)
 
 
 # -- strategies -----------------------------------------------------------------------------------
@@ -441,5 +405,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.path.insert(0, str(REPO))
     sys.exit(main())

@@ -28,40 +28,29 @@ import itertools
 import json
 import os
 import platform
-import signal
-import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
+if str(REPO) not in sys.path:
+    sys.path.insert(0, str(REPO))
+
+from benchmarks.serve_process import ServeProcess  # noqa: E402
+
 PHOTOS = sorted((REPO / "samples" / "heldout-1000003").glob("frame_*.png"))
 
 
-def start_server(model_dir: str, workers: int, threads: int) -> tuple[subprocess.Popen, int]:
-    cmd = [sys.executable, "-m", "iris_runtime.serve.cli", model_dir, "--host", "127.0.0.1",
-           "--port", "0", "--workers", str(workers), "--threads", str(threads), "--queue", "64",
-           "--queue-timeout", "600", "--max-scenes", "8"]
-    proc = subprocess.Popen(cmd, cwd=REPO, stderr=subprocess.PIPE, stdout=subprocess.DEVNULL,
-                            text=True, env={**os.environ, "OMP_NUM_THREADS": "1"})
-    port: list[int] = []
-    ready = threading.Event()
-
-    def drain():
-        for line in proc.stderr:
-            if not port and '"listening"' in line:
-                port.append(json.loads(line)["port"])
-                ready.set()
-        ready.set()
-
-    threading.Thread(target=drain, daemon=True).start()
-    if not ready.wait(180) or not port:
-        proc.kill()
-        raise SystemExit("serve_load: iris-serve did not start")
-    return proc, port[0]
+def start_server(model_dir: str, workers: int, threads: int) -> ServeProcess:
+    """iris-serve with ``workers`` workers of ``threads`` ORT threads, a queue of 64 (600 s) and
+    at most 8 scenes stored."""
+    try:
+        return ServeProcess(model_dir, "--workers", str(workers), "--threads", str(threads),
+                            "--queue", "64", "--queue-timeout", "600", "--max-scenes", "8")
+    except RuntimeError:
+        raise SystemExit("serve_load: iris-serve did not start") from None
 
 
 def rss_mb(pid: int) -> float:
@@ -157,14 +146,14 @@ def _shown(arg: str) -> str:
 
 async def main_async(args) -> dict:
     import httpx
-    proc, port = start_server(args.model_dir, args.workers, args.threads)
+    server = start_server(args.model_dir, args.workers, args.threads)
     out = {"command": " ".join(_shown(a) for a in sys.argv), "machine": {
         "cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version(),
         "load_avg_start": os.getloadavg()}, "server": {"workers": args.workers,
                                                       "threads": args.threads},
         "requests_per_level": args.requests, "render_size": args.size, "levels": []}
     try:
-        async with httpx.AsyncClient(base_url=f"http://127.0.0.1:{port}", timeout=600.0,
+        async with httpx.AsyncClient(base_url=server.url, timeout=600.0,
                                      limits=httpx.Limits(max_connections=32)) as client:
             health = (await client.get("/healthz")).json()
             out["model"] = health["model"]
@@ -178,14 +167,14 @@ async def main_async(args) -> dict:
             await client.post(f"/scenes/{scene['scene_id']}/render",
                               json={"world_from_cam": pose, "height": args.size,
                                     "width": args.size})
-            out["rss_mb_cold"] = round(rss_mb(proc.pid), 1)
+            out["rss_mb_cold"] = round(rss_mb(server.proc.pid), 1)
             # Warm-up at the highest concurrency: ONNX Runtime's arenas and the allocator's
             # per-thread pools grow to their working size once; "before" is the warm server.
             for op in ("render", "encode"):      # render first: encodes evict the scene
                 make = requests_for(op, scene["scene_id"], pose, args.size, False)
                 await run_level(client, make, max(args.concurrency), max(args.concurrency),
                                 args.level_seconds)
-            out["rss_mb_before"] = round(rss_mb(proc.pid), 1)
+            out["rss_mb_before"] = round(rss_mb(server.proc.pid), 1)
             for mixed in (False, True):
                 for op in ("encode", "render"):
                     if op == "render":           # the encode levels may have evicted the scene
@@ -194,23 +183,19 @@ async def main_async(args) -> dict:
                         make = requests_for(op, scene["scene_id"], pose, args.size, mixed)
                         level = await run_level(client, make, args.requests, c,
                                                 args.level_seconds)
-                        level.update(op=op, mixed=mixed, rss_mb=round(rss_mb(proc.pid), 1))
+                        level.update(op=op, mixed=mixed, rss_mb=round(rss_mb(server.proc.pid), 1))
                         out["levels"].append(level)
                         print(f"{op:6s} {'mixed' if mixed else 'clean'} c={c:2d}: "
                               f"p50 {level['p50_s']} s p99 {level['p99_s']} s "
                               f"{level['throughput_per_s']}/s 5xx {level['status_5xx']} "
                               f"lost {level['lost']} bad->4xx {level['bad_answered_4xx_json']}"
                               f"/{level['bad']} rss {level['rss_mb']} MB", flush=True)
-            out["rss_mb_after"] = round(rss_mb(proc.pid), 1)
+            out["rss_mb_after"] = round(rss_mb(server.proc.pid), 1)
             out["metrics_tail"] = [line for line in (await client.get("/metrics")).text
                                    .splitlines() if line.startswith(("iris_jobs_rejected",
                                                                      "iris_scenes "))]
     finally:
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(60)
-        except subprocess.TimeoutExpired:
-            proc.kill()
+        server.stop(60)
     out["machine"]["load_avg_end"] = os.getloadavg()
     levels = out["levels"]
     out["totals"] = {"status_5xx": sum(lv["status_5xx"] for lv in levels),

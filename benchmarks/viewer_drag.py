@@ -39,16 +39,18 @@ import json
 import os
 import platform
 import shutil
-import signal
 import statistics
 import subprocess
 import sys
-import threading
 import time
-import urllib.request
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
+if str(REPO) not in sys.path:
+    sys.path.insert(0, str(REPO))
+
+from benchmarks.serve_process import ServeProcess  # noqa: E402
+
 PHOTOS = sorted((REPO / "samples" / "heldout-1000003").glob("frame_*.png"))
 MAX_DRAGS = 20
 MAX_DRAG_SECONDS = 10.0
@@ -101,50 +103,6 @@ def start_browser(window: str = "1440,960"):
     d.set_page_load_timeout(60)
     d.set_script_timeout(60)
     return d
-
-
-class Server:
-    """``iris-serve MODEL_DIR --port 0`` on 127.0.0.1: ``url``, ``metric(name)``, ``stop()``."""
-
-    def __init__(self, model_dir: str, *args: str, timeout: float = 180.0):
-        cmd = [sys.executable, "-m", "iris_runtime.serve.cli", str(model_dir), "--host",
-               "127.0.0.1", "--port", "0", *args]
-        self.proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.DEVNULL,
-                                     stderr=subprocess.PIPE, text=True,
-                                     env={**os.environ, "OMP_NUM_THREADS": "1"})
-        self.port: int | None = None
-        ready = threading.Event()
-
-        def drain():
-            for line in self.proc.stderr:
-                if self.port is None and '"listening"' in line:
-                    self.port = json.loads(line)["port"]
-                    ready.set()
-            ready.set()
-
-        threading.Thread(target=drain, daemon=True).start()
-        if not ready.wait(timeout) or self.port is None:
-            self.stop()
-            raise SystemExit("viewer_drag: iris-serve did not start")
-        self.url = f"http://127.0.0.1:{self.port}"
-
-    def metric(self, name: str, labels: str = "") -> float:
-        """The value of metric ``name{labels}`` in /metrics (0 when absent)."""
-        text = urllib.request.urlopen(self.url + "/metrics", timeout=30).read().decode()
-        key = name + (("{" + labels + "}") if labels else "")
-        for line in text.splitlines():
-            if line.startswith(key + " "):
-                return float(line.split()[1])
-        return 0.0
-
-    def stop(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
-            try:
-                self.proc.wait(30)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait(10)
 
 
 def wait_for(driver, script: str, timeout: float, what: str, poll: float = 0.02, args=()):
@@ -340,8 +298,11 @@ def main(argv=None) -> int:
     from selenium.webdriver.support.ui import Select
     from selenium.webdriver.common.by import By
     load_start = os.getloadavg()
-    server = Server(args.model_dir, "--workers", str(args.workers), "--threads",
-                    str(args.threads))
+    try:
+        server = ServeProcess(args.model_dir, "--workers", str(args.workers), "--threads",
+                              str(args.threads))
+    except RuntimeError:
+        raise SystemExit("viewer_drag: iris-serve did not start") from None
     driver = None
     results: dict = {}
     try:

@@ -30,6 +30,7 @@ pytest.importorskip("uvicorn")
 pytest.importorskip("prometheus_client")
 from PIL import Image  # noqa: E402
 
+from benchmarks.serve_process import ServeProcess  # noqa: E402
 from iris_runtime import IrisRuntime  # noqa: E402
 from iris_runtime.errors import InputError  # noqa: E402
 
@@ -40,45 +41,17 @@ PHOTOS = sorted((REPO / "samples" / "heldout-1000003").glob("frame_*.png"))
 START_TIMEOUT = 120.0
 
 
-class IrisServer:
-    """A running ``iris-serve`` subprocess: ``url``, ``logs`` (its JSON lines), ``stop()``."""
+class IrisServer(ServeProcess):
+    """A running ``iris-serve`` subprocess (``benchmarks/serve_process.py``): ``url``, ``proc``,
+    ``lines``, ``logs`` (its JSON lines parsed), ``stop()`` (the exit code); ``env``: variables
+    added to its environment."""
 
     def __init__(self, model_dir, *args: str, env: dict[str, str] | None = None):
-        cmd = [sys.executable, "-m", "iris_runtime.serve.cli", str(model_dir), "--host",
-               "127.0.0.1", "--port", "0", *args]
-        env = {**os.environ, "OMP_NUM_THREADS": "1", **(env or {})}
-        self.proc = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=subprocess.DEVNULL,
-                                     stderr=subprocess.PIPE, text=True)
-        self.lines: list[str] = []
-        self.port: int | None = None
-        self._ready = threading.Event()
-        threading.Thread(target=self._drain, daemon=True).start()
-        if not self._ready.wait(START_TIMEOUT) or self.port is None:
-            self.stop()
-            raise RuntimeError("iris-serve did not start:\n" + "\n".join(self.lines[-20:]))
-        self.url = f"http://127.0.0.1:{self.port}"
-
-    def _drain(self):
-        for line in self.proc.stderr:
-            self.lines.append(line.rstrip("\n"))
-            if self.port is None and '"listening"' in line:
-                self.port = json.loads(line)["port"]
-                self._ready.set()
-        self._ready.set()                                  # exited before listening
+        super().__init__(model_dir, *args, env=env, timeout=START_TIMEOUT)
 
     @property
     def logs(self) -> list[dict]:
         return [json.loads(line) for line in list(self.lines) if line.startswith("{")]
-
-    def stop(self, timeout: float = 30.0) -> int:
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
-            try:
-                self.proc.wait(timeout)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait(10)
-        return self.proc.returncode
 
 
 @pytest.fixture(scope="module")
