@@ -160,8 +160,7 @@ class ColourSource:
         [V, P], positions in the model's pixels (``geometry.project_points``' convention: the
         image spans [0, W] x [0, H]): bilinear, border-clamped, as ``sample`` reads them (to
         float32 rounding). ``cv2.remap`` on each level in float32 (12 bytes a pixel, made once
-        per render): several times faster than the taps' gathers for the many samples of a
-        large output (benchmarks/two_scale.py)."""
+        per render), for the many samples of a large output."""
         V, P = u.shape
         H, W = self.model_size
         cols = min(P, 8192)                 # remap's maps must stay below 32767 on a side

@@ -187,9 +187,7 @@ def _sample_colours(points: np.ndarray, ref_K: np.ndarray, cam_from_world: np.nd
     v = ref_K[1, 1] * cam[..., 1] / z_safe + ref_K[1, 2]
     weight = G.edge_validity(u, v, z, H, W)                                    # [V, P]
     sampled = colours.read(u, v)                                               # [V, P, 3]
-    m = weight[..., None]
-    count = m.sum(axis=0)                                                      # [P, 1]
-    plain = (sampled * m).sum(axis=0) / np.maximum(count, f32(1.0))           # mean_colour's
+    plain = mean_colour(sampled, weight)
     mean = plain
     if blend_angle:
         # cos between unit(target - x) and unit(c_v - x) = (t . c_v - t . x) / |R (x - c_v)|
@@ -199,8 +197,9 @@ def _sample_colours(points: np.ndarray, ref_K: np.ndarray, cam_from_world: np.nd
         along = (t @ centres.T).T - _sum3(t * points)                          # [V, P]
         cos = along / np.maximum(np.sqrt(_sum3(cam * cam)), f32(G.NORM_EPS))
         mean = mean_colour(sampled, weight, cos, blend_angle)
-    var = _sum3(m * (sampled - plain) ** 2).sum(axis=0) / np.maximum(count[:, 0], f32(1e-12))
-    spread = np.where(count[:, 0] > 1.0, var, f32(0))
+    count = weight.sum(axis=0)                                                 # [P]
+    var = (_sum3((sampled - plain) ** 2) * weight).sum(axis=0) / np.maximum(count, f32(1e-12))
+    spread = np.where(count > 1.0, var, f32(0))
     return mean.astype(f32, copy=False), spread.astype(f32, copy=False)
 
 
