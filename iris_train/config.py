@@ -196,6 +196,9 @@ class TrainConfig:
     # 0 .. capture_scenes-1, rendered at CAPTURE_RENDER_SIZE and brought to the model's size; drawn
     # beside the classic scenes with equal probability per scene (docs/DATA.md).
     capture_scenes: int = 0
+    # Only these capture kinds of seeds 0 .. capture_scenes-1 (comma-separated names of
+    # ``synthetic.CAPTURE_KINDS``, e.g. "walk,orbit"); "": every kind.
+    capture_kinds: str = ""
     # The classic scenes rendered at this square size (0: the model's) and brought to the
     # model's by area averaging, so that the camera solve of ``render_cameras="solve"`` sees
     # photos at a photo's resolution, as at inference, not the model's thumbnails.
@@ -214,6 +217,10 @@ class TrainConfig:
     # Explicit colour: the model's ``blend_angle`` (ModelConfig): the angular weighting of the
     # views in the colour blend. It holds no weights, so a fine-tune (``--init``) may change it.
     blend_angle: float = 0.0
+    # The distortion loss of Mip-NeRF 360 on the explicit-colour blend weights along each target
+    # ray (``losses.distortion``): it is smallest when the weight sits in one short stretch of
+    # the ray, so it pushes the soft depth to commit to one surface instead of spreading.
+    distortion_weight: float = 0.0
     seed: int = 0
     log_every: int = 10
     ckpt_every: int = 250

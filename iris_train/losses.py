@@ -95,7 +95,7 @@ class PhotometricLoss(nn.Module):
                    "sweep": cfg.plane_sweep_weight, "teacher_rot": cfg.teacher_weight,
                    "teacher_dir": cfg.teacher_translation_weight, "teacher_focal": cfg.teacher_focal_weight,
                    "solve_rot": cfg.solve_rotation_weight, "solve_trans": cfg.solve_translation_weight,
-                   "solve_focal": cfg.solve_focal_weight}
+                   "solve_focal": cfg.solve_focal_weight, "distortion": cfg.distortion_weight}
         means = {k: torch.stack(v).mean() for k, v in terms.items()}
         total = sum(weights[k] * v for k, v in means.items())
         return total, {k: float(v.detach()) for k, v in means.items()}
@@ -123,6 +123,9 @@ class PhotometricLoss(nn.Module):
         rgb, blend_weights = model.renderer(f, points, directions, mask.amax(-1), need_weights=False,
                                             colours=colours)
         out = {"render": ((rgb - gt) ** 2).mean()}
+        if cfg.distortion_weight and model.cfg.explicit_rgb:
+            span = (depths - model.cfg.near) / (model.cfg.far - model.cfg.near)
+            out["distortion"] = distortion(blend_weights, span, 1.0 / depths.shape[-1])
         if cfg.aux_weight or cfg.aux_blur_weight:
             # The explicit-colour model's own blend weights (without its residual head), or,
             # for the paper's renderer, a training-only logit head on the point features.
@@ -153,6 +156,17 @@ class PhotometricLoss(nn.Module):
         _, world_from_cam, focal = self.model.encode_batch(pose_images, pose_ref)
         losses = solve_losses if solved else teacher_losses
         return [losses(world_from_cam[b], focal[b], *target) for b, target in enumerate(targets)]
+
+
+def distortion(weights: torch.Tensor, s: torch.Tensor, interval: float) -> torch.Tensor:
+    """Mip-NeRF 360's distortion loss, mean over rays: ``weights [R, S]`` of samples at
+    normalised ray positions ``s [R, S]`` (each the centre of a stretch ``interval`` long):
+    sum_ij w_i w_j |s_i - s_j| + sum_i w_i^2 interval / 3. Zero only for all the weight in one
+    point; spreading it over the ray, or over two surfaces, costs in proportion to their
+    distance."""
+    spread = (weights[:, :, None] * weights[:, None, :]
+              * (s[:, :, None] - s[:, None, :]).abs()).sum((1, 2))
+    return (spread + (weights ** 2).sum(-1) * interval / 3).mean()
 
 
 #: Translations shorter than this (model units; scene baselines are ~0.1-0.5) count as "no

@@ -13,6 +13,7 @@ import numpy as np
 
 from .config import ModelConfig, TrainConfig
 from .data import CAPTURE_VALIDATION_SEEDS, VALIDATION_SEEDS, SyntheticScenes
+from .synthetic import CAPTURE_KINDS, capture_kind
 
 #: Render size of the capture-like training scenes: the teacher's solve sees them at this size,
 #: the model at its own (one 256 cache serves 64 and 128 models).
@@ -62,10 +63,22 @@ def per_scene(scenes, cached, compute):
     return lookup
 
 
+def capture_seeds(cfg: TrainConfig) -> list[int]:
+    """The capture seeds a run draws: 0 .. ``cfg.capture_scenes``-1, those of
+    ``cfg.capture_kinds`` only when it names some. ``ValueError`` for an unknown kind."""
+    kinds = [k.strip() for k in cfg.capture_kinds.split(",") if k.strip()]
+    unknown = sorted(set(kinds) - set(CAPTURE_KINDS))
+    if unknown:
+        raise ValueError(f"capture_kinds: unknown kind(s) {unknown}; expected names from "
+                         f"{list(CAPTURE_KINDS)}, comma-separated")
+    seeds = range(cfg.capture_scenes)
+    return [s for s in seeds if not kinds or capture_kind(s) in kinds]
+
+
 def training_scenes(cfg: TrainConfig, mcfg: ModelConfig):
     """The run's training scenes at the model's size: classic seeds 0 .. ``cfg.train_scenes``-1
-    (rendered at ``classic_render_size`` when set), then, with ``cfg.capture_scenes``, capture
-    seeds 0 .. ``capture_scenes``-1 (rendered at CAPTURE_RENDER_SIZE), as one ``SceneSets``.
+    (rendered at ``classic_render_size`` when set), then, with ``cfg.capture_scenes``, the
+    ``capture_seeds`` (rendered at CAPTURE_RENDER_SIZE), as one ``SceneSets``.
     ``ValueError`` for counts that would reach the validation scenes."""
     if cfg.capture_scenes > min(CAPTURE_VALIDATION_SEEDS):
         raise ValueError(f"capture_scenes: at most {min(CAPTURE_VALIDATION_SEEDS)} (the capture "
@@ -78,7 +91,7 @@ def training_scenes(cfg: TrainConfig, mcfg: ModelConfig):
     scenes = SyntheticScenes(range(cfg.train_scenes), size=size,
                              render_size=(side, side) if side else None)
     if cfg.capture_scenes:
-        capture = SyntheticScenes(range(cfg.capture_scenes), size=size, kind="capture",
+        capture = SyntheticScenes(capture_seeds(cfg), size=size, kind="capture",
                                   render_size=CAPTURE_RENDER_SIZE)
         scenes = SceneSets([scenes, capture])
     return scenes
@@ -98,7 +111,7 @@ def colour_size_scenes(cfg: TrainConfig):
     size = (side, side)
     scenes = SyntheticScenes(range(cfg.train_scenes), size=size, render_size=size)
     if cfg.capture_scenes:
-        capture = SyntheticScenes(range(cfg.capture_scenes), size=size, kind="capture",
+        capture = SyntheticScenes(capture_seeds(cfg), size=size, kind="capture",
                                   render_size=CAPTURE_RENDER_SIZE)
         scenes = SceneSets([scenes, capture])
     return scenes

@@ -240,3 +240,33 @@ def test_scene_sets_index_through_their_parts():
                         lambda images: seen.append(("computed", images)) or images)
     assert [lookup(i) for i in (1, 2, 1)] == [11, "p0", 11]
     assert seen == [("cached", 11), ("computed", "p0")]          # memoised
+
+
+def test_capture_kinds_keep_the_seeds_of_those_kinds_and_refuse_unknown_names():
+    from iris_train.scene_sets import capture_seeds
+    from iris_train.synthetic import CAPTURE_KINDS, capture_kind
+    every = capture_seeds(TrainConfig(capture_scenes=40))
+    assert every == list(range(40))
+    walks = capture_seeds(TrainConfig(capture_scenes=40, capture_kinds="walk, orbit"))
+    assert walks == [s for s in range(40) if capture_kind(s) in ("walk", "orbit")]
+    assert 0 < len(walks) < 40
+    with pytest.raises(ValueError, match="capture_kinds.*'stroll'"):
+        capture_seeds(TrainConfig(capture_scenes=40, capture_kinds="walk,stroll"))
+    assert set(CAPTURE_KINDS) >= {"walk", "orbit"}
+
+
+def test_distortion_loss_against_its_closed_form():
+    """One point of weight: only the self term (interval / 3). Two halves at distance d: the
+    pair term 2 * 1/4 * d plus the self terms. A ray spread evenly costs more than one point."""
+    from iris_train.losses import distortion
+    S = 8
+    s = (torch.arange(S, dtype=torch.float64) + 0.5) / S
+    one = torch.zeros(1, S, dtype=torch.float64)
+    one[0, 3] = 1.0
+    assert float(distortion(one, s[None], 1 / S)) == pytest.approx(1 / S / 3, rel=1e-12)
+    two = torch.zeros(1, S, dtype=torch.float64)
+    two[0, 1] = two[0, 6] = 0.5
+    d = float(s[6] - s[1])
+    assert float(distortion(two, s[None], 1 / S)) == pytest.approx(0.5 * d + 0.5 / S / 3, rel=1e-12)
+    flat = torch.full((1, S), 1.0 / S, dtype=torch.float64)
+    assert float(distortion(flat, s[None], 1 / S)) > float(distortion(one, s[None], 1 / S))
