@@ -805,8 +805,8 @@ def test_synthetic_sets_give_the_solve_photos_at_their_own_resolution():
     pytest.importorskip("pyrender")
     from iris_train.evaluate import SYNTHETIC_SETS, load_scenes, prepare_scene
     from iris_train.evaluate.scenes import SYNTHETIC_PHOTO_SIZE
-    assert "synthetic:capture-heldout" in SYNTHETIC_SETS
-    for data in ("synthetic:heldout", "synthetic:capture-heldout"):
+    assert {"synthetic:capture-heldout", "synthetic:capture-validation"} <= set(SYNTHETIC_SETS)
+    for data in ("synthetic:heldout", "synthetic:capture-heldout", "synthetic:capture-validation"):
         scenes, count = load_scenes(data, (64, 64), limit=1)
         assert count == 1
         p = prepare_scene(next(iter(scenes)), 8, (64, 64))

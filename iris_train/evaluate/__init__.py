@@ -9,7 +9,8 @@ MODEL is a training checkpoint (``.pt``, run in torch) or an exported model dire
 ``iris.json``, run with ``iris_runtime.IrisRuntime``: the numbers of what is served). DATA is
 ``synthetic:heldout`` (the held-out synthetic scenes ``iris_train.data.HELDOUT_SEEDS``, rendered
 once and cached), ``synthetic:capture-heldout`` (the capture-like held-out scenes,
-``CAPTURE_HELDOUT_SEEDS``: photos at 256x256 with camera effects) or a folder of scene folders (``iris_train.data.load_dataset_folder``; cameras
+``CAPTURE_HELDOUT_SEEDS``: photos at 256x256 with camera effects; ``synthetic:capture-validation``
+the same kinds on ``CAPTURE_VALIDATION_SEEDS``, where capture-like choices are made) or a folder of scene folders (``iris_train.data.load_dataset_folder``; cameras
 optional; ``scripts/real_sets.py`` builds the real ones, docs/REAL.md). The metrics themselves
 (``iris_train.metrics``) are numpy + OpenCV only.
 

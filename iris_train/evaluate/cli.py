@@ -45,7 +45,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("data", metavar="DATA",
                         help="'synthetic:heldout' (the record), 'synthetic:validation' (where "
                              "choices are made), 'synthetic:capture-heldout' (capture-like "
-                             "held-out scenes) or a folder of scene folders")
+                             "held-out scenes), 'synthetic:capture-validation' (their "
+                             "validation twins) or a folder of scene folders")
     parser.add_argument("--json", metavar="FILE", type=Path, default=None,
                         help='write {"seq": ..., "rand": ...} (means and one record per scene) '
                              "to FILE (atomically)")

@@ -20,8 +20,13 @@ __all__ = ["SYNTHETIC_SETS", "SYNTHETIC_PHOTO_SIZE", "PreparedScene", "prepare_s
 #: DATA values naming a synthetic set: the held-out scenes (the record), the validation scenes
 #: (where choices are made; iris_train.data.VALIDATION_SEEDS), and the held-out capture-like
 #: scenes (object walks, orbits, hand-held and indoor paths with photometric camera effects;
-#: iris_train.data.CAPTURE_HELDOUT_SEEDS).
-SYNTHETIC_SETS = ("synthetic:heldout", "synthetic:validation", "synthetic:capture-heldout")
+#: iris_train.data.CAPTURE_HELDOUT_SEEDS) and their validation twins (where capture-like choices
+#: are made; CAPTURE_VALIDATION_SEEDS).
+SYNTHETIC_SETS = ("synthetic:heldout", "synthetic:validation", "synthetic:capture-heldout",
+                  "synthetic:capture-validation")
+#: The seeds of the capture-like sets, by DATA name.
+_CAPTURE_SETS = {"synthetic:capture-heldout": "CAPTURE_HELDOUT_SEEDS",
+                 "synthetic:capture-validation": "CAPTURE_VALIDATION_SEEDS"}
 #: The resolution (H, W) of the synthetic sets' photos, the camera solve's input: what a phone
 #: photo shrunk for upload would be, not the model's thumbnail.
 SYNTHETIC_PHOTO_SIZE = (256, 256)
@@ -269,8 +274,8 @@ def load_scenes(data: str, image_size: tuple[int, int], views: int = DEFAULT_VIE
         check_output_size([np.zeros((*SYNTHETIC_PHOTO_SIZE, 3), np.uint8)], output_size,
                           f"DATA {data!r}")
         from .. import data as D
-        if data == "synthetic:capture-heldout":
-            seeds, kind = list(D.CAPTURE_HELDOUT_SEEDS)[:limit], "capture"
+        if data in _CAPTURE_SETS:
+            seeds, kind = list(getattr(D, _CAPTURE_SETS[data]))[:limit], "capture"
         else:
             seeds = list(D.HELDOUT_SEEDS if data == "synthetic:heldout" else D.VALIDATION_SEEDS)[:limit]
             kind = None
@@ -278,11 +283,11 @@ def load_scenes(data: str, image_size: tuple[int, int], views: int = DEFAULT_VIE
         # the files `python -m iris_train.data --heldout --render-size 256 256` writes.
         photos = D.SyntheticScenes(seeds, n_views=views, size=SYNTHETIC_PHOTO_SIZE, kind=kind)
         return (photos[i] for i in range(len(photos))), len(photos)
-    if data == "synthetic:capture-heldout":
+    if data in _CAPTURE_SETS:
         from .. import data as D
         # The photos are the 256x256 renders with their camera effects, brought to the model's
         # size by prepare_scene like any user's photos.
-        scenes = D.SyntheticScenes(list(D.CAPTURE_HELDOUT_SEEDS)[:limit], n_views=views,
+        scenes = D.SyntheticScenes(list(getattr(D, _CAPTURE_SETS[data]))[:limit], n_views=views,
                                    size=SYNTHETIC_PHOTO_SIZE, kind="capture")
         return (scenes[i] for i in range(len(scenes))), len(scenes)
     if data in SYNTHETIC_SETS:
