@@ -21,7 +21,7 @@ from .protocol import (HEAD_RPA_KEYS, LOCATE_RPA_KEYS, ORDERS, RAND_SEED, DEFAUL
 from .report import save_grid
 from .scenes import PreparedScene, prepare_scene
 
-__all__ = ["evaluate"]
+__all__ = ["evaluate", "depth_score"]
 
 #: Pixel size (H, W) of the camera picture in ``--grid``.
 _CAMERA_PANEL_SIZE = (450, 700)
@@ -212,8 +212,9 @@ def _upsampled(backend, posed: PosedScene, targets, where: str, size, quality) -
                                         interpolation=cv2.INTER_CUBIC), 0.0, 1.0) for im in rgb])
 
 
-def _depth_score(pred_depths: np.ndarray, true_depths: np.ndarray) -> float | None:
-    """Mean ``depth_spearman`` over the targets where it is defined, or None."""
+def depth_score(pred_depths: np.ndarray, true_depths: np.ndarray) -> float | None:
+    """A scene's ``depth_spearman``: the mean of ``iris_train.metrics.depth_spearman`` over its
+    targets' depth maps ``[N, H, W]`` where it is defined (not nan), or None."""
     values = [depth_spearman(p, t) for p, t in zip(pred_depths, true_depths)]
     values = [v for v in values if np.isfinite(v)]
     return float(np.mean(values)) if values else None
@@ -236,7 +237,7 @@ def _scene_record(index: int, prepared: PreparedScene, posed: PosedScene, rgb, d
     model = dict.fromkeys(_MODEL_KEYS)
     model.update(nvs_scores(rgb, prepared.gt_images[targets_a]))
     if prepared.true_depth is not None:
-        model["depth_spearman"] = _depth_score(depth, prepared.true_depth[targets_a])
+        model["depth_spearman"] = depth_score(depth, prepared.true_depth[targets_a])
     identity = None
     if prepared.poses is not None:
         # RPA does not depend on the world frame, so frame order serves both orders.

@@ -1,0 +1,311 @@
+"""Where the renderer's error on wide baselines comes from: its geometry against the true one,
+per ray, binned by the angle between the target ray and the nearest reference that sees the
+surface.
+
+    OMP_NUM_THREADS=1 python benchmarks/wide_baseline.py models/iris-tiny-rgb.pt \\
+        --sets walk orbit heldout --scenes 6 --json benchmarks/results/wide/b1_true.json
+    ... --sets walk --arc 150 270      # the widest walks: targets 10-30 degrees from a reference
+
+Cameras: the TRUE ones, as ``iris-eval --cameras true`` (``evaluate.cameras.pose_scene``: re-based
+on view 0, scaled into the model's units by the solve's depth rule), targets at their true poses,
+so camera error is out of the picture (but for the principal point, which the renderer takes as
+centred: each scene records its offset). Frames as iris-eval's Seq order: references 0, 2, 3, 5, 7
+and targets 1, 4, 6 of 8. Each target is rendered at the model's resolution in torch (one
+thread, no grad) with the rays ``IrisModel.render`` casts, keeping every ray's blend weights.
+
+Sets (``--sets``, N = ``--scenes`` each): ``walk``, object walks (``kind="walk"``) whose
+``meta["arc_deg"]`` lies in ``--arc`` (default 45-120), the first N such seeds from
+``SEEDS_FROM`` on (a range no training, validation or held-out split uses); ``orbit``, the
+capture-like orbits (``kind="orbit"``), the first N seeds from ``SEEDS_FROM``; both as iris-eval's
+``synthetic:capture-heldout`` (photos at ``SYNTHETIC_PHOTO_SIZE`` with camera effects, fitted to
+the model); ``heldout``, the classic held-out scenes (``synthetic:heldout``, first N).
+
+Per ray: relative depth error |soft - true| / true (soft = the weights' expected depth, as
+iris-eval's; true = the pixel's depth times the cameras' scale), the largest weight, the entropy
+of the weights (normalised to sum 1) over log S, the weight mass within +-5 % of the true depth,
+whether the true depth lies outside the model's [near, far], the squared colour error; and the
+angle at the true surface point (the pixel unprojected with its true K and depth) between the
+target ray and the ray to the nearest reference centre whose frustum holds the point (occlusion
+not tested). Per target: the angle between its viewing direction and the nearest reference's.
+Bins (per ray): 0-10, 10-20, 20-30, 30-45, 45-90, >90 degrees, "unseen" (no reference frustum
+holds the point) and "no depth" (no true depth): they partition the rays.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+import numpy as np  # noqa: E402
+
+from iris_runtime import geometry as NG  # noqa: E402
+from iris_runtime.fileio import atomic_write_json  # noqa: E402
+
+SETS = ("walk", "orbit", "heldout")
+#: First seed of the walk and orbit scenes: above every split of ``iris_train.data``.
+SEEDS_FROM = 3_100_000
+ARC_RANGE = (45.0, 120.0)
+#: Upper edges of the angle bins (degrees); the last bin is > 90.
+EDGES = (10.0, 20.0, 30.0, 45.0, 90.0)
+BIN_NAMES = ("0-10", "10-20", "20-30", "30-45", "45-90", ">90", "unseen", "no depth")
+#: Half width (relative to the true depth) of the band whose weight mass is reported.
+NEAR_BAND = 0.05
+#: Rays per renderer call (IrisModel.render: 4096): a 64x64 view took 27 s in chunks of 256 and
+#: 45 s in one of 4096 (1 thread, busy 2-core machine; the weights are per ray either way).
+CHUNK = 256
+
+
+def walk_seeds(n: int, arc: tuple[float, float], start: int = SEEDS_FROM) -> list[int]:
+    """The first ``n`` seeds from ``start`` whose walk spans ``arc`` degrees (read off the scene
+    spec, nothing rendered); ``ValueError`` when 100 n seeds give fewer."""
+    from iris_train.synthetic import build_scene_spec
+    out = []
+    for seed in range(start, start + 100 * n):
+        if arc[0] <= build_scene_spec(seed, 8, (64, 64), "walk").meta["arc_deg"] <= arc[1]:
+            out.append(seed)
+            if len(out) == n:
+                return out
+    raise ValueError(f"arc: only {len(out)} of {100 * n} walks span {arc[0]:g}-{arc[1]:g} degrees")
+
+
+def load_set(name: str, n: int, image_size, arc=ARC_RANGE):
+    """(scenes, count) of set ``name``, as iris-eval's ``load_scenes`` gives its sets."""
+    from iris_train.data import SyntheticScenes
+    from iris_train.evaluate.scenes import SYNTHETIC_PHOTO_SIZE, load_scenes
+    if name == "heldout":
+        return load_scenes("synthetic:heldout", image_size, 8, n)
+    seeds = walk_seeds(n, arc) if name == "walk" else list(range(SEEDS_FROM, SEEDS_FROM + n))
+    scenes = SyntheticScenes(seeds, n_views=8, size=SYNTHETIC_PHOTO_SIZE, kind=name)
+    return (scenes[i] for i in range(len(scenes))), len(scenes)
+
+
+def render_target(model, encoded, world_from_cam: np.ndarray, chunk: int = CHUNK):
+    """One target at the model's resolution, the rays, samples and soft depth of
+    ``IrisModel.render`` (in chunks of ``chunk`` rays) -> ``rgb [R, 3]``, blend ``weights [R,
+    S]``, sample depths ``z [R, S]``, soft depth ``[R]`` (float64 numpy)."""
+    import torch
+
+    from iris_train import geometry as G
+    (H, W), dtype, out = encoded.image_size, encoded.field_maps.dtype, []
+    with torch.no_grad():
+        origins, directions = G.rays_from_pixels(G.pixel_centres(H, W, dtype=dtype),
+                                                 encoded.intrinsics(H, W),
+                                                 torch.as_tensor(world_from_cam).to(dtype))
+        for start in range(0, H * W, chunk):
+            sl = slice(start, start + chunk)
+            z = G.sample_depths(model.cfg.near, model.cfg.far, model.cfg.samples,
+                                origins[sl].shape[0], dtype=dtype)
+            rgb, weights = model.render_rays(encoded, origins[sl], directions[sl], z)
+            out.append((rgb, weights, z, (weights * z).sum(-1)))
+    return tuple(torch.cat(parts).double().numpy() for parts in zip(*out))
+
+
+def ray_stats(weights, z, soft, true, near: float, far: float) -> dict[str, np.ndarray]:
+    """Per-ray geometry of ``weights, z [R, S]``, soft depth ``[R]`` against ``true [R]`` (0: no
+    geometry; its depth error and band mass are nan)."""
+    has = true > 0
+    safe = np.where(has, true, np.nan)
+    total = weights.sum(-1)
+    p = weights / np.where(total > 0, total, np.nan)[:, None]
+    plogp = np.where(p > 0, p * np.log(np.where(p > 0, p, 1.0)), 0.0)
+    band = np.abs(z - safe[:, None]) <= NEAR_BAND * safe[:, None]
+    return {"depth_err": np.abs(soft - safe) / safe, "max_weight": weights.max(-1),
+            "entropy": -plogp.sum(-1) / np.log(weights.shape[-1]),
+            "mass_near": np.where(has, (weights * band).sum(-1), np.nan),
+            "outside": has & ((true < near) | (true > far))}
+
+
+def surface_angles(points, target_centre, ref_world_from_cam, ref_K, height: int, width: int):
+    """Angle (degrees) at each point ``[N, 3]`` between the rays to ``target_centre`` and to the
+    nearest reference centre (``ref_world_from_cam [V, 4, 4]``, true ``ref_K [V, 3, 3]``) whose
+    frustum holds it; nan where none does. ``[N]``."""
+    cam_from_world = NG.invert_pose(np.asarray(ref_world_from_cam, dtype=np.float64))
+    seen = np.stack([NG.project_points(points, K, T[None], height, width)[2][0]
+                     for K, T in zip(ref_K, cam_from_world)])                        # [V, N]
+    cos = NG.cue_cosine(points, target_centre, ref_world_from_cam[:, :3, 3])       # [V, N]
+    angle = np.where(seen, np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))), np.inf).min(0)
+    return np.where(np.isfinite(angle), angle, np.nan)
+
+
+def bin_index(angle, has_depth) -> np.ndarray:
+    """Each ray's position in ``BIN_NAMES``."""
+    idx = np.digitize(np.nan_to_num(angle, nan=0.0), EDGES, right=True)
+    return np.where(~has_depth, 7, np.where(np.isnan(angle), 6, idx))
+
+
+def scene_rays(model, scene, index: int = 0):
+    """One scene rendered at its true cameras -> (per-ray arrays over its targets, its record),
+    or None when it has fewer than 8 frames."""
+    import torch
+
+    from iris_train import geometry as G
+    from iris_train.evaluate import TorchBackend, prepare_scene, split_frames
+    from iris_train.evaluate.cameras import pose_scene
+    from iris_train.evaluate.evaluation import depth_score
+    from iris_train.evaluate.protocol import nvs_scores
+    backend = TorchBackend(model)
+    prepared = prepare_scene(scene, 8, backend.image_size, index)
+    if prepared is None:
+        return None
+    refs, targets = split_frames(8)
+    posed = pose_scene(backend, prepared, refs, targets, "true", "true")
+    T, (H, W), refs = posed.world_from_cam, backend.image_size, list(refs)
+    uv = G.pixel_centres(H, W, dtype=torch.float64).numpy()     # the rendered rays' pixels
+    rays, rgbs, softs, view_deg = [], [], [], []
+    for t in targets:
+        rgb, weights, z, soft = render_target(model, posed.encoded, T[t])
+        true = prepared.true_depth[t].reshape(-1) * posed.scale
+        stats = ray_stats(weights, z, soft, true, *backend.depth_range)
+        gt = prepared.gt_images[t].reshape(-1, 3)
+        stats["sq_err"] = ((np.clip(rgb, 0.0, 1.0) - gt) ** 2).mean(-1)
+        origins, directions = NG.rays_from_pixels(uv, prepared.K[t], T[t])
+        points = origins + true[:, None] * directions
+        stats["angle"] = np.where(true > 0, surface_angles(points, T[t, :3, 3], T[refs],
+                                                           prepared.K[refs], H, W), np.nan)
+        stats["has_depth"] = true > 0
+        rays.append(stats)
+        rgbs.append(np.clip(rgb, 0.0, 1.0).reshape(H, W, 3))
+        softs.append(soft.reshape(H, W))
+        axes = np.einsum("i,ki->k", T[t, :3, 2], T[refs, :3, 2])
+        view_deg.append(float(np.degrees(np.arccos(np.clip(axes, -1.0, 1.0))).min()))
+    meta = getattr(scene, "meta", None) or {}
+    record = {"name": prepared.name, **{k: meta.get(k) for k in ("seed", "kind", "arc_deg")},
+              "psnr": nvs_scores(rgbs, prepared.gt_images[list(targets)])["psnr"],
+              "depth_spearman": depth_score(np.stack(softs), prepared.true_depth[list(targets)]),
+              "view_deg": view_deg, "scale": posed.scale,
+              "principal_offset": [float(x) for x in posed.principal_offset]}
+    return {k: np.concatenate([r[k] for r in rays]) for k in rays[0]}, record
+
+
+def _value(x) -> float | None:
+    return None if x is None or not np.isfinite(x) else round(float(x), 5)
+
+
+def bin_row(name: str, rays: dict, mask) -> dict:
+    """The summary of the rays ``mask`` selects."""
+    from iris_train.metrics import PSNR_CAP
+    n = int(mask.sum())
+    row = {"bin": name, "rays": n}
+    if n == 0:
+        return row
+    mse = float(rays["sq_err"][mask].mean())
+    depth = rays["depth_err"][mask]
+    has = bool(np.isfinite(depth).any())
+    with np.errstate(all="ignore"):
+        row.update(psnr=min(PSNR_CAP, -10.0 * np.log10(mse)) if mse > 0 else PSNR_CAP,
+                   depth_err_median=np.nanmedian(depth) if has else None,
+                   depth_err_mean=np.nanmean(depth) if has else None,
+                   max_weight_median=np.median(rays["max_weight"][mask]),
+                   entropy_median=np.nanmedian(rays["entropy"][mask]),
+                   mass_near_mean=np.nanmean(rays["mass_near"][mask]) if has else None,
+                   outside_fraction=float(rays["outside"][mask].mean()))
+    return {k: v if isinstance(v, (str, int)) else _value(v) for k, v in row.items()}
+
+
+def summarise(rays: dict) -> list[dict]:
+    """One row per bin of ``BIN_NAMES`` (they partition the rays), then "all"."""
+    idx = bin_index(rays["angle"], rays["has_depth"])
+    return ([bin_row(name, rays, idx == b) for b, name in enumerate(BIN_NAMES)]
+            + [bin_row("all", rays, np.ones(len(idx), dtype=bool))])
+
+
+def format_report(sets: dict) -> str:
+    cols = ("rays", "psnr", "depth_err_median", "depth_err_mean", "max_weight_median",
+            "entropy_median", "mass_near_mean", "outside_fraction")
+    lines = [f"{'set':8}{'bin':>9}{'rays':>8}{'PSNR':>7}{'relerr med':>11}{'mean':>7}"
+             f"{'maxw med':>9}{'H/logS med':>11}{'mass+-5%':>9}{'outside':>8}"]
+    for name, s in sets.items():
+        for row in s["bins"]:
+            vals = ["-" if row.get(c) is None else f"{row[c]:.3f}" if c != "rays" else str(row[c])
+                    for c in cols]
+            vals[1] = vals[1] if row.get("psnr") is None else f"{row['psnr']:.2f}"
+            lines.append(f"{name:8}{row['bin']:>9}" + "".join(
+                f"{v:>{w}}" for v, w in zip(vals, (8, 7, 11, 7, 9, 11, 9, 8))))
+    lines.append("")
+    lines.append(f"{'set':8}{'scene':>14}{'arc':>7}{'PSNR':>7}{'rho':>7}  target view angles "
+                 f"(deg)  principal offset (px)")
+    for name, s in sets.items():
+        for r in s["scenes"]:
+            rho = "-" if r["depth_spearman"] is None else f"{r['depth_spearman']:.3f}"
+            scene = r["name"] if r["seed"] is None else str(r["seed"])
+            lines.append(f"{name:8}{scene:>14}{r['arc_deg'] or 0:7.1f}{r['psnr']:7.2f}{rho:>7}"
+                         f"  {' '.join(f'{a:5.1f}' for a in r['view_deg']):17}  "
+                         f"{r['principal_offset'][0]:+.1f} {r['principal_offset'][1]:+.1f}")
+    return "\n".join(lines)
+
+
+def run(model, sets, n: int, arc=ARC_RANGE, progress: bool = True) -> dict:
+    """``{set: {"bins": rows, "scenes": records}}`` over the first ``n`` scenes of each set."""
+    from tqdm import tqdm
+    image_size = (model.cfg.image_height, model.cfg.image_width)
+    out = {}
+    for name in sets:
+        scenes, count = load_set(name, n, image_size, arc)
+        parts, records = [], []
+        for i, scene in enumerate(tqdm(scenes, total=count, desc=name, unit="scene",
+                                       disable=not progress, dynamic_ncols=True)):
+            result = scene_rays(model, scene, i)
+            if result is not None:
+                parts.append(result[0])
+                records.append({k: _value(v) if isinstance(v, float) else v
+                                for k, v in result[1].items()})
+        rays = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+        out[name] = {"bins": summarise(rays), "scenes": records}
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                 epilog=__doc__.split("\n\n")[1],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("model", metavar="MODEL", help="checkpoint (.pt), e.g. models/iris-tiny-rgb.pt")
+    ap.add_argument("--sets", nargs="+", choices=SETS, default=list(SETS), metavar="SET",
+                    help=f"scene sets, any of {', '.join(SETS)} (default: all)")
+    ap.add_argument("--scenes", type=int, default=8, metavar="N", help="scenes per set (default 8)")
+    ap.add_argument("--arc", type=float, nargs=2, default=ARC_RANGE, metavar=("MIN", "MAX"),
+                    help="walk set: the arcs (degrees) kept (default 45 120)")
+    ap.add_argument("--json", type=Path, default=None, metavar="FILE",
+                    help="write the bins and per-scene records to FILE (atomically)")
+    ap.add_argument("--no-progress", action="store_true", help="no progress bars")
+    args = ap.parse_args(argv)
+    if args.scenes < 1:
+        ap.error("--scenes must be at least 1")
+    if not 0 <= args.arc[0] < args.arc[1]:
+        ap.error("--arc: expected 0 <= MIN < MAX")
+    import torch
+
+    from iris_train.model import CheckpointError, load_model
+    torch.set_num_threads(1)
+    try:
+        model = load_model(args.model)
+    except CheckpointError as exc:
+        ap.error(str(exc))
+    start = time.perf_counter()
+    try:
+        sets = run(model, list(dict.fromkeys(args.sets)), args.scenes, tuple(args.arc),
+                   not args.no_progress)
+    except ValueError as exc:               # no walk spans --arc
+        ap.error(str(exc))
+    seconds = time.perf_counter() - start
+    print(format_report(sets))
+    print(f"\n{seconds:.0f} s")
+    if args.json is not None:
+        from iris_train.evaluate import split_frames
+        refs, targets = split_frames(8)
+        path = Path(args.model).resolve()       # named as given, relative to the repository
+        name = str(path.relative_to(REPO)) if path.is_relative_to(REPO) else path.name
+        atomic_write_json(args.json, {
+            "model": name, "cameras": "true", "references": list(refs), "targets": list(targets),
+            "arc_range": list(args.arc), "seeds_from": SEEDS_FROM,
+            "near_band": NEAR_BAND, "bins": list(BIN_NAMES), "seconds": round(seconds, 1),
+            "sets": sets})
+        print(f"wrote {args.json}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
