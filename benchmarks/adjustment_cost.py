@@ -1,12 +1,14 @@
-"""What ``bundle.fast_bundle_adjust`` costs against another revision's, on the very problems the
+"""What ``bundle.bundle_adjust`` costs against another revision's, on the very problems the
 refinement gives it: every adjustment ``IrisRuntime.encode(cameras="refined")`` makes on a set of
 scenes at 64x64 (its rounds, salvages and witness mapping) is recorded, then each is solved by
 this checkout's adjustment and by the one in ``bundle.py`` at ``--against`` (``git show``),
-alternately, on one thread. Reports the seconds of each (the sum over the problems, and the best
+alternately, on one thread. ``--against`` is a revision with the one adjuster (the solve and the
+refinement adjusting alike, from the commit "One bundle adjuster" on): before it, ``bundle.py``
+held two and the refinement ran the other one. Reports the seconds of each (the sum over the problems, and the best
 of ``--runs``), their ratio, and whether the two take the same iterations to the same cameras.
 
-    python benchmarks/adjustment_cost.py MODEL_DIR --against 7d32703
-    python benchmarks/adjustment_cost.py MODEL_DIR --against 7d32703 --scenes validation --json F
+    python benchmarks/adjustment_cost.py MODEL_DIR --against main
+    python benchmarks/adjustment_cost.py MODEL_DIR --against main --scenes validation --json F
 
 Needs the [train] extra (the scenes) and git (the other revision).
 """
@@ -28,7 +30,8 @@ sys.path.insert(0, str(REPO))
 
 
 def adjustment_at(revision: str):
-    """``fast_bundle_adjust`` of ``iris_runtime/cameras/bundle.py`` at git ``revision``."""
+    """``bundle_adjust`` of ``iris_runtime/cameras/bundle.py`` at git ``revision`` (one with a
+    single adjuster: the refinement's)."""
     source = subprocess.run(["git", "show", f"{revision}:iris_runtime/cameras/bundle.py"],
                             cwd=REPO, check=True, capture_output=True, text=True).stdout
     with tempfile.TemporaryDirectory() as tmp:
@@ -38,7 +41,11 @@ def adjustment_at(revision: str):
         module = importlib.util.module_from_spec(spec)
         sys.modules[path.stem] = module              # dataclasses look their module up
         spec.loader.exec_module(module)
-    return module.fast_bundle_adjust
+    adjusters = [name for name in vars(module) if name.endswith("bundle_adjust")]
+    if adjusters != ["bundle_adjust"]:
+        raise SystemExit(f"{revision}: bundle.py has the adjusters {adjusters}, not one "
+                         "bundle_adjust (a revision from before the single adjuster)")
+    return module.bundle_adjust
 
 
 def recorded_problems(model_dir: str, scenes: str) -> list:
@@ -50,19 +57,19 @@ def recorded_problems(model_dir: str, scenes: str) -> list:
     from benchmarks.camera_solve import SETS_64
     from iris_runtime import IrisRuntime
     cv2.setNumThreads(1)
-    problems, adjust = [], refine.fast_bundle_adjust
+    problems, adjust = [], refine.bundle_adjust
 
     def recording(*args, **kw):
         problems.append((args, kw))
         return adjust(*args, **kw)
 
-    refine.fast_bundle_adjust = mapper.fast_bundle_adjust = recording
+    refine.bundle_adjust = mapper.bundle_adjust = recording
     rt = IrisRuntime(model_dir, threads=1)
     try:
         for scene in SETS_64[scenes]():
             rt.encode(scene.photos, cameras="refined")
     finally:
-        refine.fast_bundle_adjust = mapper.fast_bundle_adjust = adjust
+        refine.bundle_adjust = mapper.bundle_adjust = adjust
     return problems
 
 
@@ -109,13 +116,13 @@ def main(argv=None) -> int:
     ap.add_argument("--runs", type=int, default=3)
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args(argv)
-    from iris_runtime.cameras.bundle import fast_bundle_adjust
+    from iris_runtime.cameras.bundle import bundle_adjust
     theirs = adjustment_at(args.against)
     problems = recorded_problems(args.model_dir, args.scenes)
     print(f"{len(problems)} adjustments recorded on {args.scenes}", flush=True)
     res = {"scenes": args.scenes, "against": args.against,
            "load_before": list(os.getloadavg()),
-           **compare(problems, fast_bundle_adjust, theirs, args.runs)}
+           **compare(problems, bundle_adjust, theirs, args.runs)}
     print(json.dumps({k: v for k, v in res.items() if k != "seconds"}))
     if args.json is not None:
         from iris_runtime.fileio import atomic_write_bytes

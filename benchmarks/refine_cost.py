@@ -8,7 +8,6 @@ the refinement and of the whole encode (one run, one thread: a ranking, not a ti
     python benchmarks/refine_cost.py MODEL_DIR
     python benchmarks/refine_cost.py MODEL_DIR --set refine.adjust.tolerance=1e-6 --json out.json
     python benchmarks/refine_cost.py MODEL_DIR --profile      # + the refinement's time by step
-    python benchmarks/refine_cost.py MODEL_DIR --adjustment solve   # the solve's adjustment
 
 ``--profile`` runs the scenes under cProfile and adds each scene's seconds in each of the
 refinement's steps (SIFT, matching, essential matrices, tracks, bundle adjustment,
@@ -37,7 +36,7 @@ sys.path.insert(0, str(REPO))
 #: witness mapping's own adjustments and registrations count under "witness mapping" only.
 STEPS = {"scene_features": "SIFT", "match_features": "matching",
          "essential_pose": "essential matrices", "build_tracks": "tracks",
-         "fast_bundle_adjust": "bundle adjustment", "bundle_adjust": "bundle adjustment",
+         "bundle_adjust": "bundle adjustment",
          "triangulate": "triangulation", "witness_mapping": "witness mapping"}
 
 
@@ -60,7 +59,7 @@ def step_seconds(profile) -> tuple[dict, float]:
 
 
 def measure(model_dir: str, settings: list[str], profile: bool = False,
-            scenes: str = "heldout", adjustment: str = "fast") -> dict:
+            scenes: str = "heldout") -> dict:
     import cProfile
 
     import cv2
@@ -74,11 +73,7 @@ def measure(model_dir: str, settings: list[str], profile: bool = False,
     cv2.setNumThreads(1)
     apply(list(settings))
     counts = {"iterations": 0, "refine_s": 0.0}
-    if adjustment == "solve":     # the solve's adjustment in the refinement's and the witness's
-        import iris_runtime.cameras.mapper as mapper
-        from iris_runtime.cameras.bundle import bundle_adjust as solve_adjustment
-        refine.fast_bundle_adjust = mapper.fast_bundle_adjust = solve_adjustment
-    adjust, refine_cameras = refine.fast_bundle_adjust, replace.refine_cameras
+    adjust, refine_cameras = refine.bundle_adjust, replace.refine_cameras
 
     def counted(*args, **kw):
         res = adjust(*args, **kw)
@@ -92,7 +87,7 @@ def measure(model_dir: str, settings: list[str], profile: bool = False,
         finally:
             counts["refine_s"] += time.perf_counter() - t0
 
-    refine.fast_bundle_adjust, replace.refine_cameras = counted, timed
+    refine.bundle_adjust, replace.refine_cameras = counted, timed
     rt = IrisRuntime(model_dir, threads=1)
     rows = []
     by_step, profiled = {}, 0.0
@@ -127,7 +122,7 @@ def measure(model_dir: str, settings: list[str], profile: bool = False,
         summary["refine_time_by_step"] = {k: v / profiled for k, v in sorted(
             by_step.items(), key=lambda kv: -kv[1])}
     print(json.dumps(summary))
-    return {"settings": list(settings), "set": scenes, "adjustment": adjustment,
+    return {"settings": list(settings), "set": scenes,
             "load_before": list(os.getloadavg()),
             "scenes": rows,
             "summary": summary}
@@ -143,13 +138,10 @@ def main(argv=None) -> int:
                     help="the 16 held-out scenes, the first 24 validation scenes (where a "
                          "setting is chosen), validation scenes 24-47, or the held-out scenes "
                          "as iris-eval resizes them, at 64x64")
-    ap.add_argument("--adjustment", choices=("fast", "solve"), default="fast",
-                    help="the refinement's bundle adjustment (bundle.fast_bundle_adjust, as "
-                         "shipped) or the solve's (bundle.bundle_adjust) in its place")
     ap.add_argument("--profile", action="store_true",
                     help="also the share of the refinement's time in each of its steps")
     args = ap.parse_args(argv)
-    res = measure(args.model_dir, args.set, args.profile, args.scenes, args.adjustment)
+    res = measure(args.model_dir, args.set, args.profile, args.scenes)
     if args.json is not None:
         from iris_runtime.fileio import atomic_write_bytes
         atomic_write_bytes(args.json, json.dumps(res, indent=1).encode())

@@ -1,37 +1,36 @@
-"""Step 5 of the camera solve: bundle adjustment, the poses, the points and the one shared focal
-refined together on the reprojection error of every observation.
+"""Step 5 of the camera solve, and the refinement's adjustment: bundle adjustment, the poses,
+the points and the one shared focal refined together on the reprojection error of every
+observation (``bundle_adjust``).
 
 Levenberg-Marquardt on the normal equations with the points eliminated (Schur complement: one
 3x3 block per point, a dense system the size of the cameras), Cauchy-reweighted so that a wrong
-match does not drag the cameras. Written here in numpy because the runtime has no SciPy, and
-because ``scipy.optimize.least_squares`` (trust region, sparse Jacobian, LSMR) left the focal
-where it started on the same problems (docs/CAMERAS.md, "Bundle adjustment").
+match does not drag the cameras, with Nielsen's damping. Written here in numpy because the
+runtime has no SciPy, and because ``scipy.optimize.least_squares`` (trust region, sparse
+Jacobian, LSMR) left the focal where it started on the same problems (docs/record/cameras.md,
+"Bundle adjustment in numpy"); tests/test_cameras.py checks that it reaches the minimum that
+SciPy's dense trust-region solver reaches from the same start.
 
 Parametrisation: ``cam_from_world`` rotations ``R [V, 3, 3]`` updated on the left (R <- exp(w) R)
 and translations ``t [V, 3]``; one focal in pixels with the principal point at the image centre
 (square pixels, no distortion). One view is held fixed (the gauge) and one coordinate of another
 view's translation (the scale, which the images cannot fix).
 
-``fast_bundle_adjust`` minimises the same cost in the same parameters, with Nielsen's damping
-and fewer numpy calls a step: the refinement of a model's cameras runs it (``refine``). The
-solve keeps ``bundle_adjust`` as it is: the teacher store (``iris_train.pseudo_poses``, 8000
-solved scenes) holds its results and would have to be solved again, about 18 hours of one core
-(docs/record/cameras-refactor.md, "One bundle adjuster? Not yet"; docs/CAMERAS.md, "A faster
-adjustment for the refinement").
+The camera solve (``mapper``) and the refinement of a model's cameras (``refine.rounds``, the
+witness's mapping) both run it. Until SOLVE_VERSION 12 of ``iris_train.pseudo_poses`` the solve
+ran an adjuster of its own on the same cost (damping divided and multiplied by 10), kept so that
+the teacher store stayed as solved (docs/record/cameras-refactor.md).
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 
-__all__ = ["BundleResult", "bundle_adjust", "fast_bundle_adjust", "reprojection_errors",
-           "project"]
+__all__ = ["BundleResult", "bundle_adjust", "reprojection_errors", "project"]
 
 #: A step that lowers the cost by less than this fraction of it ends the adjustment.
 RELATIVE_TOLERANCE = 1e-6
-#: ``fast_bundle_adjust``: an accepted step divides the damping by at most this much.
+#: An accepted step divides the damping by at most this much (Nielsen's rule).
 MAX_DAMPING_FALL = 3.0
 
 
@@ -61,89 +60,13 @@ def reprojection_errors(R, t, focal, centre, points, uv) -> tuple[np.ndarray, np
     return np.linalg.norm(proj - uv, axis=-1), Y[..., 2]
 
 
-class _Problem:
-    """The observations of one adjustment, flattened: point ``p [n]`` (sorted), view ``v [n]``,
-    pixels ``uv [n, 2]``."""
-
-    def __init__(self, uv, active, centre, loss_scale):
-        self.p, self.v = np.nonzero(active)
-        self.uv = uv[self.p, self.v]
-        self.P, self.V = active.shape
-        self.starts = np.flatnonzero(np.r_[True, self.p[1:] != self.p[:-1]])
-        self.centre = centre
-        self.s2 = float(loss_scale) ** 2
-        self.in_view = (np.arange(self.V)[:, None] == self.v[None]).astype(np.float64)  # [V, n]
-        # Where each observation's [7, 3] block goes in a [V, 7, P, 3] array (per_point_dense).
-        self.dense_index = (((self.v[:, None, None] * 7 + np.arange(7)[None, :, None]) * self.P
-                             + self.p[:, None, None]) * 3 + np.arange(3)[None, None, :]).ravel()
-
-    def per_point_dense(self, x):
-        """x [n, 7, 3] per observation -> [7V, 3P], zero where a view does not see a point:
-        the Schur complement's sum over points (a point seen by views i and j couples cameras
-        i and j) is then one matrix product."""
-        out = np.zeros(self.V * 7 * self.P * 3)
-        out[self.dense_index] = x.ravel()
-        return out.reshape(7 * self.V, 3 * self.P)
-
-    def camera_coords(self, R, t, X):
-        """Y [n, 3]: each observed point in its observing camera."""
-        return np.matmul(X[None], R.transpose(0, 2, 1))[self.v, self.p] + t[self.v]
-
-    def residuals(self, R, t, f, X):
-        Y = self.camera_coords(R, t, X)
-        z = np.where(Y[:, 2] > 1e-12, Y[:, 2], 1e-12)
-        return f * Y[:, :2] / z[:, None] + self.centre - self.uv, Y
-
-    def cost(self, R, t, f, X) -> float:
-        r, Y = self.residuals(R, t, f, X)
-        if (Y[:, 2] <= 0).any() or not f > 0:
-            return np.inf
-        return float(0.5 * self.s2 * np.log1p((r * r).sum(1) / self.s2).sum())   # Cauchy
-
-    def per_view(self, x):
-        """Sum of x [n, ...] per view -> [V, ...] (a product with the views' indicator)."""
-        return (self.in_view @ x.reshape(len(x), -1)).reshape((self.V,) + x.shape[1:])
-
-    def per_point(self, x):
-        """Sum of x [n, ...] per point -> [P, ...] (points without observations: 0)."""
-        out = np.zeros((self.P,) + x.shape[1:])
-        out[self.p[self.starts]] = np.add.reduceat(x, self.starts, axis=0)
-        return out
-
-
-def _jacobians(Y, a, R_v, f):
-    """d(pixel)/d(camera: rotation w, translation, focal) [n, 2, 7] and d(pixel)/d(point)
-    [n, 2, 3] of observations with camera coordinates Y [n, 3] = a + t (a = R X, the part the
-    rotation acts on) in cameras R_v [n, 3, 3]."""
-    n = len(Y)
-    iz = 1.0 / Y[:, 2]
-    JY = np.zeros((n, 2, 3))
-    JY[:, 0, 0] = JY[:, 1, 1] = f * iz
-    JY[:, 0, 2] = -f * Y[:, 0] * iz * iz
-    JY[:, 1, 2] = -f * Y[:, 1] * iz * iz
-    minus_skew = np.zeros((n, 3, 3))                       # d(exp(w) a)/dw = -[a]_x
-    minus_skew[:, 0, 1], minus_skew[:, 0, 2] = a[:, 2], -a[:, 1]
-    minus_skew[:, 1, 0], minus_skew[:, 1, 2] = -a[:, 2], a[:, 0]
-    minus_skew[:, 2, 0], minus_skew[:, 2, 1] = a[:, 1], -a[:, 0]
-    Jc = np.concatenate([JY @ minus_skew, JY, (Y[:, :2] * iz[:, None])[:, :, None]], axis=2)
-    return Jc, JY @ R_v
-
-
-def _inverse_factor(A):
-    """``Q [P, 3, 3]`` lower triangular with ``A^-1 = Q^T Q`` for symmetric positive definite
-    3x3 matrices ``A [P, 3, 3]``: the inverse of their Cholesky factor (A = L L^T, Q = L^-1),
-    written out. One vectorised pass where ``np.linalg.inv`` calls LAPACK once per matrix
-    (several times slower here); Cholesky is backward stable, so a far point's block, whose
-    depth is barely observed, is inverted as accurately as LAPACK does it (cofactors are not:
-    they lose the square of the condition)."""
-    Q = np.zeros_like(A)
-    _write_inverse_factor(Q.transpose(1, 2, 0), A.transpose(1, 2, 0))
-    return Q
-
-
 def _write_inverse_factor(Q, A):
-    """``_inverse_factor`` with the 3x3 axes first: ``Q [3, 3, ...]`` (zero above the diagonal)
-    written from ``A [3, 3, ...]``."""
+    """``Q [3, 3, ...]`` lower triangular (zero above the diagonal, written in place) with
+    ``A^-1 = Q^T Q`` for the symmetric positive definite 3x3 matrices ``A [3, 3, ...]`` (the 3x3
+    axes first): the inverse of their Cholesky factor (A = L L^T, Q = L^-1), written out, one
+    vectorised pass over all of them. Cholesky is backward stable, so a far point's block,
+    whose depth is barely observed, is inverted as accurately as LAPACK does it (cofactors are
+    not: they lose the square of the condition)."""
     a, b, c = A[0, 0], A[0, 1], A[0, 2]
     d, e, g = A[1, 1], A[1, 2], A[2, 2]
     l00 = np.sqrt(a)
@@ -169,90 +92,6 @@ def _free_entries(v: np.ndarray, t: np.ndarray, fixed_view: int, scale_view: int
     return free
 
 
-def bundle_adjust(R, t, focal, centre, points, uv, active, *, fixed_view: int, scale_view: int,
-                  refine_focal: bool = True, loss_scale: float = 1.0,
-                  max_iterations: int = 50,
-                  tolerance: float = RELATIVE_TOLERANCE) -> BundleResult:
-    """Refine ``R [V, 3, 3]``, ``t [V, 3]`` (cam_from_world), ``focal`` (pixels; principal point
-    ``centre`` [2]) and ``points [P, 3]`` on the observations ``uv [P, V, 2]`` where ``active
-    [P, V]`` is True. View ``fixed_view`` does not move; the largest coordinate of view
-    ``scale_view``'s translation does not either. ``loss_scale``: the Cauchy scale in pixels.
-    Stops after ``max_iterations``, or at the first step that lowers the cost by less than
-    ``tolerance`` of it."""
-    R, t, X = np.array(R, np.float64), np.array(t, np.float64), np.array(points, np.float64)
-    f = float(focal)
-    prob = _Problem(np.asarray(uv, np.float64), np.asarray(active, bool),
-                    np.asarray(centre, np.float64), loss_scale)
-    V, P = R.shape[0], X.shape[0]
-    if len(prob.p) == 0:
-        return BundleResult(R, t, f, X, 0.0, 0)
-    free = _free_entries(prob.v, t, fixed_view, scale_view)
-    # Parameter index of each entry (-1: fixed); the focal, when refined, is one shared last.
-    index = -np.ones((V, 7), np.int64)
-    index[free] = np.arange(free.sum())
-    n_free = int(free.sum())
-    if refine_focal:
-        index[:, 6] = n_free
-        n_free += 1
-    # A [7V, k] matrix D of per-view entries -> [n_free, k] over the parameters: the free pose
-    # entries' rows (in parameter order), then the focal's (the sum of every view's).
-    rows = np.flatnonzero(free.ravel())
-
-    def reduce(D):
-        return np.concatenate([D[rows], D[6::7].sum(0, keepdims=True)]) if refine_focal \
-            else D[rows]
-
-    cost = prob.cost(R, t, f, X)
-    lam, it = 1e-3, 0
-    for it in range(1, max_iterations + 1):
-        r, Y = prob.residuals(R, t, f, X)
-        w = 1.0 / (1.0 + (r * r).sum(1) / prob.s2)                          # Cauchy IRLS weights
-        Jc, Jp = _jacobians(Y, Y - t[prob.v], R[prob.v], f)
-        JcT_w = Jc.transpose(0, 2, 1) * w[:, None, None]                    # [n, 7, 2]
-        JpT_w = Jp.transpose(0, 2, 1) * w[:, None, None]                    # [n, 3, 2]
-        U7 = prob.per_view(JcT_w @ Jc)                                      # [V, 7, 7]
-        g7 = prob.per_view((JcT_w @ r[:, :, None])[:, :, 0])                # [V, 7]
-        Vp = prob.per_point(JpT_w @ Jp)                                     # [P, 3, 3]
-        gp = prob.per_point((JpT_w @ r[:, :, None])[:, :, 0])               # [P, 3]
-        Wo = JcT_w @ Jp                                                     # [n, 7, 3]
-        U = np.zeros((7 * V, 7 * V))
-        for v in range(V):
-            U[7 * v:7 * v + 7, 7 * v:7 * v + 7] = U7[v]
-        Ur, gr = reduce(reduce(U).T), reduce(g7.reshape(-1, 1))[:, 0]       # U is symmetric
-        W = reduce(prob.per_point_dense(Wo))                                # [n_free, 3P]
-        done = False
-        while True:
-            # Schur complement W V^-1 W^T = G G^T with G = W Q^T (V^-1 = Q^T Q per point):
-            # one symmetric product (numpy computes a @ a.T as such), half a general one.
-            Q = _inverse_factor(Vp + lam * Vp * np.eye(3) + 1e-9 * np.eye(3))
-            G = reduce(prob.per_point_dense(Wo @ Q[prob.p].transpose(0, 2, 1)))
-            S = Ur + lam * np.diag(np.diag(Ur)) - G @ G.T
-            Vinv = Q.transpose(0, 2, 1) @ Q                                 # [P, 3, 3]
-            rhs = gr - W @ (Vinv @ gp[:, :, None]).ravel()
-            try:
-                dc = -np.linalg.solve(S + 1e-12 * np.eye(n_free), rhs)
-            except np.linalg.LinAlgError:
-                dc = np.full(len(S), np.nan)
-            if np.all(np.isfinite(dc)):
-                d7 = np.append(dc, 0.0)[index]                      # [V, 7], 0 where fixed
-                WTd = (W.T @ dc).reshape(P, 3)
-                dp = -(Vinv @ (gp + WTd)[:, :, None])[:, :, 0]
-                R2 = np.stack([cv2.Rodrigues(d7[v, :3])[0] @ R[v] for v in range(V)])
-                t2, f2, X2 = t + d7[:, 3:6], f + d7[0, 6], X + dp
-                new = prob.cost(R2, t2, f2, X2)
-                if new < cost:
-                    done = (cost - new) < tolerance * cost
-                    R, t, f, X, cost = R2, t2, f2, X2, new
-                    lam = max(lam / 10.0, 1e-10)
-                    break
-            lam *= 10.0
-            if lam > 1e10:
-                break
-        if lam > 1e10 or done:
-            break
-    return BundleResult(R, t, f, X, cost, it)
-
-
 def _exp_so3(w: np.ndarray) -> np.ndarray:
     """exp([w]_x) [V, 3, 3] of rotation vectors w [V, 3] (Rodrigues' formula)."""
     theta = np.linalg.norm(w, axis=1)
@@ -264,31 +103,47 @@ def _exp_so3(w: np.ndarray) -> np.ndarray:
             + (1.0 - np.cos(theta))[:, None, None] * (K @ K))
 
 
-def fast_bundle_adjust(R, t, focal, centre, points, uv, active, *, fixed_view: int,
-                       scale_view: int, refine_focal: bool = True, loss_scale: float = 1.0,
-                       max_iterations: int = 50,
-                       tolerance: float = RELATIVE_TOLERANCE) -> BundleResult:
-    """``bundle_adjust``'s problem, arguments and result, solved with fewer rejected steps and
-    less work a step.
+def bundle_adjust(R, t, focal, centre, points, uv, active, *, fixed_view: int, scale_view: int,
+                  refine_focal: bool = True, loss_scale: float = 1.0,
+                  max_iterations: int = 50,
+                  tolerance: float = RELATIVE_TOLERANCE) -> BundleResult:
+    """Refine ``R [V, 3, 3]``, ``t [V, 3]`` (cam_from_world), ``focal`` (pixels; principal point
+    ``centre`` [2]) and ``points [P, 3]`` on the observations ``uv [P, V, 2]`` where ``active
+    [P, V]`` is True.
 
-    - Nielsen's damping (Madsen, Nielsen & Tingleff, "Methods for non-linear least squares
-      problems", 2004): after an accepted step the damping follows the ratio of the cost's fall
-      to the fall the linear model predicted, falling at most ``MAX_DAMPING_FALL`` times; after
-      a rejected one it grows 2, 4, 8... times. ``bundle_adjust`` divides it by 10 after every
-      accepted step and multiplies it by 10 after every rejected one, and each rejected step
-      costs a Schur complement and a cost for nothing.
-    - Less numpy a step. Per-observation arrays are laid out with the observations last
-      (``J [2, 11, n]``: each entry of the Jacobian, and the residual as its 11th column, one
-      contiguous row), so that every product of two entries is one operation on whole rows,
-      into buffers allocated once. The per-view sums are two matrix products per view, the
-      per-point sums one ``reduceat``. The Schur complement's sum over points is one product
-      ``M^T M`` of ``M [3P, n_free]`` (``Q_p W_p^T`` per point, ``V_p^-1 = Q_p^T Q_p``), written
-      straight into the free parameters' columns, and both solves against the point blocks go
-      through ``M`` and ``Q``. The residuals of an accepted step are the next step's.
+    The cost: ``0.5 s^2 sum log(1 + |r|^2 / s^2)`` over the active observations (Cauchy, scale
+    ``s = loss_scale`` pixels), ``r`` the pixel residual ``focal Y_xy / Y_z + centre - uv`` of
+    the point in its camera, ``Y = R_v X_p + t_v``; infinite while a point is behind a camera
+    or the focal is not positive.
 
-    It ends where ``bundle_adjust`` ends on a well-posed problem (tests/test_cameras.py); on the
-    refinement's problems it takes other steps, so it can end in another local minimum where
-    the cost has several."""
+    The parameters: a rotation vector per view applied on the left (``R_v <- exp([w_v]_x) R_v``),
+    the translations, the points and, with ``refine_focal``, the one focal. View ``fixed_view``
+    does not move (the gauge), nor the largest coordinate of view ``scale_view``'s translation
+    (the scale); a view no active observation sees and a point none sees stay as given.
+
+    Each step solves the Gauss-Newton normal equations of the Cauchy-reweighted residuals
+    (weights ``1 / (1 + |r|^2 / s^2)``), damped by ``lam`` times their diagonal (Marquardt),
+    with the points eliminated (Schur complement). The damping, 1e-3 at the start, moves by
+    Nielsen's rule (Madsen, Nielsen & Tingleff, "Methods for non-linear least squares problems",
+    2004): a step that lowers the cost is taken, and ``lam`` is multiplied by
+    ``max(1 / MAX_DAMPING_FALL, 1 - (2 rho - 1)^3)``, ``rho`` the cost's fall over the fall the
+    damped linear model predicted (``lam`` no lower than 1e-10); a step that does not is
+    rejected and ``lam`` multiplied by 2, then 4, 8... (the factor doubling with each rejection
+    in a row) until one is taken. (The point blocks also get 1e-9 on their diagonal, the
+    reduced camera system 1e-12, so that a point or a view the observations barely fix does
+    not make them singular.)
+
+    Stops after ``max_iterations`` accepted steps, at the first accepted step that lowers the
+    cost by less than ``tolerance`` of it, or when the damping passes 1e10 (no step lowers the
+    cost). Returns the cost at the end and the iterations run (0 when nothing is observed: the
+    start back unchanged)."""
+    # Layout: per-observation arrays have the observations last (``J [2, 11, n]``: each entry
+    # of the Jacobian, and the residual as its 11th column, one row each), written into buffers
+    # allocated once. The per-view sums are matrix products per view, the per-point sums one
+    # ``reduceat``. The Schur complement's sum over points is ``M^T M`` of ``M [3P, n_free]``
+    # (``Q_p W_p^T`` per point, ``V_p^-1 = Q_p^T Q_p``), written into the free parameters'
+    # columns; both solves against the point blocks go through ``M`` and ``Q``. The residuals
+    # of an accepted step are the next step's.
     R, t, X = np.array(R, np.float64), np.array(t, np.float64), np.array(points, np.float64)
     f = float(focal)
     uv, active = np.asarray(uv, np.float64), np.asarray(active, bool)

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field, replace
 import cv2
 import numpy as np
 
-from .bundle import bundle_adjust, fast_bundle_adjust, reprojection_errors
+from .bundle import bundle_adjust, reprojection_errors
 from .locate import PNP_ERROR, PNP_ITERATIONS, PNP_MIN_INLIERS, pose_distinct_first
 from .tracks import Tracks
 from .triangulation import camera_centres, max_ray_angles, triangulate
@@ -56,9 +56,6 @@ class MapperOptions:
                         confidence (``locate.confident_iterations``; the refinement's witness)
     pnp_iterations:     ... and its iterations at most (``locate.PNP_ITERATIONS``; the witness
                         runs fewer, ``refine.CappedPnP.max_iterations``)
-    fast_adjustment:    adjust with ``bundle.fast_bundle_adjust`` (the refinement's witness)
-                        instead of ``bundle.bundle_adjust`` (the solve: the teacher store holds
-                        its results)
     finish_min_views:   a starting pair's reconstruction that registers fewer views is kept as
                         it stands, without the final adjustments (the refinement's witness: a
                         mapping of so few views can confirm nothing, ``refine.witness``)
@@ -83,7 +80,6 @@ class MapperOptions:
     pnp_method: int = cv2.SOLVEPNP_SQPNP
     pnp_confident_stop: bool = False
     pnp_iterations: int = PNP_ITERATIONS
-    fast_adjustment: bool = False
     finish_min_views: int = 0
 
     def in_pixels(self, px: float) -> MapperOptions:
@@ -170,10 +166,10 @@ def _adjust(rec: Reconstruction, tracks: Tracks, centre, opts: MapperOptions, it
     i, j = rec.first
     refine = int(rec.registered.sum()) >= opts.min_focal_views if refine_focal is None \
         else refine_focal
-    adjust = fast_bundle_adjust if opts.fast_adjustment else bundle_adjust
-    res = adjust(rec.R, rec.t, rec.focal, centre, rec.points[adjusted], tracks.uv[adjusted],
-                 active[adjusted], fixed_view=i, scale_view=j, refine_focal=refine,
-                 loss_scale=opts.loss_scale, max_iterations=iterations)
+    res = bundle_adjust(rec.R, rec.t, rec.focal, centre, rec.points[adjusted],
+                        tracks.uv[adjusted], active[adjusted], fixed_view=i, scale_view=j,
+                        refine_focal=refine, loss_scale=opts.loss_scale,
+                        max_iterations=iterations)
     rec.R, rec.t, rec.focal = res.R, res.t, res.focal
     rec.points[adjusted] = res.points
     rest = keep & ~adjusted

@@ -1,4 +1,4 @@
-"""The refinement's bundle adjustment: rounds of ``bundle.fast_bundle_adjust`` from a start.
+"""The refinement's bundle adjustment: rounds of ``bundle.bundle_adjust`` from a start.
 
 A start's cameras get a point per track triangulated on them (``start_adjustment``), then rounds
 (``run_rounds``): each adjusts the points seen twice, drops the observations that reproject too
@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..bundle import fast_bundle_adjust, reprojection_errors
+from ..bundle import bundle_adjust, reprojection_errors
 from ..mapper import Reconstruction
 from ..solve import LOCATE_MIN_INLIERS
 from ..triangulation import triangulate
@@ -71,10 +71,10 @@ def adjust_round(a: Adjustment, iterations: int, refine_focal: bool, last: bool,
     beyond ``max_error`` or behind a camera, and (unless ``last``) triangulate the points left
     with fewer than two again; None when the focal left the positive numbers."""
     keep = a.active.sum(1) >= 2
-    res = fast_bundle_adjust(a.R, a.t, a.focal, centre, a.X[keep], tracks.uv[keep],
-                             a.active[keep], fixed_view=0, scale_view=scale_view,
-                             refine_focal=refine_focal, loss_scale=loss_scale,
-                             max_iterations=iterations, tolerance=options.tolerance)
+    res = bundle_adjust(a.R, a.t, a.focal, centre, a.X[keep], tracks.uv[keep], a.active[keep],
+                        fixed_view=0, scale_view=scale_view, refine_focal=refine_focal,
+                        loss_scale=loss_scale, max_iterations=iterations,
+                        tolerance=options.tolerance)
     if not (np.isfinite(res.focal) and res.focal > 0):
         return None
     X = a.X.copy()

@@ -45,10 +45,9 @@ class WitnessStages(SalvageStages, Protocol):
 def witness_mapping(evidence: Evidence, focal: float, opts: MapperOptions, useful_views: int,
                     stages: WitnessStages) -> Reconstruction | None:
     """The incremental mapper's reconstruction of the refinement's tracks (``incremental_mapping``
-    at ``focal``, ``WitnessOptions.trials`` starting pairs, PnP by ``SalvageOptions.pnp``, the
-    refinement's ``fast_bundle_adjust``), started from its pairs' essential matrices: the
-    solve's method on data already at hand, without its focal priors, homographies and second
-    pass. A starting pair's mapping that registers fewer than ``useful_views`` views is not
+    at ``focal``, ``WitnessOptions.trials`` starting pairs and ``WitnessOptions.iterations``, PnP
+    by ``SalvageOptions.pnp``), started from its pairs' essential matrices: the solve's method
+    on data already at hand, without its focal priors, homographies and second pass. A starting pair's mapping that registers fewer than ``useful_views`` views is not
     finished (``MapperOptions.finish_min_views``): the caller can use none such. None when no
     pair starts one. ``opts`` in the photos' pixels."""
     ev, options, pnp = evidence, stages.witness, stages.salvage.pnp
@@ -65,7 +64,7 @@ def witness_mapping(evidence: Evidence, focal: float, opts: MapperOptions, usefu
                                final_ba_iterations=options.iterations[1],
                                pnp_method=pnp.method, pnp_confident_stop=True,
                                pnp_iterations=pnp.max_iterations,
-                               fast_adjustment=True, finish_min_views=useful_views)
+                               finish_min_views=useful_views)
     return incremental_mapping(ev.features, ev.tracks, geometries, (focal,), ev.image_size, opts)
 
 
