@@ -1,12 +1,15 @@
 """The layout a maintainer relies on: no file of iris_train over 500 lines, no import circle between
 the training loop and the pseudo-poses, and benchmarks/ never importing scripts/ (the scripts that
-import benchmarks/ are listed, each with its reason)."""
+import benchmarks/ are listed, each with its reason), and no machine path in a tracked text file."""
 from __future__ import annotations
 
 import ast
+import re
 import subprocess
 import sys
 from pathlib import Path
+
+import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 MAX_LINES = 500
@@ -66,3 +69,26 @@ def test_only_the_listed_scripts_import_benchmarks():
     importing = {p.name for p in (REPO / "scripts").glob("*.py")
                  if "benchmarks" in {_top(m) for m in _imported_modules(p)}}
     assert importing == set(SCRIPTS_ON_BENCHMARKS)
+
+
+#: A path on the machine a file was written on (a home, the workplace's root): never in a file
+#: of the repository, which names data by set or by a path relative to the repository.
+MACHINE_PATH = re.compile(r"(?<![\w.~-])/(?:work|root|home)/[\w.-]")
+
+
+def test_no_tracked_text_file_holds_a_machine_path():
+    listed = subprocess.run(["git", "ls-files", "-z"], cwd=REPO, capture_output=True)
+    if listed.returncode != 0:
+        pytest.skip("not a git checkout")
+    found = []
+    for name in listed.stdout.decode().split("\0"):
+        path = REPO / name
+        if not name or not path.is_file() or path.stat().st_size > 20_000_000:
+            continue
+        data = path.read_bytes()
+        if b"\0" in data[:8192]:                       # binary (checkpoints, images, npz)
+            continue
+        text = data.decode("utf-8", errors="replace")
+        found += [f"{name}:{i}" for i, line in enumerate(text.splitlines(), 1)
+                  if MACHINE_PATH.search(line)]
+    assert not found, f"machine paths: {found[:20]}"
