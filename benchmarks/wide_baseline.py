@@ -5,12 +5,15 @@ surface.
     OMP_NUM_THREADS=1 python benchmarks/wide_baseline.py models/iris-tiny-rgb.pt \\
         --sets walk orbit heldout --scenes 6 --json benchmarks/results/wide/b1_true.json
     ... --sets walk --arc 150 270      # the widest walks: targets 10-30 degrees from a reference
+    ... --sets walk orbit --principal-point [--clean]   # what the model's assumptions cost
 
 Cameras: the TRUE ones, as ``iris-eval --cameras true`` (``evaluate.cameras.pose_scene``: re-based
 on view 0, scaled into the model's units by the solve's depth rule), targets at their true poses,
 so camera error is out of the picture (but for the principal point, which the renderer takes as
-centred: each scene records its offset). Frames as iris-eval's Seq order: references 0, 2, 3, 5, 7
-and targets 1, 4, 6 of 8. Each target is rendered at the model's resolution in torch (one
+centred: each scene records its offset; ``--principal-point`` renders with it,
+``Scene.principal_offset``). ``--clean``: the capture sets without their photometric camera
+effects (the true depth and colours of the same scenes). Frames as iris-eval's Seq order:
+references 0, 2, 3, 5, 7 and targets 1, 4, 6 of 8. Each target is rendered at the model's resolution in torch (one
 thread, no grad) with the rays ``IrisModel.render`` casts, keeping every ray's blend weights.
 
 Sets (``--sets``, N = ``--scenes`` each): ``walk``, object walks (``kind="walk"``) whose
@@ -33,6 +36,7 @@ holds the point) and "no depth" (no true depth): they partition the rays.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import time
 from pathlib import Path
@@ -72,14 +76,15 @@ def walk_seeds(n: int, arc: tuple[float, float], start: int = SEEDS_FROM) -> lis
     raise ValueError(f"arc: only {len(out)} of {100 * n} walks span {arc[0]:g}-{arc[1]:g} degrees")
 
 
-def load_set(name: str, n: int, image_size, arc=ARC_RANGE):
-    """(scenes, count) of set ``name``, as iris-eval's ``load_scenes`` gives its sets."""
+def load_set(name: str, n: int, image_size, arc=ARC_RANGE, clean: bool = False):
+    """(scenes, count) of set ``name``, as iris-eval's ``load_scenes`` gives its sets (``clean``:
+    the capture sets without their photometric camera effects)."""
     from iris_train.data import SyntheticScenes
     from iris_train.evaluate.scenes import SYNTHETIC_PHOTO_SIZE, load_scenes
     if name == "heldout":
         return load_scenes("synthetic:heldout", image_size, 8, n)
     seeds = walk_seeds(n, arc) if name == "walk" else list(range(SEEDS_FROM, SEEDS_FROM + n))
-    scenes = SyntheticScenes(seeds, n_views=8, size=SYNTHETIC_PHOTO_SIZE, kind=name)
+    scenes = SyntheticScenes(seeds, n_views=8, size=SYNTHETIC_PHOTO_SIZE, kind=name, clean=clean)
     return (scenes[i] for i in range(len(scenes))), len(scenes)
 
 
@@ -137,9 +142,11 @@ def bin_index(angle, has_depth) -> np.ndarray:
     return np.where(~has_depth, 7, np.where(np.isnan(angle), 6, idx))
 
 
-def scene_rays(model, scene, index: int = 0):
+def scene_rays(model, scene, index: int = 0, principal_point: bool = False):
     """One scene rendered at its true cameras -> (per-ray arrays over its targets, its record),
-    or None when it has fewer than 8 frames."""
+    or None when it has fewer than 8 frames. ``principal_point``: render with the references'
+    true principal point (``Scene.principal_offset``) instead of the centred one the model
+    assumes."""
     import torch
 
     from iris_train import geometry as G
@@ -154,10 +161,14 @@ def scene_rays(model, scene, index: int = 0):
     refs, targets = split_frames(8)
     posed = pose_scene(backend, prepared, refs, targets, "true", "true")
     T, (H, W), refs = posed.world_from_cam, backend.image_size, list(refs)
+    encoded = posed.encoded
+    if principal_point:
+        encoded = dataclasses.replace(encoded, principal_offset=torch.as_tensor(
+            posed.principal_offset, dtype=encoded.field_maps.dtype))
     uv = G.pixel_centres(H, W, dtype=torch.float64).numpy()     # the rendered rays' pixels
     rays, rgbs, softs, view_deg = [], [], [], []
     for t in targets:
-        rgb, weights, z, soft = render_target(model, posed.encoded, T[t])
+        rgb, weights, z, soft = render_target(model, encoded, T[t])
         true = prepared.true_depth[t].reshape(-1) * posed.scale
         stats = ray_stats(weights, z, soft, true, *backend.depth_range)
         gt = prepared.gt_images[t].reshape(-1, 3)
@@ -238,17 +249,19 @@ def format_report(sets: dict) -> str:
     return "\n".join(lines)
 
 
-def run(model, sets, n: int, arc=ARC_RANGE, progress: bool = True) -> dict:
-    """``{set: {"bins": rows, "scenes": records}}`` over the first ``n`` scenes of each set."""
+def run(model, sets, n: int, arc=ARC_RANGE, progress: bool = True, clean: bool = False,
+        principal_point: bool = False) -> dict:
+    """``{set: {"bins": rows, "scenes": records}}`` over the first ``n`` scenes of each set
+    (``clean``, ``principal_point``: as ``load_set`` and ``scene_rays`` take them)."""
     from tqdm import tqdm
     image_size = (model.cfg.image_height, model.cfg.image_width)
     out = {}
     for name in sets:
-        scenes, count = load_set(name, n, image_size, arc)
+        scenes, count = load_set(name, n, image_size, arc, clean)
         parts, records = [], []
         for i, scene in enumerate(tqdm(scenes, total=count, desc=name, unit="scene",
                                        disable=not progress, dynamic_ncols=True)):
-            result = scene_rays(model, scene, i)
+            result = scene_rays(model, scene, i, principal_point)
             if result is not None:
                 parts.append(result[0])
                 records.append({k: _value(v) if isinstance(v, float) else v
@@ -270,6 +283,12 @@ def main(argv=None) -> int:
                     help="walk set: the arcs (degrees) kept (default 45 120)")
     ap.add_argument("--json", type=Path, default=None, metavar="FILE",
                     help="write the bins and per-scene records to FILE (atomically)")
+    ap.add_argument("--principal-point", action="store_true",
+                    help="render with the scenes' true principal points (the model assumes "
+                         "centred ones): what that assumption costs")
+    ap.add_argument("--clean", action="store_true",
+                    help="the capture sets without their photometric camera effects (exposure, "
+                         "white balance, vignetting, blur, noise, JPEG)")
     ap.add_argument("--no-progress", action="store_true", help="no progress bars")
     args = ap.parse_args(argv)
     if args.scenes < 1:
@@ -287,7 +306,7 @@ def main(argv=None) -> int:
     start = time.perf_counter()
     try:
         sets = run(model, list(dict.fromkeys(args.sets)), args.scenes, tuple(args.arc),
-                   not args.no_progress)
+                   not args.no_progress, args.clean, args.principal_point)
     except ValueError as exc:               # no walk spans --arc
         ap.error(str(exc))
     seconds = time.perf_counter() - start
@@ -299,7 +318,9 @@ def main(argv=None) -> int:
         path = Path(args.model).resolve()       # named as given, relative to the repository
         name = str(path.relative_to(REPO)) if path.is_relative_to(REPO) else path.name
         atomic_write_json(args.json, {
-            "model": name, "cameras": "true", "references": list(refs), "targets": list(targets),
+            "model": name, "cameras": "true", "principal_point": "true" if
+            args.principal_point else "centred", "clean": args.clean,
+            "references": list(refs), "targets": list(targets),
             "arc_range": list(args.arc), "seeds_from": SEEDS_FROM,
             "near_band": NEAR_BAND, "bins": list(BIN_NAMES), "seconds": round(seconds, 1),
             "sets": sets})

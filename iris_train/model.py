@@ -71,7 +71,10 @@ class Scene:
     photos (needed by models with ``explicit_rgb``, None otherwise). When ``world_from_cam`` and
     ``focal`` are other cameras than the camera head's (``iris-eval --cameras``),
     ``encoder_world_from_cam [V, 4, 4]`` and ``encoder_focal [2]`` keep the head's, as
-    ``iris_runtime.Scene`` does; None when the cameras are the head's.
+    ``iris_runtime.Scene`` does; None when the cameras are the head's. ``principal_offset [2]``
+    (analysis only: the model and the runtime assume a centred principal point) moves every
+    view's principal point by that many pixels of the model's image, e.g. to render a synthetic
+    scene at its true intrinsics; None: centred.
     """
     field_maps: torch.Tensor
     world_from_cam: torch.Tensor
@@ -80,6 +83,7 @@ class Scene:
     images: torch.Tensor | None = None
     encoder_world_from_cam: torch.Tensor | None = None
     encoder_focal: torch.Tensor | None = None
+    principal_offset: torch.Tensor | None = None
 
     @property
     def num_views(self) -> int:
@@ -92,10 +96,15 @@ class Scene:
         H, W = self.image_size
         h, w = height or H, width or W
         if h * W == w * H:
-            return G.intrinsics_from_focal(self.focal, h, w)
-        scale = min(h / H, w / W)
-        K = G.intrinsics_from_focal(self.focal, H * scale, W * scale).clone()
-        K[0, 2], K[1, 2] = w / 2.0, h / 2.0
+            K = G.intrinsics_from_focal(self.focal, h, w)
+        else:
+            scale = min(h / H, w / W)
+            K = G.intrinsics_from_focal(self.focal, H * scale, W * scale).clone()
+            K[0, 2], K[1, 2] = w / 2.0, h / 2.0
+        if self.principal_offset is None:
+            return K
+        K = K.clone()
+        K[:2, 2] = K[:2, 2] + self.principal_offset.to(K.dtype) * min(h / H, w / W)
         return K
 
     def subset(self, indices) -> "Scene":

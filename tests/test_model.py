@@ -16,6 +16,7 @@ whole file takes seconds. What is checked:
 from __future__ import annotations
 
 import copy
+import dataclasses
 import math
 import pickle
 
@@ -727,3 +728,30 @@ def test_unknown_preset_and_field():
         preset("huge")
     with pytest.raises(ValueError, match="unknown"):
         ModelConfig.from_dict({"image_height": 64, "colour": 1})
+
+
+@pytest.mark.parametrize("size", [(16, 16), (16, 24), (32, 20)])
+def test_principal_offset_moves_the_principal_point_only(size):
+    """``Scene.principal_offset`` (pixels of the model's image) shifts K's principal point by the
+    offset scaled to the output, and nothing else; a zero offset renders bit for bit as None."""
+    torch.manual_seed(0)
+    model = build_model(CFG).eval()
+    images = torch.rand(3, 3, CFG.image_height, CFG.image_width)
+    with torch.no_grad():
+        scene = model.encode(images)
+    offset = torch.tensor([2.5, -1.25])
+    moved = dataclasses.replace(scene, principal_offset=offset)
+    h, w = size
+    K, K2 = scene.intrinsics(h, w), moved.intrinsics(h, w)
+    scale = min(h / CFG.image_height, w / CFG.image_width)
+    torch.testing.assert_close(K2[:2, 2], K[:2, 2] + offset * scale, rtol=0, atol=1e-6)
+    K2[:2, 2] = K[:2, 2]
+    assert torch.equal(K2, K)
+    assert torch.equal(moved.subset([0, 2]).principal_offset, offset)
+    zero = dataclasses.replace(scene, principal_offset=torch.zeros(2))
+    with torch.no_grad():
+        a = model.render(scene.subset([0, 1]), scene.world_from_cam[[2]], 8, 8)
+        b = model.render(zero.subset([0, 1]), scene.world_from_cam[[2]], 8, 8)
+        c = model.render(moved.subset([0, 1]), scene.world_from_cam[[2]], 8, 8)
+    assert all(torch.equal(x, y) for x, y in zip(a, b))
+    assert not torch.equal(a[0], c[0])
