@@ -23,6 +23,7 @@ the teacher store stayed as solved (docs/record/cameras-refactor.md).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -103,6 +104,196 @@ def _exp_so3(w: np.ndarray) -> np.ndarray:
             + (1.0 - np.cos(theta))[:, None, None] * (K @ K))
 
 
+class _NormalEquations(NamedTuple):
+    """The Gauss-Newton normal equations of one step, before damping: the cameras' block
+    ``Ur [n_free, n_free]`` and gradient ``gr [n_free]`` in the free parameters, the camera-point
+    blocks ``Wo [7, 3, n]`` per observation, the point blocks ``Vp [3, 3, P]`` and gradients
+    ``gp [3, P]``, and the diagonals the damping scales (``diag_U [n_free]``, ``diag_V [3, P]``).
+    Wo, Vp and gp are the adjustment's buffers: valid until its next ``normal_equations``."""
+    Ur: np.ndarray
+    gr: np.ndarray
+    diag_U: np.ndarray
+    Wo: np.ndarray
+    Vp: np.ndarray
+    gp: np.ndarray
+    diag_V: np.ndarray
+
+
+class _Adjustment:
+    """What stays fixed while ``bundle_adjust`` iterates: the observations (sorted by point,
+    indexed by view), the map from the free parameters to the views' entries, where the
+    reduced camera system's entries come from, and the buffers every step writes.
+
+    Layout: per-observation arrays have the observations last (``J [2, 11, n]``: each entry
+    of the Jacobian, and the residual as its 11th column, one row each), written into buffers
+    allocated once. The per-view sums are matrix products per view, the per-point sums one
+    ``reduceat``. The Schur complement's sum over points is ``M^T M`` of ``M [3P, n_free]``
+    (``Q_p W_p^T`` per point, ``V_p^-1 = Q_p^T Q_p``), written into the free parameters'
+    columns; both solves against the point blocks go through ``M`` and ``Q``."""
+
+    def __init__(self, p, v, uv, centre, s2, V, P, t, *, fixed_view, scale_view, refine_focal):
+        """The observations ``(p, v)`` (point, view; sorted by point) of pixels ``uv [P, V, 2]``,
+        principal point ``centre [2, 1]``, squared loss scale ``s2``, ``V`` views (translations
+        ``t [V, 3]``, for the scale view's held coordinate) and ``P`` points."""
+        n = len(p)
+        self.p, self.v, self.V, self.P = p, v, V, P
+        self.uv, self.centre, self.s2 = uv[p, v].T, centre, s2             # uv [2, n]
+        self.starts = np.flatnonzero(np.r_[True, p[1:] != p[:-1]])
+        self.seen = p[self.starts]                                     # the observed points
+        self.by_view = np.argsort(v, kind="stable")
+        self.view_ends = np.searchsorted(v[self.by_view], np.arange(V + 1))
+        # Where each observation's R_v X_p lies in (R.reshape(3V, 3) @ X.T).ravel(): [3, n].
+        self.coords = (3 * v + np.arange(3)[:, None]) * P + p
+        self.refine_focal = refine_focal
+        self._map_free_parameters(_free_entries(v, t, fixed_view, scale_view))
+        self.J, self.J_by_view = np.empty((2, 11, n)), np.empty((2, 11, n))
+        self.Wo, self.Pw, self.G = np.empty((7, 3, n)), np.empty((3, 4, n)), np.empty((3, 7, n))
+        self.Wo_k, self.Pw_k = np.empty((7, 3, n)), np.empty((3, 4, n))
+        self.R_v = np.empty((3, 3, n))
+        self.H, self.U = np.empty((V, 11, 11)), np.zeros((V, 7, V, 7))
+        self.Vp, self.gp, self.Q = np.zeros((3, 3, P)), np.zeros((3, P)), np.zeros((3, 3, P))
+
+    def _map_free_parameters(self, free):
+        """The free parameters of the views' entries ``free [V, 7]`` (and, with
+        ``refine_focal``, the shared focal): their map ``T`` to the views' entries, their count
+        ``n_free`` (``n_pose`` of them the poses'), and ``M`` with the indices that fill it."""
+        V, P, p, v, n = self.V, self.P, self.p, self.v, len(self.p)
+        # T [7V, n_free]: per-view entries from the parameters (the focal shared by every view).
+        self.n_pose = n_pose = int(free.sum())
+        self.n_free = n_free = n_pose + int(self.refine_focal)
+        self.T = np.zeros((7 * V, n_free))
+        self.T[np.flatnonzero(free.ravel()), np.arange(n_pose)] = 1.0
+        if self.refine_focal:
+            self.T[6::7, n_pose] = 1.0
+        # M's entries: G [3, 7, n] (Q_p W_o^T of each observation o of point p) at row 3 p + i and
+        # the column of its view's free pose entry j (fixed entries dropped); the focal's column
+        # sums the point's observations.
+        column = -np.ones((V, 7), np.int64)
+        column[free] = np.arange(n_pose)
+        column = np.broadcast_to(column[v, :6].T, (3, 6, n))
+        kept = column >= 0
+        self.into_M = ((3 * p + np.arange(3)[:, None, None]) * n_free + column)[kept]
+        self.from_G = np.arange(3 * 7 * n).reshape(3, 7, n)[:, :6][kept]
+        self.focal_rows = 3 * self.seen + np.arange(3)[:, None]          # [3, P_seen]
+        self.M = np.zeros((3 * P, n_free))
+
+    def residuals(self, R, t, f, X):
+        """The cost and (camera coordinates Y [3, n] = a + t_v with a = R_v X_p, 1 / depth
+        [n], residuals [2, n]): the cost infinite with a point behind its camera."""
+        a = (R.reshape(3 * self.V, 3) @ X.T).ravel()[self.coords]
+        Y = a + t[self.v].T
+        ahead = Y[2] > 1e-12
+        iz = 1.0 / np.where(ahead, Y[2], 1e-12)
+        r = f * Y[:2] * iz + self.centre - self.uv
+        s2 = self.s2
+        cost = float(0.5 * s2 * np.log1p((r * r).sum(0) / s2).sum()) \
+            if ahead.all() and f > 0 else np.inf                                  # Cauchy
+        return cost, (Y, a, iz, r)
+
+    def _weighted_jacobian(self, R, f, state):
+        """``J [2, 11, n]``: each observation's Jacobian row by row (rotation, translation,
+        focal, point) and its residual as the 11th column, weighted, at ``state``."""
+        Y, a, iz, r = state
+        J, R_v = self.J, self.R_v
+        # d(pixel)/dY = [[fz, 0, gx], [0, fz, gy]]; the rotation's columns are its product with
+        # d(exp(w) a)/dw = -[a]_x, the point's with R_v. Rows scaled by the square roots of
+        # the Cauchy IRLS weights.
+        fz = f * iz
+        gx, gy = -Y[0] * fz * iz, -Y[1] * fz * iz
+        np.take(R.transpose(1, 2, 0), self.v, axis=2, out=R_v)
+        J[0, 0], J[0, 1], J[0, 2] = gx * a[1], fz * a[2] - gx * a[0], -fz * a[1]
+        J[1, 0], J[1, 1], J[1, 2] = gy * a[1] - fz * a[2], -gy * a[0], fz * a[0]
+        J[0, 3], J[0, 4], J[0, 5] = fz, 0.0, gx
+        J[1, 3], J[1, 4], J[1, 5] = 0.0, fz, gy
+        J[:, 6] = Y[:2] * iz
+        J[0, 7:10] = fz * R_v[0] + gx * R_v[2]
+        J[1, 7:10] = fz * R_v[1] + gy * R_v[2]
+        J[:, 10] = r
+        J *= 1.0 / np.sqrt(1.0 + (r * r).sum(0) / self.s2)
+        return J
+
+    def normal_equations(self, R, f, state) -> _NormalEquations:
+        """The normal equations at ``state`` (what ``residuals`` returned for ``R``, ``f`` and
+        the points)."""
+        J = self._weighted_jacobian(R, f, state)
+        J_by_view, H, U, T, V = self.J_by_view, self.H, self.U, self.T, self.V
+        Wo, Pw, Vp, gp = self.Wo, self.Pw, self.Vp, self.gp
+        # Per view: [J r]^T [J r] over its observations holds U_v [7, 7] and g_v [7].
+        np.take(J, self.by_view, axis=2, out=J_by_view)
+        for k in range(V):
+            B = J_by_view[:, :, self.view_ends[k]:self.view_ends[k + 1]]
+            np.matmul(B[0], B[0].T, out=H[k])
+            H[k] += B[1] @ B[1].T
+        U[np.arange(V), :, np.arange(V)] = H[:, :7, :7]
+        Ur = T.T @ U.reshape(7 * V, 7 * V) @ T
+        gr = T.T @ H[:, :7, 10].ravel()
+        # Per observation W_o [7, 3]; per point V_p [3, 3] and g_p [3].
+        np.multiply(J[0, :7, None], J[0, None, 7:10], out=Wo)
+        Wo += np.multiply(J[1, :7, None], J[1, None, 7:10], out=self.Wo_k)
+        np.multiply(J[0, 7:10, None], J[0, None, 7:11], out=Pw)
+        Pw += np.multiply(J[1, 7:10, None], J[1, None, 7:11], out=self.Pw_k)
+        per_point = np.add.reduceat(Pw, self.starts, axis=2)           # [3, 4, P_seen]
+        Vp[:, :, self.seen], gp[:, self.seen] = per_point[:, :3], per_point[:, 3]
+        diag_V = np.stack([Vp[0, 0], Vp[1, 1], Vp[2, 2]])              # [3, P]
+        return _NormalEquations(Ur, gr, np.diag(Ur), Wo, Vp, gp, diag_V)
+
+    def _reduced_camera_system(self, eq: _NormalEquations, lam: float):
+        """The damped system in the cameras with the points eliminated (``S dc = -rhs``) and
+        ``Qg [3, P]`` (``Q_p g_p``), leaving ``Q`` (``V_p^-1 = Q_p^T Q_p`` of the damped point
+        blocks) and ``M`` written."""
+        Q, M, G, Wo, Vp, gp = self.Q, self.M, self.G, eq.Wo, eq.Vp, eq.gp
+        damped = Vp.copy()
+        for i in range(3):
+            damped[i, i] = Vp[i, i] + (lam * eq.diag_V[i] + 1e-9)
+        _write_inverse_factor(Q, damped)
+        Q_p = Q[:, :, self.p]                                          # [3, 3, n]
+        np.multiply(Q_p[:, 0, None], Wo[None, :, 0], out=G)            # G = Q_p W_o^T
+        G[1:] += Q_p[1:, 1, None] * Wo[None, :, 1]
+        G[2] += Q_p[2, 2] * Wo[:, 2]
+        M.reshape(-1)[self.into_M] = G.reshape(-1)[self.from_G]
+        if self.refine_focal:
+            M[self.focal_rows, self.n_pose] = np.add.reduceat(G[:, 6], self.starts, axis=1)
+        S = eq.Ur + lam * np.diag(eq.diag_U) - M.T @ M
+        Qg = np.stack([Q[0, 0] * gp[0], Q[1, 0] * gp[0] + Q[1, 1] * gp[1],
+                       Q[2, 0] * gp[0] + Q[2, 1] * gp[1] + Q[2, 2] * gp[2]])  # [3, P]
+        rhs = eq.gr - Qg.T.ravel() @ M                                 # g - W V^-1 g_p
+        return S, rhs, Qg
+
+    def damped_step(self, eq: _NormalEquations, lam: float):
+        """The step ``(dc [n_free], dp [3, P])`` of the free parameters and the points damped
+        by ``lam``: the reduced camera system solved, the points back-substituted; None when
+        the system has no finite solution."""
+        S, rhs, Qg = self._reduced_camera_system(eq, lam)
+        try:
+            dc = -np.linalg.solve(S + 1e-12 * np.eye(self.n_free), rhs)
+        except np.linalg.LinAlgError:
+            return None
+        if not np.all(np.isfinite(dc)):
+            return None
+        Q = self.Q
+        q = Qg + (self.M @ dc).reshape(self.P, 3).T                    # Q (g_p + W^T dc)
+        dp = -np.stack([Q[0, 0] * q[0] + Q[1, 0] * q[1] + Q[2, 0] * q[2],
+                        Q[1, 1] * q[1] + Q[2, 1] * q[2], Q[2, 2] * q[2]])
+        return dc, dp
+
+    def moved(self, R, t, f, X, dc, dp):
+        """``R``, ``t``, ``f``, ``X`` moved by the step ``(dc, dp)`` (rotations on the left)."""
+        d7 = (self.T @ dc).reshape(self.V, 7)                          # 0 where fixed
+        return _exp_so3(d7[:, :3]) @ R, t + d7[:, 3:6], f + d7[0, 6], X + dp.T
+
+
+def _predicted_fall(eq: _NormalEquations, lam: float, dc, dp) -> float:
+    """The fall the damped linear model predicts: (dx^T (lam D dx - g)) / 2."""
+    return 0.5 * (lam * (eq.diag_U @ dc**2 + (eq.diag_V * dp**2).sum())
+                  - eq.gr @ dc - (eq.gp * dp).sum())
+
+
+def _nielsen_damping(lam: float, rho: float) -> float:
+    """The damping after an accepted step whose cost fell ``rho`` times the predicted fall."""
+    fall = max(1.0 / MAX_DAMPING_FALL, 1.0 - (2.0 * rho - 1.0) ** 3)
+    return max(lam * fall, 1e-10)
+
+
 def bundle_adjust(R, t, focal, centre, points, uv, active, *, fixed_view: int, scale_view: int,
                   refine_focal: bool = True, loss_scale: float = 1.0,
                   max_iterations: int = 50,
@@ -137,145 +328,35 @@ def bundle_adjust(R, t, focal, centre, points, uv, active, *, fixed_view: int, s
     cost by less than ``tolerance`` of it, or when the damping passes 1e10 (no step lowers the
     cost). Returns the cost at the end and the iterations run (0 when nothing is observed: the
     start back unchanged)."""
-    # Layout: per-observation arrays have the observations last (``J [2, 11, n]``: each entry
-    # of the Jacobian, and the residual as its 11th column, one row each), written into buffers
-    # allocated once. The per-view sums are matrix products per view, the per-point sums one
-    # ``reduceat``. The Schur complement's sum over points is ``M^T M`` of ``M [3P, n_free]``
-    # (``Q_p W_p^T`` per point, ``V_p^-1 = Q_p^T Q_p``), written into the free parameters'
-    # columns; both solves against the point blocks go through ``M`` and ``Q``. The residuals
-    # of an accepted step are the next step's.
     R, t, X = np.array(R, np.float64), np.array(t, np.float64), np.array(points, np.float64)
     f = float(focal)
     uv, active = np.asarray(uv, np.float64), np.asarray(active, bool)
     centre, s2 = np.asarray(centre, np.float64)[:, None], float(loss_scale) ** 2
-    V, P = R.shape[0], X.shape[0]
     p, v = np.nonzero(active)                          # the observations, sorted by point
-    n = len(p)
-    if n == 0:
+    if len(p) == 0:
         return BundleResult(R, t, f, X, 0.0, 0)
-    uv = uv[p, v].T                                                    # [2, n]
-    starts = np.flatnonzero(np.r_[True, p[1:] != p[:-1]])
-    seen = p[starts]                                                   # the observed points
-    by_view = np.argsort(v, kind="stable")
-    view_ends = np.searchsorted(v[by_view], np.arange(V + 1))
-    # Where each observation's R_v X_p lies in (R.reshape(3V, 3) @ X.T).ravel(): [3, n].
-    coords = (3 * v + np.arange(3)[:, None]) * P + p
-
-    # T [7V, n_free]: per-view entries from the parameters (the focal shared by every view).
-    free = _free_entries(v, t, fixed_view, scale_view)
-    n_pose = int(free.sum())
-    n_free = n_pose + int(refine_focal)
-    T = np.zeros((7 * V, n_free))
-    T[np.flatnonzero(free.ravel()), np.arange(n_pose)] = 1.0
-    if refine_focal:
-        T[6::7, n_pose] = 1.0
-    # M's entries: G [3, 7, n] (Q_p W_o^T of each observation o of point p) at row 3 p + i and
-    # the column of its view's free pose entry j (fixed entries dropped); the focal's column
-    # sums the point's observations.
-    column = -np.ones((V, 7), np.int64)
-    column[free] = np.arange(n_pose)
-    column = np.broadcast_to(column[v, :6].T, (3, 6, n))
-    kept = column >= 0
-    into_M = ((3 * p + np.arange(3)[:, None, None]) * n_free + column)[kept]
-    from_G = np.arange(3 * 7 * n).reshape(3, 7, n)[:, :6][kept]
-    focal_rows = 3 * seen + np.arange(3)[:, None]                      # [3, P_seen]
-    M = np.zeros((3 * P, n_free))
-    J, J_by_view = np.empty((2, 11, n)), np.empty((2, 11, n))
-    Wo, Pw, G = np.empty((7, 3, n)), np.empty((3, 4, n)), np.empty((3, 7, n))
-    Wo_k, Pw_k, R_v = np.empty((7, 3, n)), np.empty((3, 4, n)), np.empty((3, 3, n))
-    H, U = np.empty((V, 11, 11)), np.zeros((V, 7, V, 7))
-    Vp, gp, Q = np.zeros((3, 3, P)), np.zeros((3, P)), np.zeros((3, 3, P))
-
-    def residuals(R, t, f, X):
-        """The cost and (camera coordinates Y [3, n] = a + t_v with a = R_v X_p, 1 / depth
-        [n], residuals [2, n]): the cost infinite with a point behind its camera."""
-        a = (R.reshape(3 * V, 3) @ X.T).ravel()[coords]
-        Y = a + t[v].T
-        ahead = Y[2] > 1e-12
-        iz = 1.0 / np.where(ahead, Y[2], 1e-12)
-        r = f * Y[:2] * iz + centre - uv
-        cost = float(0.5 * s2 * np.log1p((r * r).sum(0) / s2).sum()) \
-            if ahead.all() and f > 0 else np.inf                                  # Cauchy
-        return cost, (Y, a, iz, r)
-
-    cost, state = residuals(R, t, f, X)
+    problem = _Adjustment(p, v, uv, centre, s2, R.shape[0], X.shape[0], t,
+                          fixed_view=fixed_view, scale_view=scale_view, refine_focal=refine_focal)
+    cost, state = problem.residuals(R, t, f, X)
     lam, nu, it = 1e-3, 2.0, 0
     for it in range(1, max_iterations + 1):
-        Y, a, iz, r = state
-        # d(pixel)/dY = [[fz, 0, gx], [0, fz, gy]]; the rotation's columns are its product with
-        # d(exp(w) a)/dw = -[a]_x, the point's with R_v. Rows scaled by the square roots of
-        # the Cauchy IRLS weights.
-        fz = f * iz
-        gx, gy = -Y[0] * fz * iz, -Y[1] * fz * iz
-        np.take(R.transpose(1, 2, 0), v, axis=2, out=R_v)
-        J[0, 0], J[0, 1], J[0, 2] = gx * a[1], fz * a[2] - gx * a[0], -fz * a[1]
-        J[1, 0], J[1, 1], J[1, 2] = gy * a[1] - fz * a[2], -gy * a[0], fz * a[0]
-        J[0, 3], J[0, 4], J[0, 5] = fz, 0.0, gx
-        J[1, 3], J[1, 4], J[1, 5] = 0.0, fz, gy
-        J[:, 6] = Y[:2] * iz
-        J[0, 7:10] = fz * R_v[0] + gx * R_v[2]
-        J[1, 7:10] = fz * R_v[1] + gy * R_v[2]
-        J[:, 10] = r
-        J *= 1.0 / np.sqrt(1.0 + (r * r).sum(0) / s2)
-        # Per view: [J r]^T [J r] over its observations holds U_v [7, 7] and g_v [7].
-        np.take(J, by_view, axis=2, out=J_by_view)
-        for k in range(V):
-            B = J_by_view[:, :, view_ends[k]:view_ends[k + 1]]
-            np.matmul(B[0], B[0].T, out=H[k])
-            H[k] += B[1] @ B[1].T
-        U[np.arange(V), :, np.arange(V)] = H[:, :7, :7]
-        Ur = T.T @ U.reshape(7 * V, 7 * V) @ T
-        gr = T.T @ H[:, :7, 10].ravel()
-        # Per observation W_o [7, 3]; per point V_p [3, 3] and g_p [3].
-        np.multiply(J[0, :7, None], J[0, None, 7:10], out=Wo)
-        Wo += np.multiply(J[1, :7, None], J[1, None, 7:10], out=Wo_k)
-        np.multiply(J[0, 7:10, None], J[0, None, 7:11], out=Pw)
-        Pw += np.multiply(J[1, 7:10, None], J[1, None, 7:11], out=Pw_k)
-        per_point = np.add.reduceat(Pw, starts, axis=2)                # [3, 4, P_seen]
-        Vp[:, :, seen], gp[:, seen] = per_point[:, :3], per_point[:, 3]
-        diag_U = np.diag(Ur)
-        diag_V = np.stack([Vp[0, 0], Vp[1, 1], Vp[2, 2]])              # [3, P]
-        damped = Vp.copy()
+        eq = problem.normal_equations(R, f, state)
         done = False
         while True:
-            for i in range(3):
-                damped[i, i] = Vp[i, i] + (lam * diag_V[i] + 1e-9)
-            _write_inverse_factor(Q, damped)
-            Q_p = Q[:, :, p]                                            # [3, 3, n]
-            np.multiply(Q_p[:, 0, None], Wo[None, :, 0], out=G)         # G = Q_p W_o^T
-            G[1:] += Q_p[1:, 1, None] * Wo[None, :, 1]
-            G[2] += Q_p[2, 2] * Wo[:, 2]
-            M.reshape(-1)[into_M] = G.reshape(-1)[from_G]
-            if refine_focal:
-                M[focal_rows, n_pose] = np.add.reduceat(G[:, 6], starts, axis=1)
-            S = Ur + lam * np.diag(diag_U) - M.T @ M
-            Qg = np.stack([Q[0, 0] * gp[0], Q[1, 0] * gp[0] + Q[1, 1] * gp[1],
-                           Q[2, 0] * gp[0] + Q[2, 1] * gp[1] + Q[2, 2] * gp[2]])  # [3, P]
-            rhs = gr - Qg.T.ravel() @ M                                 # g - W V^-1 g_p
-            try:
-                dc = -np.linalg.solve(S + 1e-12 * np.eye(n_free), rhs)
-            except np.linalg.LinAlgError:
-                dc = np.full(n_free, np.nan)
-            new = np.inf
-            if np.all(np.isfinite(dc)):
-                d7 = (T @ dc).reshape(V, 7)                             # 0 where fixed
-                q = Qg + (M @ dc).reshape(P, 3).T                       # Q (g_p + W^T dc)
-                dp = -np.stack([Q[0, 0] * q[0] + Q[1, 0] * q[1] + Q[2, 0] * q[2],
-                                Q[1, 1] * q[1] + Q[2, 1] * q[2], Q[2, 2] * q[2]])
-                R2, t2, f2 = _exp_so3(d7[:, :3]) @ R, t + d7[:, 3:6], f + d7[0, 6]
-                X2 = X + dp.T
-                new, state2 = residuals(R2, t2, f2, X2)
+            new, step = np.inf, problem.damped_step(eq, lam)
+            if step is not None:
+                dc, dp = step
+                R2, t2, f2, X2 = problem.moved(R, t, f, X, dc, dp)
+                new, state2 = problem.residuals(R2, t2, f2, X2)
             if new < cost:
-                # The fall the damped linear model predicts: (dx^T (lam D dx - g)) / 2.
-                predicted = 0.5 * (lam * (diag_U @ dc**2 + (diag_V * dp**2).sum())
-                                   - gr @ dc - (gp * dp).sum())
+                predicted = _predicted_fall(eq, lam, dc, dp)
                 rho = (cost - new) / predicted if predicted > 0 else 1.0
                 done = (cost - new) < tolerance * cost
+                # The residuals of an accepted step are the next step's.
                 R, t, f, X, cost, state = R2, t2, f2, X2, new, state2
-                fall = max(1.0 / MAX_DAMPING_FALL, 1.0 - (2.0 * rho - 1.0) ** 3)
-                lam, nu = max(lam * fall, 1e-10), 2.0
+                lam, nu = _nielsen_damping(lam, rho), 2.0
                 break
-            lam, nu = lam * nu, 2.0 * nu
+            lam, nu = lam * nu, 2.0 * nu                               # rejected
             if lam > 1e10:
                 break
         if lam > 1e10 or done:
