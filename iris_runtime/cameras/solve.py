@@ -197,14 +197,23 @@ def solve_cameras(photos, depth_range: tuple[float, float], *, focal: float | No
     opts = (options or MapperOptions()).in_pixels(px)
     focals = ((k * float(focal),) if focal is not None
               else tuple(prior * max(H, W) for prior in FOCAL_PRIORS))
-    f0 = focals[0]
+    best = _best_reconstruction(features, focals, (H, W), opts, px)
+    if best is None:
+        return _unposed(V, focals[0] / k, size, k)
+    rec, tracks = best
+    cam_from_world, located = _canonical_cameras(rec, tracks, (H, W), opts.pnp_error)
+    status = np.array(["unposed"] * V, dtype=object)
+    status[perm[rec.registered]] = "solved"
+    status[perm[located]] = "located"
+    return finish_solve(rec, tracks, features, cam_from_world, status, perm, k, size,
+                        (near, far))
 
-    matches = {(a, b): match_features(features[a], features[b])
-               for a in range(V) for b in range(a + 1, V)}
-    # Two reconstructions: one on every match, one whose pairs and registrations trust the
-    # distinct keypoints first (no near twin in their photo); the one that registers more views
-    # and, among those, explains more distinct matches is kept (docs/CAMERAS.md, "Repeated
-    # patterns").
+
+def _distinct_matches(features, matches) -> tuple[list, dict, dict]:
+    """Which keypoints and matches a repeated texture cannot have confused: ``(keypoint_distinct,
+    distinct, unique)``, per view ``bool [N_v]`` the keypoints with no near twin in their photo
+    (``distinct_keypoints``), per pair ``(a, b)`` of ``matches`` ``bool [M_ab]`` the matches of
+    two such keypoints, and of two keypoints with no mirrored twin either."""
     keypoint_distinct = [distinct_keypoints(f) for f in features]
     distinct = {(a, b): keypoint_distinct[a][m[:, 0]] & keypoint_distinct[b][m[:, 1]]
                 for (a, b), m in matches.items()}
@@ -216,17 +225,36 @@ def solve_cameras(photos, depth_range: tuple[float, float], *, focal: float | No
                        for d, f in zip(keypoint_distinct, features)]
     unique = {(a, b): keypoint_unique[a][m[:, 0]] & keypoint_unique[b][m[:, 1]]
               for (a, b), m in matches.items()}
-    plain = {(a, b): estimate_two_view(features[a].uv, features[b].uv, m, f0, (H, W),
+    return keypoint_distinct, distinct, unique
+
+
+def _best_reconstruction(features, focals: tuple[float, ...], size: tuple[int, int],
+                         opts: MapperOptions, px: float) -> tuple[Reconstruction, Tracks] | None:
+    """The reconstruction of the V views of ``features`` (photos of ``size`` (H, W), ``px``
+    their ``pixel_scale``) and its tracks, or None (one view, or no pair can start one): the
+    incremental mapper (starting focals ``focals``, pixels) run on every match and again
+    trusting the distinct keypoints first, keeping the run that registers more views and, among
+    those, explains more distinct matches, mirrored twins excluded too (``_distinct_support``)."""
+    V = len(features)
+    f0 = focals[0]
+    matches = {(a, b): match_features(features[a], features[b])
+               for a in range(V) for b in range(a + 1, V)}
+    # Two reconstructions: one on every match, one whose pairs and registrations trust the
+    # distinct keypoints first (no near twin in their photo); the one that registers more views
+    # and, among those, explains more distinct matches is kept (docs/CAMERAS.md, "Repeated
+    # patterns").
+    keypoint_distinct, distinct, unique = _distinct_matches(features, matches)
+    plain = {(a, b): estimate_two_view(features[a].uv, features[b].uv, m, f0, size,
                                        MAX_ERROR * px) for (a, b), m in matches.items()}
     best, best_key = None, None
     for trust_distinct in (False, True) if DISTINCT_DISTANCE > 0 else (False,):
         geometries = {(a, b): estimate_from_distinct(features[a].uv, features[b].uv, m,
-                                                     distinct[a, b], f0, (H, W), MAX_ERROR * px)
+                                                     distinct[a, b], f0, size, MAX_ERROR * px)
                       or plain[a, b] for (a, b), m in matches.items()} if trust_distinct \
             else plain
         inliers = {ab: g.inliers for ab, g in geometries.items() if g.config != "degenerate"}
         candidate_tracks = build_tracks(features, inliers)
-        candidate = incremental_mapping(features, candidate_tracks, geometries, focals, (H, W),
+        candidate = incremental_mapping(features, candidate_tracks, geometries, focals, size,
                                         opts, keypoint_distinct if trust_distinct else None) \
             if V > 1 else None
         if candidate is None:
@@ -235,26 +263,31 @@ def solve_cameras(photos, depth_range: tuple[float, float], *, focal: float | No
                _distinct_support(candidate, features, matches, unique, MAX_ERROR * px))
         if best_key is None or key > best_key:
             best, best_key = (candidate, candidate_tracks), key
-    rec, tracks = best if best is not None else (None, None)
+    return best
 
-    status = np.array(["unposed"] * V, dtype=object)
-    if rec is None:
-        return _unposed(V, f0 / k, size, k)
-    status[perm[rec.registered]] = "solved"
-    cam_from_world = np.full((V, 4, 4), np.nan)          # canonical numbering
+
+def _canonical_cameras(rec: Reconstruction, tracks: Tracks, size: tuple[int, int],
+                       pnp_error: float) -> tuple[np.ndarray, np.ndarray]:
+    """``(cam_from_world [V, 4, 4], located bool [V])`` in the canonical numbering: the views
+    ``rec`` registered take its cameras; each other view is posed against the points it sees,
+    the points held fixed (``pose_from_points`` in photos of ``size`` (H, W), at least
+    ``LOCATE_MIN_INLIERS`` within ``pnp_error`` pixels), ``located`` where that succeeds and
+    NaN rows where it does not."""
+    V = len(rec.registered)
+    cam_from_world = np.full((V, 4, 4), np.nan)
+    located = np.zeros(V, dtype=bool)
     for v in np.flatnonzero(rec.registered):
         cam_from_world[v] = np.eye(4)
         cam_from_world[v, :3, :3], cam_from_world[v, :3, 3] = rec.R[v], rec.t[v]
     for v in np.flatnonzero(~rec.registered):
         sees = rec.point_ok & tracks.observed[:, v]
-        pose = pose_from_points(rec.points[sees], tracks.uv[sees, v], rec.focal, (H, W),
-                                max_error=opts.pnp_error, min_inliers=LOCATE_MIN_INLIERS)
+        pose = pose_from_points(rec.points[sees], tracks.uv[sees, v], rec.focal, size,
+                                max_error=pnp_error, min_inliers=LOCATE_MIN_INLIERS)
         if pose is not None:
             cam_from_world[v] = np.eye(4)
             cam_from_world[v, :3, :3], cam_from_world[v, :3, 3] = pose[0], pose[1]
-            status[perm[v]] = "located"
-    return finish_solve(rec, tracks, features, cam_from_world, status, perm, k, size,
-                        (near, far))
+            located[v] = True
+    return cam_from_world, located
 
 
 def _unposed(V: int, focal: float, size: tuple[int, int], k: int) -> CameraSolve:

@@ -192,67 +192,24 @@ def pose_scene(backend, scene: PreparedScene, ref_order: Sequence[int],
     references' cameras are not the model's, the model's are kept beside them
     (``PosedScene.head_world_from_cam``, from the backend's ``head_cameras``).
     """
-    images, photos = scene.images, scene.photos
+    images = scene.images
     V = images.shape[0]
     ref_order, target_order = list(ref_order), list(target_order)
     pred = np.empty((V, 4, 4))
-    truth = solve = None
-    if "true" in (cameras, locate):
-        if scene.poses is None or scene.K is None:
-            raise InputError("cameras: 'true' needs the data's own cameras, and this scene has "
-                             "none (a folder needs transforms.json or COLMAP text files)")
-        truth = true_cameras(images, scene.poses, scene.K, ref_order, backend.depth_range,
-                             photos, scene.photo_K)
-    if scene.output_size is None:
-        encoded = backend.encode(images[ref_order])
-    else:       # --size: the reference photos at their own resolution, as a user hands them over
-        encoded = backend.encode([photos[r] for r in ref_order], colour_size=scene.output_size)
-    source, refs_solved = "model", None
-    if cameras == "true":
-        encoded = backend.with_cameras(encoded, truth.world_from_cam[ref_order], truth.focal)
-        source, refs_solved = "true", np.ones(len(ref_order), dtype=bool)
-    elif cameras in ("solve", "refined"):
-        from iris_runtime.cameras import (canonical_start, refine_model_cameras,
-                                          replace_model_cameras)
-        ref_photos = [photos[r] for r in ref_order]
-        poses, focal = backend.poses(encoded), focal_of(encoded)
-        if cameras == "refined":             # as IrisRuntime.encode: the head in canonical order
-            def head(perm):
-                again = backend.encode(images[ref_order][perm])
-                return backend.poses(again), focal_of(again)
-            poses, focal = canonical_start(ref_photos, poses, focal, head)
-            cams = refine_model_cameras(ref_photos, poses, focal, backend.image_size,
-                                        backend.depth_range)
-        else:
-            cams = replace_model_cameras(ref_photos, poses, focal, backend.image_size,
-                                         backend.depth_range)
-        encoded = backend.with_cameras(encoded, cams.world_from_cam, cams.focal)
-        source, solve = cams.source, cams.solve
-        refs_solved = np.array([st != "unposed" for st in cams.status], dtype=bool)
+    truth = _scene_true_cameras(backend, scene, ref_order) if "true" in (cameras, locate) \
+        else None
+    encoded = _encode_references(backend, scene, ref_order)
+    encoded, source, refs_solved, solve = _reference_cameras(backend, encoded, scene, ref_order,
+                                                             cameras, truth)
     pred[ref_order] = backend.poses(encoded)
-    head_poses = head_focal = None
-    head = backend.head_cameras(encoded)
-    if head is not None:
-        head_poses = np.full((V, 4, 4), np.nan)
-        head_poses[ref_order] = head[0]
-        head_focal = head[1]
-    located = None
+    head_poses, head_focal = _head_cameras(backend, encoded, ref_order, V)
     if locate == "true":
         pred[target_order] = truth.world_from_cam[target_order]
         located = np.ones(len(target_order), dtype=bool)
     else:
-        poses = backend.locate(encoded, images[ref_order], images[target_order])
-        if locate in ("solve", "refined"):
-            from iris_runtime.cameras import locate_views
-            if solve is not None:                 # as IrisRuntime.locate of a solved Scene
-                epi, located = solve.locate([photos[t] for t in target_order])
-            elif cameras != "model":           # view 0 unposed: the runtime keeps the model's
-                epi, located = poses, np.zeros(len(target_order), dtype=bool)
-            else:
-                epi, located = locate_views(images[ref_order], pred[ref_order],
-                                            float(focal_of(encoded)[0]), images[target_order])
-            poses = np.where(located[:, None, None], epi, poses)
-        pred[target_order] = poses
+        pred[target_order], located = _locate_targets(backend, encoded, scene, ref_order,
+                                                      target_order, pred[ref_order], cameras,
+                                                      locate, solve)
     fallbacks = 0
     if cameras in ("solve", "refined"):
         fallbacks += int((~refs_solved).sum())
@@ -263,6 +220,91 @@ def pose_scene(backend, scene: PreparedScene, ref_order: Sequence[int],
         _over_frames(located, target_order, V), fallbacks,
         None if truth is None else truth.scale, None if truth is None else truth.scale_source,
         None if truth is None else truth.principal_offset, head_poses, head_focal)
+
+
+def _scene_true_cameras(backend, scene: PreparedScene, ref_order: list[int]) -> TrueCameras:
+    """``true_cameras`` of ``scene`` for the references ``ref_order``, or ``InputError`` when the
+    scene has no true poses and K."""
+    if scene.poses is None or scene.K is None:
+        raise InputError("cameras: 'true' needs the data's own cameras, and this scene has "
+                         "none (a folder needs transforms.json or COLMAP text files)")
+    return true_cameras(scene.images, scene.poses, scene.K, ref_order, backend.depth_range,
+                        scene.photos, scene.photo_K)
+
+
+def _encode_references(backend, scene: PreparedScene, ref_order: list[int]):
+    """The backend's scene of the references ``ref_order`` alone, with the model's cameras."""
+    if scene.output_size is None:
+        return backend.encode(scene.images[ref_order])
+    # --size: the reference photos at their own resolution, as a user hands them over
+    return backend.encode([scene.photos[r] for r in ref_order], colour_size=scene.output_size)
+
+
+def _reference_cameras(backend, encoded, scene: PreparedScene, ref_order: list[int],
+                       cameras: str, truth: TrueCameras | None
+                       ) -> tuple[object, str, np.ndarray | None, object]:
+    """The references' cameras of mode ``cameras`` put in ``encoded``: ``(encoded, source,
+    references_solved, solve)``, ``references_solved`` bool [R] over ``ref_order`` (None with the
+    model's cameras) and ``solve`` the ``CameraSolve`` behind solved cameras (else None)."""
+    if cameras == "true":
+        encoded = backend.with_cameras(encoded, truth.world_from_cam[ref_order], truth.focal)
+        return encoded, "true", np.ones(len(ref_order), dtype=bool), None
+    if cameras not in ("solve", "refined"):
+        return encoded, "model", None, None
+    from iris_runtime.cameras import (canonical_start, refine_model_cameras,
+                                      replace_model_cameras)
+    images, photos = scene.images, scene.photos
+    ref_photos = [photos[r] for r in ref_order]
+    poses, focal = backend.poses(encoded), focal_of(encoded)
+    if cameras == "refined":             # as IrisRuntime.encode: the head in canonical order
+        def head(perm):
+            again = backend.encode(images[ref_order][perm])
+            return backend.poses(again), focal_of(again)
+        poses, focal = canonical_start(ref_photos, poses, focal, head)
+        cams = refine_model_cameras(ref_photos, poses, focal, backend.image_size,
+                                    backend.depth_range)
+    else:
+        cams = replace_model_cameras(ref_photos, poses, focal, backend.image_size,
+                                     backend.depth_range)
+    encoded = backend.with_cameras(encoded, cams.world_from_cam, cams.focal)
+    refs_solved = np.array([st != "unposed" for st in cams.status], dtype=bool)
+    return encoded, cams.source, refs_solved, cams.solve
+
+
+def _head_cameras(backend, encoded, ref_order: list[int], V: int
+                  ) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """The camera head's cameras of the references where other cameras replaced them:
+    ``(world_from_cam [V, 4, 4]`` over frames, NaN for the targets, ``focal [2])``, or
+    ``(None, None)`` (the model's cameras)."""
+    head = backend.head_cameras(encoded)
+    if head is None:
+        return None, None
+    head_poses = np.full((V, 4, 4), np.nan)
+    head_poses[ref_order] = head[0]
+    return head_poses, head[1]
+
+
+def _locate_targets(backend, encoded, scene: PreparedScene, ref_order: list[int],
+                    target_order: list[int], ref_poses: np.ndarray, cameras: str, locate: str,
+                    solve) -> tuple[np.ndarray, np.ndarray | None]:
+    """The targets' poses ``[T, 4, 4]`` (``target_order``) by ``locate`` ("model", "solve" or
+    "refined") and which of them the camera solve posed, ``bool [T]`` (None for "model"): the
+    model's ``locate``, replaced where the solve poses a target: against the points of
+    ``solve`` (the references' ``CameraSolve``, where they have one), or with model cameras
+    against the references at ``ref_poses [R, 4, 4]``."""
+    images, photos = scene.images, scene.photos
+    poses = backend.locate(encoded, images[ref_order], images[target_order])
+    if locate not in ("solve", "refined"):
+        return poses, None
+    from iris_runtime.cameras import locate_views
+    if solve is not None:                 # as IrisRuntime.locate of a solved Scene
+        epi, located = solve.locate([photos[t] for t in target_order])
+    elif cameras != "model":           # view 0 unposed: the runtime keeps the model's
+        epi, located = poses, np.zeros(len(target_order), dtype=bool)
+    else:
+        epi, located = locate_views(images[ref_order], ref_poses, float(focal_of(encoded)[0]),
+                                    images[target_order])
+    return np.where(located[:, None, None], epi, poses), located
 
 
 def _over_frames(flags: np.ndarray | None, frames: Sequence[int], V: int) -> np.ndarray | None:

@@ -100,47 +100,90 @@ def evaluate(model, scenes: Iterable, *, views: int = DEFAULT_VIEWS, seed: int =
     out_size = _output_size(backend, size)
     if grid is not None and not (0 <= grid_scene and (total is None or grid_scene < total)):
         raise InputError(f"grid_scene: expected a scene position in [0, {total}), got {grid_scene}")
-    refs, targets = split_frames(views)
-    runs = {order: _OrderRecord() for order in ORDERS}
-    n_used, n_skipped = 0, 0
-    from tqdm import tqdm
-    bar = tqdm(scenes, total=total, desc="iris-eval", unit="scene", disable=not progress,
-               dynamic_ncols=True)
+    run = _Evaluation(backend, views, seed, cameras, locate, out_size, quality, grid, grid_scene)
+    bar = _progress_bar(scenes, total, progress)
     with _eval_mode(model), contextlib.closing(bar):
         for index, scene in enumerate(bar):
-            prepared = prepare_scene(scene, views, backend.image_size, index,
-                                     **({} if out_size is None else {"output_size": out_size}))
-            if prepared is None:
-                n_skipped += 1
-                continue
-            n_used += 1
-            baselines = _image_baselines(prepared, refs, targets)
-            for order in ORDERS:
-                ref_order, target_order = presentation_order(order, refs, targets, index, seed)
-                try:
-                    posed = pose_scene(backend, prepared, ref_order, target_order, cameras,
-                                       locate)
-                except InputError as exc:
-                    raise InputError(f"scene {index} ({prepared.name}): {exc}") from None
-                where = f"scene {index} ({order})"
-                rgb, depth = _render_targets(backend, posed, targets, where, out_size, quality)
-                upsampled = None if out_size is None else _upsampled(
-                    backend, posed, targets, where, out_size, quality)
-                runs[order].add(_scene_record(index, prepared, posed, rgb, depth, refs, targets,
-                                              baselines, upsampled))
-                if grid is not None and order == "seq" and index == grid_scene:
-                    _write_grid(grid, prepared, posed, rgb, depth, refs, targets, backend)
-    if n_used == 0:
-        raise InputError(f"no scene with at least {views} frames to evaluate"
-                         + (f" ({n_skipped} skipped)" if n_skipped else ""))
-    if n_skipped:
-        warnings.warn(f"iris-eval: skipped {n_skipped} scene(s) with fewer than {views} frames")
-    report_cameras = cameras != "model" or locate != "model"
-    results = {order: runs[order].summary(cameras, locate, report_cameras) for order in ORDERS}
-    if out_size is not None:
-        results = {order: {"output_size": list(out_size), "model_size": list(backend.image_size),
-                           **R} for order, R in results.items()}
-    return results
+            run.add_scene(index, scene)
+    return run.results()
+
+
+class _Evaluation:
+    """One ``evaluate`` run: its checked settings, and scene by scene the records of each
+    presentation order (``_OrderRecord``) and the counts of scenes used and skipped."""
+
+    def __init__(self, backend, views: int, seed: int, cameras: str, locate: str,
+                 out_size: tuple[int, int] | None, quality: str | None,
+                 grid: str | os.PathLike | None, grid_scene: int):
+        self.backend, self.views, self.seed = backend, views, seed
+        self.cameras, self.locate = cameras, locate
+        self.out_size, self.quality = out_size, quality
+        self.grid, self.grid_scene = grid, grid_scene
+        self.refs, self.targets = split_frames(views)
+        self.runs = {order: _OrderRecord() for order in ORDERS}
+        self.n_used, self.n_skipped = 0, 0
+
+    def add_scene(self, index: int, scene) -> None:
+        """Score ``scene`` (position ``index`` in ``scenes``) in every order, its photo baselines
+        computed once for both; a scene with fewer than ``views`` frames is counted skipped."""
+        out_size = self.out_size
+        prepared = prepare_scene(scene, self.views, self.backend.image_size, index,
+                                 **({} if out_size is None else {"output_size": out_size}))
+        if prepared is None:
+            self.n_skipped += 1
+            return
+        self.n_used += 1
+        baselines = _image_baselines(prepared, self.refs, self.targets)
+        for order in ORDERS:
+            self._add_order(index, prepared, order, baselines)
+
+    def _add_order(self, index: int, prepared: PreparedScene, order: str,
+                   baselines: dict) -> None:
+        """One scene in one order: posed (``pose_scene``), its targets rendered and scored into
+        ``runs[order]`` (``_scene_record``), and the grid written when it is the Seq order of
+        scene ``grid_scene``."""
+        backend, refs, targets = self.backend, self.refs, self.targets
+        out_size, quality = self.out_size, self.quality
+        ref_order, target_order = presentation_order(order, refs, targets, index, self.seed)
+        try:
+            posed = pose_scene(backend, prepared, ref_order, target_order, self.cameras,
+                               self.locate)
+        except InputError as exc:
+            raise InputError(f"scene {index} ({prepared.name}): {exc}") from None
+        where = f"scene {index} ({order})"
+        rgb, depth = _render_targets(backend, posed, targets, where, out_size, quality)
+        upsampled = None if out_size is None else _upsampled(
+            backend, posed, targets, where, out_size, quality)
+        self.runs[order].add(_scene_record(index, prepared, posed, rgb, depth, refs, targets,
+                                           baselines, upsampled))
+        if self.grid is not None and order == "seq" and index == self.grid_scene:
+            _write_grid(self.grid, prepared, posed, rgb, depth, refs, targets, backend)
+
+    def results(self) -> dict:
+        """``evaluate``'s ``{"seq": R, "rand": R}``, or ``InputError`` when no scene had
+        ``views`` frames; a warning counts the scenes skipped."""
+        views, n_skipped, out_size = self.views, self.n_skipped, self.out_size
+        if self.n_used == 0:
+            raise InputError(f"no scene with at least {views} frames to evaluate"
+                             + (f" ({n_skipped} skipped)" if n_skipped else ""))
+        if n_skipped:
+            warnings.warn(f"iris-eval: skipped {n_skipped} scene(s) with fewer than {views} frames")
+        cameras, locate = self.cameras, self.locate
+        report_cameras = cameras != "model" or locate != "model"
+        results = {order: self.runs[order].summary(cameras, locate, report_cameras)
+                   for order in ORDERS}
+        if out_size is not None:
+            results = {order: {"output_size": list(out_size),
+                               "model_size": list(self.backend.image_size), **R}
+                       for order, R in results.items()}
+        return results
+
+
+def _progress_bar(scenes: Iterable, total: int | None, progress: bool):
+    """``scenes`` under iris-eval's progress bar (tqdm; silent without ``progress``)."""
+    from tqdm import tqdm
+    return tqdm(scenes, total=total, desc="iris-eval", unit="scene", disable=not progress,
+                dynamic_ncols=True)
 
 
 def _output_size(backend, size) -> tuple[int, int] | None:
