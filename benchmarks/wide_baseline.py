@@ -13,8 +13,9 @@ so camera error is out of the picture (but for the principal point, which the re
 centred: each scene records its offset; ``--principal-point`` renders with it,
 ``Scene.principal_offset``). ``--clean``: the capture sets without their photometric camera
 effects (the true depth and colours of the same scenes). Frames as iris-eval's Seq order:
-references 0, 2, 3, 5, 7 and targets 1, 4, 6 of 8. Each target is rendered at the model's resolution in torch (one
-thread, no grad) with the rays ``IrisModel.render`` casts, keeping every ray's blend weights.
+references 0, 2, 3, 5, 7 and targets 1, 4, 6 of 8. Each target is rendered at the model's
+resolution in torch (one thread, no grad) with the rays ``IrisModel.render`` casts, keeping every
+ray's blend weights.
 
 Sets (``--sets``, N = ``--scenes`` each): ``walk``, object walks (``kind="walk"``) whose
 ``meta["arc_deg"]`` lies in ``--arc`` (default 45-120), the first N such seeds from
