@@ -180,7 +180,7 @@ class FastRendererGraph(nn.Module):
                          getattr(self, f"tent_{name}_centres"))                       # Gemm
             return (1.0 - d.abs()).clamp_min(0.0)
 
-        h, w = self.model.cfg.feature_grid
+        h, w = self.model.cfg.field_grid
         return axis(grid[:, 1], h, "y"), axis(grid[:, 0], w, "x")
 
     @staticmethod

@@ -75,7 +75,7 @@ def tent_weights(cfg: ModelConfig, extras: int, dtype: torch.dtype) -> Weights:
     # every row (column) centre [N, h] ([N, w]), a copy and one subtraction, so bit for bit
     # ``tent_axes``' (gy - ys) without its broadcast Sub over a trailing axis of 1
     # (docs/PERFORMANCE.md).
-    h, w = cfg.feature_grid
+    h, w = cfg.field_grid
     for axis, n in (("y", h), ("x", w)):
         weights[f"select_tent_{axis}"] = torch.ones(n, 1, dtype=dtype)
         weights[f"tent_{axis}_centres"] = -torch.arange(n, dtype=dtype)

@@ -108,7 +108,7 @@ def resolve_sampler(model: IrisModel, sampler: str) -> str:
     ``ExportArgumentError``."""
     if sampler not in SAMPLERS:
         raise ExportArgumentError(f"sampler: expected one of {SAMPLERS}, got {sampler!r}")
-    return sampler_for(*model.cfg.feature_grid) if sampler == "auto" else sampler
+    return sampler_for(*model.cfg.field_grid) if sampler == "auto" else sampler
 
 
 class RendererGraph(nn.Module):
@@ -159,7 +159,7 @@ WRAPPERS = {"encoder": EncoderGraph, "renderer": RendererGraph,
 
 def fixed_dims(cfg: ModelConfig) -> dict[str, int]:
     """Values of the spec's model-fixed axis names (everything but the dynamic V, R, S)."""
-    h, w = cfg.feature_grid
+    h, w = cfg.field_grid
     return {"H": cfg.image_height, "W": cfg.image_width, "h": h, "w": w, "C'": cfg.field_channels}
 
 

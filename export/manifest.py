@@ -84,7 +84,7 @@ def versions() -> dict[str, str]:
 def build_manifest(cfg: ModelConfig, graphs: dict[str, dict], validation: dict, *, opset: int,
                    ir_version: int, exporter: str, source: dict, cameras: str = "model",
                    **export_info) -> dict:
-    h, w = cfg.feature_grid
+    h, w = cfg.field_grid       # the field maps' grid: the tokens' times config.map_scale
     return {
         "format": FORMAT,
         "version": VERSION,

@@ -67,6 +67,13 @@ class ModelConfig:
     # leaves the renderer's features as they were (as Monodepth2 gives its pose network its own
     # encoder). False: one encoder for both (what checkpoints without this field hold).
     camera_encoder: bool = False
+    # The field maps' grid in multiples of the token grid: 1, 2 or 4. Above 1 the field samples
+    # the encoder's features upsampled (bilinear) plus a learned correction from a small
+    # convolutional stem on the image (``encoder.FineFeatures``), so that a feature covers
+    # patch_size / map_scale pixels instead of a whole patch: the depth of a sample is decided
+    # by finer evidence (docs/TRAINING.md, "Finer field maps"). 1: the encoder's grid (what
+    # checkpoints without this field hold).
+    map_scale: int = 1
     # Ray sampling (docs/ARCHITECTURE.md: camera depths in [0.1, 1.0], 64 samples).
     near: float = 0.1
     far: float = 1.0
@@ -92,6 +99,11 @@ class ModelConfig:
         if self.blend_angle and not self.explicit_rgb:
             raise InputError("blend_angle: weights the explicit colour blend, so it needs "
                              "explicit_rgb")
+        valid = type(self.map_scale) is int and self.map_scale in (1, 2, 4)
+        stride = self.patch_size // self.map_scale if valid else 0
+        if stride < 1 or self.patch_size % self.map_scale or stride & (stride - 1):
+            raise InputError(f"map_scale: expected 1, 2 or 4 dividing patch_size "
+                             f"{self.patch_size} to a power of two, got {self.map_scale!r}")
         if self.camera_head == "correlation" and self.patch_size % 8:
             raise InputError(f"camera_head 'correlation' needs patch_size a multiple of 8 (its "
                              f"stem has stride 4 and correlates at twice the token grid), got "
@@ -101,6 +113,12 @@ class ModelConfig:
     def feature_grid(self) -> tuple[int, int]:
         """(h, w) of the encoder's feature maps."""
         return self.image_height // self.patch_size, self.image_width // self.patch_size
+
+    @property
+    def field_grid(self) -> tuple[int, int]:
+        """(h, w) of the field maps the renderer samples: ``map_scale`` times the token grid."""
+        h, w = self.feature_grid
+        return self.map_scale * h, self.map_scale * w
 
     @property
     def correlation_grid(self) -> tuple[int, int]:
@@ -217,6 +235,9 @@ class TrainConfig:
     # Explicit colour: the model's ``blend_angle`` (ModelConfig): the angular weighting of the
     # views in the colour blend. It holds no weights, so a fine-tune (``--init``) may change it.
     blend_angle: float = 0.0
+    # The model's ``map_scale`` (ModelConfig), 0: the preset's. A fine-tune (``--init``) from a
+    # model of another map scale starts the fine-feature stem fresh (``load_init_weights``).
+    map_scale: int = 0
     # The distortion loss of Mip-NeRF 360 on the explicit-colour blend weights along each target
     # ray (``losses.distortion``): it is smallest when the weight sits in one short stretch of
     # the ray, so it pushes the soft depth to commit to one surface instead of spreading.

@@ -56,7 +56,7 @@ import torch.nn.functional as F
 
 from .camera_head import _IDENTITY_6D, POSE_INIT_STD, CameraHead, world_from_cam_from_residual
 from .config import ModelConfig
-from .layers import MLP
+from .layers import MLP, conv_block
 
 #: Channels of the stem's descriptors (the correlation's dot products are over these).
 CORRELATION_CHANNELS = 64
@@ -71,8 +71,7 @@ _PIXEL_STD = 0.25
 
 
 def _conv_block(c_in: int, c_out: int, kernel: int, stride: int) -> list[nn.Module]:
-    return [nn.Conv2d(c_in, c_out, kernel, stride=stride, padding=kernel // 2),
-            nn.GroupNorm(NORM_GROUPS, c_out), nn.ReLU()]
+    return conv_block(c_in, c_out, kernel, stride, NORM_GROUPS)
 
 
 class CorrelationStem(nn.Sequential):

@@ -18,9 +18,10 @@ from __future__ import annotations
 
 import torch
 import torch.nn as nn
+import torch.nn.functional as F
 
 from .config import ModelConfig
-from .layers import MASK_FILL, SelfAttentionBlock, sincos_2d
+from .layers import MASK_FILL, SelfAttentionBlock, conv_block, sincos_2d
 
 # Images arrive in [0, 1]; centre them so that patch embeddings start near zero mean.
 _PIXEL_MEAN = 0.5
@@ -71,6 +72,46 @@ class MultiViewEncoder(nn.Module):
         camera_tokens = tokens[:, 0].reshape(B, V, D)
         features = tokens[:, 1:].transpose(1, 2).reshape(B, V, D, h, w)
         return features, camera_tokens
+
+
+#: Channels of the fine-feature stem (``FineFeatures``).
+FINE_CHANNELS = 64
+
+
+class FineFeatures(nn.Module):
+    """The field's features at ``ModelConfig.field_grid`` (``map_scale`` times the token grid).
+
+    The encoder's tokens see a whole patch (8x8 pixels in the tiny preset), so a sample's field
+    value cannot tell two depths apart whose projections fall in the same patch: the weights along
+    a ray spread. Image-based renderers sample features at 1/4 resolution or finer (pixelNeRF,
+    IBRNet). Here a small per-view convolutional stem (stride ``patch_size / map_scale``) gives
+    that detail, and a 1x1 conv mixes it with the token features upsampled bilinearly:
+    ``features_fine = up(features) + mix([up(features), stem(image)])``. ``mix`` starts at zero,
+    so a model fine-tuned from one of ``map_scale`` 1 starts from (nearly) its renders: bilinear
+    sampling of the upsampled map instead of the coarse one. The stem sees one view only, so
+    the references' isolation from the queries holds (``cross_view_mask``)."""
+
+    def __init__(self, cfg: ModelConfig):
+        super().__init__()
+        self.scale = cfg.map_scale
+        layers, c_in = [], 3
+        for _ in range((cfg.patch_size // cfg.map_scale).bit_length() - 1):   # log2(stride)
+            layers += conv_block(c_in, FINE_CHANNELS, 3, 2)
+            c_in = FINE_CHANNELS
+        self.stem = nn.Sequential(*layers, *conv_block(c_in, FINE_CHANNELS, 3, 1))
+        self.mix = nn.Conv2d(cfg.encoder_width + FINE_CHANNELS, cfg.encoder_width, 1)
+        nn.init.zeros_(self.mix.weight)
+        nn.init.zeros_(self.mix.bias)
+
+    def forward(self, features: torch.Tensor, images: torch.Tensor) -> torch.Tensor:
+        """``features [B, V, D, h, w]``, ``images [B, V, 3, H, W]`` in [0, 1] ->
+        ``[B, V, D, scale*h, scale*w]``."""
+        B, V = features.shape[:2]
+        up = F.interpolate(features.flatten(0, 1), scale_factor=self.scale, mode="bilinear",
+                           align_corners=False)                                    # [BV, D, sh, sw]
+        detail = self.stem((images.flatten(0, 1) - _PIXEL_MEAN) / _PIXEL_STD)     # [BV, C, sh, sw]
+        fine = up + self.mix(torch.cat([up, detail], dim=1))
+        return fine.reshape(B, V, *fine.shape[1:])
 
 
 def cross_view_mask(is_reference: torch.Tensor, tokens_per_view: int) -> torch.Tensor:

@@ -63,6 +63,13 @@ def masked_max(x: torch.Tensor, mask: torch.Tensor, dim: int) -> torch.Tensor:
     return torch.where(any_valid, filled.amax(dim=dim), torch.zeros((), dtype=x.dtype))
 
 
+def conv_block(c_in: int, c_out: int, kernel: int, stride: int, groups: int = 8) -> list[nn.Module]:
+    """Conv (same padding) + GroupNorm (per sample: a view's output never depends on the other
+    views of the batch) + ReLU."""
+    return [nn.Conv2d(c_in, c_out, kernel, stride=stride, padding=kernel // 2),
+            nn.GroupNorm(groups, c_out), nn.ReLU()]
+
+
 class MLP(nn.Sequential):
     def __init__(self, dim_in: int, dim_hidden: int, dim_out: int):
         super().__init__(nn.Linear(dim_in, dim_hidden), nn.GELU(), nn.Linear(dim_hidden, dim_out))

@@ -34,7 +34,7 @@ from . import geometry as G
 from .camera_head import CameraHead
 from .config import ModelConfig
 from .correlation import CorrelationCameraHead
-from .encoder import MultiViewEncoder
+from .encoder import FineFeatures, MultiViewEncoder
 from .latent_field import LatentField
 from .layers import MASK_FILL
 from .ray_renderer import RayRenderer
@@ -188,11 +188,13 @@ class IrisModel(nn.Module):
         self.renderer = renderer
         # cfg.camera_encoder: the camera head's own encoder (build_model adds it).
         self.camera_encoder: MultiViewEncoder | None = None
+        # cfg.map_scale > 1: the field's features at the finer grid (build_model adds it).
+        self.fine_features: FineFeatures | None = None
 
     # -- encoding ---------------------------------------------------------------------------
     def encode_batch(self, images: torch.Tensor, is_reference: torch.Tensor | None = None):
         """``images [B, V, 3, H, W]``, ``is_reference`` bool ``[V]`` or ``[B, V]`` (None: all
-        references; view 0 must be one) -> features ``[B, V, D, h, w]``, poses ``[B, V, 4, 4]``
+        references; view 0 must be one) -> features ``[B, V, D, *cfg.field_grid]``, poses ``[B, V, 4, 4]``
         (view 0 = I), focal ``[B, 2]``. Reference outputs never depend on the query views."""
         if is_reference is not None and not bool(is_reference[..., 0].all()):
             raise ValueError("is_reference: view 0 is the canonical frame and must be a reference")
@@ -203,6 +205,8 @@ class IrisModel(nn.Module):
         encoder's features, and the camera head's cameras from the camera tokens of its own
         encoder where the model has one (``cfg.camera_encoder``), else of the same encoder."""
         features, camera_tokens = self.encoder(images, is_reference)
+        if self.fine_features is not None:
+            features = self.fine_features(features, images)
         if self.camera_encoder is not None:
             return (features, *self.camera_stages(images, is_reference))
         # The correlation head also reads the images (each view against view 0, a reference).
@@ -341,6 +345,8 @@ def build_model(cfg: ModelConfig) -> IrisModel:
     model = IrisModel(cfg, encoder, head, LatentField(cfg), RayRenderer(cfg))
     if cfg.camera_encoder:          # built last: the other stages draw the weights they did
         model.camera_encoder = MultiViewEncoder(cfg)
+    if cfg.map_scale > 1:
+        model.fine_features = FineFeatures(cfg)
     return model
 
 

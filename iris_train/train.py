@@ -69,6 +69,8 @@ def make_optimizer(model: IrisModel, cfg: TrainConfig, extra: list | None = None
         cameras = []
     slow = list(model.encoder.parameters()) + cameras
     fast = list(model.field.parameters()) + list(model.renderer.parameters()) + list(extra or [])
+    if model.fine_features is not None:     # part of the field's features, new in a fine-tune
+        fast += list(model.fine_features.parameters())
 
     def split(params):   # no weight decay on norms and biases
         return ([p for p in params if p.ndim >= 2], [p for p in params if p.ndim < 2])
@@ -97,6 +99,8 @@ def model_config(cfg: TrainConfig, start: dict | None = None) -> ModelConfig:
     base = preset(cfg.preset)
     if cfg.blend_angle:
         base = dataclasses.replace(base, blend_angle=cfg.blend_angle)
+    if cfg.map_scale:
+        base = dataclasses.replace(base, map_scale=cfg.map_scale)
     if cfg.camera_head or not isinstance(start, dict):
         return dataclasses.replace(base, camera_head=cfg.camera_head or base.camera_head)
     # The checkpoint's cameras as they are: its head, and its own camera encoder if it has one.
@@ -106,8 +110,10 @@ def model_config(cfg: TrainConfig, start: dict | None = None) -> ModelConfig:
                                                            base.correlation_scale))
 
 
-#: State-dict prefix of the camera head: the only weights an ``--init`` may leave unloaded.
+#: State-dict prefix of the camera head: weights an ``--init`` may leave unloaded.
 CAMERA_HEAD_PREFIX = "camera_head."
+#: State-dict prefix of the fine-feature stem, the other (when the map scale changes).
+FINE_FEATURES_PREFIX = "fine_features."
 
 
 def load_init_weights(model: IrisModel, payload: dict, what: str = "init") -> list[str]:
@@ -115,23 +121,25 @@ def load_init_weights(model: IrisModel, payload: dict, what: str = "init") -> li
     the state-dict keys left at their fresh initialisation (sorted; empty unless the head changes).
 
     The checkpoint's model config must be ``model.cfg`` up to the camera head's settings
-    (``camera_head``, ``correlation_scale``) and ``blend_angle`` (no weights). Same head: every weight loads (strict). Another
-    head (a "tokens" checkpoint into a "correlation" model, the case this is for): every weight
-    the two models share by name and shape loads, the new head's own parameters (keys under
-    ``camera_head.`` the checkpoint lacks, or holds in another shape when the correlation grid
-    differs) stay fresh and the old head's (keys under ``camera_head.`` the model lacks) are
-    dropped. Any other missing or unexpected key, or key of another shape, is a ``ValueError``
-    naming them (``what``: its prefix)."""
+    (``camera_head``, ``correlation_scale``), ``map_scale`` and ``blend_angle`` (no weights).
+    Same settings: every weight loads (strict). Another head (a "tokens" checkpoint into a
+    "correlation" model) or map scale (a checkpoint of scale 1 into a finer model): every
+    weight the two models share by name and shape loads, the new head's or stem's own parameters
+    (keys under ``camera_head.`` / ``fine_features.`` the checkpoint lacks, or holds in another
+    shape when the correlation grid differs) stay fresh and the old ones (keys the model lacks)
+    are dropped. Any other missing or unexpected key, or key of another shape, is a
+    ``ValueError`` naming them (``what``: its prefix)."""
     try:
         source = ModelConfig.from_dict(payload["config"])
     except (TypeError, ValueError) as exc:
         raise ValueError(f"{what}: unreadable model config ({exc})") from None
     # The colour blend's angular weighting holds no weights: a fine-tune may change it.
     source = dataclasses.replace(source, blend_angle=model.cfg.blend_angle)
-    head = {"camera_head": model.cfg.camera_head, "correlation_scale": model.cfg.correlation_scale}
+    head = {"camera_head": model.cfg.camera_head, "correlation_scale": model.cfg.correlation_scale,
+            "map_scale": model.cfg.map_scale}
     if dataclasses.replace(source, **head) != model.cfg:
-        raise ValueError(f"{what} holds another model config than this run's "
-                         f"(only the camera head's settings and blend_angle may differ)")
+        raise ValueError(f"{what} holds another model config than this run's (only the camera "
+                         f"head's settings, map_scale and blend_angle may differ)")
     state = payload["model"]
     if dataclasses.replace(source, **head) == source:
         model.load_state_dict(state)
@@ -141,11 +149,18 @@ def load_init_weights(model: IrisModel, payload: dict, what: str = "init") -> li
     reshaped = {k for k in set(own) & set(state) if own[k].shape != state[k].shape}
     # Only another correlation grid reshapes head weights (the correlation net's first layer).
     regrid = source.correlation_scale != model.cfg.correlation_scale
-    outside = sorted(k for k in missing | unexpected | reshaped
-                     if not k.startswith(CAMERA_HEAD_PREFIX) or (k in reshaped and not regrid))
+    remapped = source.map_scale != model.cfg.map_scale
+
+    def may_differ(key: str) -> bool:
+        if key.startswith(FINE_FEATURES_PREFIX):
+            return remapped
+        return key.startswith(CAMERA_HEAD_PREFIX) and (key not in reshaped or regrid)
+
+    outside = sorted(k for k in missing | unexpected | reshaped if not may_differ(k))
     if outside:
         raise ValueError(f"{what}: the checkpoint does not match the model outside the new "
-                         f"camera head: missing, unexpected or of other shapes {outside[:5]}")
+                         f"camera head or fine-feature stem: missing, unexpected or of other "
+                         f"shapes {outside[:5]}")
     result = model.load_state_dict({k: v for k, v in state.items()
                                     if k in own and k not in reshaped}, strict=False)
     assert not result.unexpected_keys and set(result.missing_keys) == missing | reshaped
@@ -164,8 +179,11 @@ def _load_init(loss_module: PhotometricLoss, payload: dict, init: Path, verbose:
     (``load_init_weights``) and its warp auxiliary's head when it has one."""
     fresh = load_init_weights(loss_module.model, payload, f"init: {str(init)!r}")
     if fresh and verbose:
-        print(f"iris-train: --init {init}: {len(fresh)} tensors of the new "
-              f"{loss_module.model.cfg.camera_head!r} camera head start fresh", file=sys.stderr)
+        parts = {CAMERA_HEAD_PREFIX: f"{loss_module.model.cfg.camera_head!r} camera head",
+                 FINE_FEATURES_PREFIX: "fine-feature stem"}
+        new = " and ".join(v for k, v in parts.items() if any(f.startswith(k) for f in fresh))
+        print(f"iris-train: --init {init}: {len(fresh)} tensors of the new {new} start fresh",
+              file=sys.stderr)
     if loss_module.sample_logit is not None and payload.get("aux"):
         loss_module.sample_logit.load_state_dict(payload["aux"])
 

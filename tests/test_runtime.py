@@ -104,10 +104,20 @@ def torch_pair_rgb(torch_export_rgb):
     return runtime, runtime.encode(images), model, _torch_scene(model, images)
 
 
-@pytest.fixture(params=["tiny", "tiny-rgb"])
+@pytest.fixture(scope="session")
+def torch_pair_fine(torch_export_fine):
+    """``torch_pair`` for the random model with finer field maps (``map_scale`` 2)."""
+    model_dir, model = torch_export_fine
+    runtime = IrisRuntime(model_dir, threads=1)
+    images = _images(3, runtime.image_size, seed=1)
+    return runtime, runtime.encode(images), model, _torch_scene(model, images)
+
+
+@pytest.fixture(params=["tiny", "tiny-rgb", "tiny-rgb-fine"])
 def pair(request):
-    """``torch_pair`` and ``torch_pair_rgb`` in turn."""
-    return request.getfixturevalue("torch_pair" if request.param == "tiny" else "torch_pair_rgb")
+    """``torch_pair``, ``torch_pair_rgb`` and ``torch_pair_fine`` in turn."""
+    return request.getfixturevalue({"tiny": "torch_pair", "tiny-rgb": "torch_pair_rgb",
+                                    "tiny-rgb-fine": "torch_pair_fine"}[request.param])
 
 
 def _torch_render(model, tscene, pose, height, width):

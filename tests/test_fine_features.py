@@ -1,0 +1,96 @@
+"""Finer field maps (``ModelConfig.map_scale``, ``encoder.FineFeatures``): the config's
+contract, the stem's start at the upsampled token features, the references' isolation, and a
+fine-tune from a model of map scale 1. The exported graphs and the runtime are held to torch
+on such a model by tests/test_runtime.py (``pair``'s "tiny-rgb-fine")."""
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+
+torch = pytest.importorskip("torch")
+F = torch.nn.functional
+
+from iris_runtime.errors import InputError                     # noqa: E402
+from iris_train.config import preset                            # noqa: E402
+from iris_train.model import build_model                        # noqa: E402
+from iris_train.train import load_init_weights                  # noqa: E402
+
+from .conftest import random_model                              # noqa: E402
+
+pytestmark = pytest.mark.torch
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+@pytest.mark.parametrize("scale, grid, convs", [(1, (8, 8), None), (2, (16, 16), 2), (4, (32, 32), 1)])
+def test_field_grid_and_stem_stride(scale, grid, convs):
+    cfg = dataclasses.replace(preset("tiny-rgb"), map_scale=scale)
+    assert cfg.field_grid == grid and cfg.feature_grid == (8, 8)
+    model = build_model(cfg)
+    if convs is None:
+        assert model.fine_features is None
+        return
+    strides = [m.stride[0] for m in model.fine_features.stem if isinstance(m, torch.nn.Conv2d)]
+    assert strides == [2] * convs + [1]
+
+
+@pytest.mark.parametrize("scale", [0, 3, 8, -2, 2.0, "2"])
+def test_bad_map_scale_is_refused(scale):
+    with pytest.raises(InputError, match="map_scale"):
+        dataclasses.replace(preset("tiny-rgb"), map_scale=scale)
+
+
+def test_fresh_stem_gives_the_upsampled_token_features():
+    """The mix starts at zero: the field's features are the token features upsampled
+    bilinearly, exactly, so a fine-tune starts from the coarse model's field."""
+    torch.manual_seed(0)
+    model = build_model(dataclasses.replace(preset("tiny-rgb"), map_scale=2)).eval()
+    images = torch.rand(1, 3, 3, 64, 64)
+    with torch.no_grad():
+        tokens, _ = model.encoder(images)
+        fine, _, _ = model.encode_batch(images)
+    want = F.interpolate(tokens[0], scale_factor=2, mode="bilinear", align_corners=False)
+    assert fine.shape == (1, 3, 128, 16, 16)
+    assert torch.equal(fine[0], want)
+
+
+def test_references_stay_isolated_from_queries():
+    """The stem sees one view: a reference's field features are the same whether a query is
+    present, changed or absent (bitwise; the stem's mix is non-zero here)."""
+    model = random_model("tiny-rgb", map_scale=2)
+    assert model.fine_features.mix.weight.abs().sum() > 0
+    refs = torch.rand(1, 3, 3, 64, 64, generator=torch.Generator().manual_seed(1))
+    query = torch.rand(1, 1, 3, 64, 64, generator=torch.Generator().manual_seed(2))
+    is_reference = torch.tensor([True, True, True, False])
+    with torch.no_grad():
+        alone, _, _ = model.encode_batch(refs)
+        with_query, _, _ = model.encode_batch(torch.cat([refs, query], 1), is_reference)
+        changed, _, _ = model.encode_batch(torch.cat([refs, 1 - query], 1), is_reference)
+    assert torch.allclose(with_query[:, :3], alone, atol=1e-5, rtol=0)
+    assert torch.equal(with_query[:, :3], changed[:, :3])
+    assert not torch.allclose(with_query[:, 3], changed[:, 3])
+
+
+def test_fine_tune_from_a_coarse_model_starts_the_stem_fresh():
+    coarse = random_model("tiny-rgb")
+    payload = {"config": coarse.cfg.to_dict(), "model": coarse.state_dict()}
+    fine = build_model(dataclasses.replace(coarse.cfg, map_scale=2))
+    fresh = load_init_weights(fine, payload)
+    assert fresh and all(k.startswith("fine_features.") for k in fresh)
+    assert set(fresh) == {k for k in fine.state_dict() if k.startswith("fine_features.")}
+    state = fine.state_dict()
+    assert all(torch.equal(state[k], v) for k, v in coarse.state_dict().items())
+    # And back: a fine checkpoint into a coarse model drops the stem.
+    back = build_model(coarse.cfg)
+    assert load_init_weights(back, {"config": fine.cfg.to_dict(), "model": state}) == []
+    # Anything else that differs is still refused.
+    other = dataclasses.replace(coarse.cfg, field_width=32, map_scale=2)
+    with pytest.raises(ValueError, match="another model config"):
+        load_init_weights(build_model(other), payload)
