@@ -34,11 +34,12 @@ def with_cameras_of(payload: dict, cameras: dict, error) -> dict:
     in anything but the camera head."""
     config, theirs = (ModelConfig.from_dict(p["config"]) for p in (payload, cameras))
     head = {k: getattr(theirs, k) for k in HEAD_FIELDS}
-    # blend_angle weights the colour blend and holds no weights: the renderer's is kept.
-    if dataclasses.replace(config, **head) != dataclasses.replace(theirs,
-                                                                  blend_angle=config.blend_angle):
-        error("--camera-head-from: another model (only the camera head's settings and "
-              "blend_angle may differ)")
+    # blend_angle and map_scale are the renderer's (the colour blend's weighting, the field
+    # maps' grid): the renderer's are kept.
+    renderer = {"blend_angle": config.blend_angle, "map_scale": config.map_scale}
+    if dataclasses.replace(config, **head) != dataclasses.replace(theirs, **renderer):
+        error("--camera-head-from: another model (only the camera head's settings, "
+              "blend_angle and map_scale may differ)")
     encoder = "camera_encoder." if theirs.camera_encoder else "encoder."
     state = {k: v for k, v in payload["model"].items()
              if not k.startswith(("camera_head.", "camera_encoder."))}

@@ -161,7 +161,7 @@ def test_manifest_content(exported, model, checkpoint):
     assert (m["format"], m["version"], m["io_spec_version"]) == (FORMAT, VERSION, io_spec.IO_SPEC_VERSION)
     assert m["config"] == model.cfg.to_dict()
     assert m["image_size"] == [H, W] and m["patch_size"] == CFG.patch_size
-    assert m["feature_grid"] == list(CFG.feature_grid) and m["field_channels"] == CFG.field_channels
+    assert m["feature_grid"] == list(CFG.field_grid) and m["field_channels"] == CFG.field_channels
     assert (m["near"], m["far"], m["samples"]) == (CFG.near, CFG.far, CFG.samples)
     assert m["export"]["opset"] == io_spec.DEFAULT_OPSET and m["export"]["renderer_sampler"] == "dense"
     assert set(m["export"]["versions"]) >= {"torch", "onnx", "onnxruntime"}
@@ -330,7 +330,7 @@ def test_encoder_cross_view_mask_is_an_additive_bias(exported):
 
 def _random_feed(V, R, S, seed, explicit_rgb=False):
     g = torch.Generator().manual_seed(seed)
-    h, w = CFG.feature_grid
+    h, w = CFG.field_grid
     feed = {"field_maps": torch.randn(V, CFG.field_channels, h, w, generator=g),
             "grid": torch.rand(V, R, S, 2, generator=g) * 2.4 - 1.2,
             "cues": torch.randn(V, R, S, 4, generator=g),
@@ -479,7 +479,7 @@ def test_dense_sampler_equals_grid_sample(model, seed):
     # carried through it with a gain of order one relative to the maps' magnitude: 3 position
     # roundings of values <= 2 max(h, w) cells (6 max(h, w) unit terms) and 8 of the
     # interpolation.
-    tol = f32_tol(renderer_terms(CFG, 2) + 6 * max(CFG.feature_grid) + 8)
+    tol = f32_tol(renderer_terms(CFG, 2) + 6 * max(CFG.field_grid) + 8)
     for a, b in zip(dense, gs):
         torch.testing.assert_close(a, b, rtol=0, atol=tol)
 

@@ -94,3 +94,42 @@ def test_fine_tune_from_a_coarse_model_starts_the_stem_fresh():
     other = dataclasses.replace(coarse.cfg, field_width=32, map_scale=2)
     with pytest.raises(ValueError, match="another model config"):
         load_init_weights(build_model(other), payload)
+
+
+def test_a_fine_renderer_ships_with_a_coarse_models_camera_head(tmp_path):
+    """``ship_checkpoint.py --camera-head-from``: the field maps' grid is the renderer's, so a
+    head from a model of ``map_scale`` 1 merges into a finer renderer (which keeps its grid and
+    features); a model that differs in anything else is still refused."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from iris_train import load_model
+    from iris_train.model import save_checkpoint
+
+    root = Path(__file__).resolve().parents[1]
+    script = [sys.executable, str(root / "scripts" / "ship_checkpoint.py")]
+    renderer = random_model("tiny-rgb", map_scale=2, camera_head="correlation")
+    cameras = random_model("tiny-rgb", camera_head="correlation")
+    with torch.no_grad():
+        for p in cameras.camera_head.parameters():
+            p.add_(0.01)
+    save_checkpoint(tmp_path / "r.pt", renderer)
+    save_checkpoint(tmp_path / "c.pt", cameras)
+    subprocess.run([*script, str(tmp_path / "r.pt"), str(tmp_path / "m.pt"),
+                    "--camera-head-from", str(tmp_path / "c.pt")], check=True, cwd=root)
+    merged = load_model(tmp_path / "m.pt").eval()
+    assert merged.cfg.map_scale == 2 and merged.cfg.camera_encoder
+    images = torch.rand(1, 3, 3, 64, 64)
+    with torch.no_grad():
+        f_m, T_m, _ = merged.encode_batch(images)
+        f_r, _, _ = renderer.encode_batch(images)
+        _, T_c, _ = cameras.encode_batch(images)
+    assert torch.equal(f_m, f_r) and torch.equal(T_m, T_c)
+    other = random_model("tiny-rgb", field_width=32, camera_head="correlation")
+    save_checkpoint(tmp_path / "o.pt", other)
+    run = subprocess.run([*script, str(tmp_path / "r.pt"), str(tmp_path / "x.pt"),
+                          "--camera-head-from", str(tmp_path / "o.pt")], cwd=root,
+                         capture_output=True, text=True)
+    assert run.returncode != 0 and "another model" in run.stderr
+    assert not (tmp_path / "x.pt").exists()

@@ -119,7 +119,7 @@ def empty_ray_rgb(model) -> torch.Tensor:
 @pytest.mark.parametrize("V", [1, 2, 5])
 def test_encode_and_render_shapes(model, images, V):
     scene = model.encode(images[:V])
-    h, w = CFG.feature_grid
+    h, w = CFG.field_grid
     assert scene.field_maps.shape == (V, CFG.field_channels, h, w)
     assert scene.world_from_cam.shape == (V, 4, 4)
     assert torch.equal(scene.world_from_cam[0], torch.eye(4))

@@ -784,7 +784,7 @@ def _weights(u: np.ndarray) -> np.ndarray:
 
 def _renderer_feed(V, R_, S, seed, cfg):
     rng = np.random.default_rng(seed)
-    h, w = cfg.feature_grid
+    h, w = cfg.field_grid
     feed = {"field_maps": rng.normal(size=(V, cfg.field_channels, h, w)).astype(F32),
             "grid": rng.uniform(-1.2, 1.2, size=(V, R_, S, 2)).astype(F32),
             "cues": rng.normal(size=(V, R_, S, 4)).astype(F32),
