@@ -305,9 +305,13 @@ class FastRendererGraph(nn.Module):
             per_ray = F.linear(e_dir, getattr(self, f"inject{i}_wdir"), rt.inject[i].bias)
             return (pos + per_ray[:, None]).reshape(N, W)
 
+        slots = sample_slots(bias)
+        if cfg.colour_deviation:         # the views' disagreement, one more additive term a slot
+            dev = _colour_deviation(colours.reshape(V, N, 3), m)                      # [V, N, 6]
+            slots = [x + dev @ getattr(self, f"slot{i}_deviation").t()
+                     for i, x in enumerate(slots)]
         # The field's last residual update, the first injection and the first ray norm in one.
-        normed, x = self._field(sample_slots(bias), bias,
-                                any_view, rt.blocks[0].norm1, injection(0))
+        normed, x = self._field(slots, bias, any_view, rt.blocks[0].norm1, injection(0))
         attn = None
         last = len(rt.blocks) - 1
         for i, block in enumerate(rt.blocks):
@@ -400,6 +404,15 @@ def _key_softmax(scores: torch.Tensor, key_bias: torch.Tensor,
         return torch.softmax(s + b, dim=-1)
 
     return torch.cond(no_key_bias, plain, biased, (scores, key_bias))
+
+
+def _colour_deviation(colours: torch.Tensor, m: torch.Tensor) -> torch.Tensor:
+    """``latent_field.colour_deviation`` view-major: ``colours [V, N, 3]``, validity weights
+    ``m [V, N]`` -> ``[d, |d|] [V, N, 6]``."""
+    w = m[..., None]
+    mean = _sum_views(colours * w) / _sum_views(w).clamp_min(1e-6)                      # [N, 3]
+    d = colours - mean
+    return torch.cat([d, d.abs()], dim=-1)
 
 
 def _sum_views(x: torch.Tensor) -> torch.Tensor:

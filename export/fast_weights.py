@@ -64,6 +64,8 @@ def slot_weights(model: IrisModel) -> tuple[list[slice], Weights]:
         # The mask bias column: added to u (the masked max-pool's input), not to k or v.
         rows = torch.cat([rows, torch.full_like(rows[:, :1], 1.0 if i == 0 else 0.0)], -1)
         weights[f"slot{i}_rows"] = rows
+        if field.deviation_to_maps is not None:       # applied to the slots after sampling
+            weights[f"slot{i}_deviation"] = field.deviation_to_maps.weight[ch]          # [W, 6]
     return slots, weights
 
 

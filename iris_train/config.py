@@ -74,6 +74,12 @@ class ModelConfig:
     # by finer evidence (docs/TRAINING.md, "Finer field maps"). 1: the encoder's grid (what
     # checkpoints without this field hold).
     map_scale: int = 1
+    # Explicit colour: the views' disagreement as a field input (IBRNet's mean-and-variance
+    # aggregation). Each view's deviation d_k from the sample's plain mean reference colour
+    # enters its field-map channels through a linear map of [d_k, |d_k|] that starts at zero, so
+    # the view transformer sees which views agree at a depth, the evidence of a surface there.
+    # False: no such input (what checkpoints without this field hold).
+    colour_deviation: bool = False
     # Ray sampling (docs/ARCHITECTURE.md: camera depths in [0.1, 1.0], 64 samples).
     near: float = 0.1
     far: float = 1.0
@@ -96,6 +102,9 @@ class ModelConfig:
             raise InputError(f"correlation_scale: expected 2 or 4, got {self.correlation_scale!r}")
         if not (isinstance(self.blend_angle, (int, float)) and 0 <= self.blend_angle < math.inf):
             raise InputError(f"blend_angle: expected a finite number >= 0, got {self.blend_angle!r}")
+        if self.colour_deviation and not self.explicit_rgb:
+            raise InputError("colour_deviation: the deviation of the reference colours needs "
+                             "explicit_rgb")
         if self.blend_angle and not self.explicit_rgb:
             raise InputError("blend_angle: weights the explicit colour blend, so it needs "
                              "explicit_rgb")
@@ -238,6 +247,13 @@ class TrainConfig:
     # The model's ``map_scale`` (ModelConfig), 0: the preset's. A fine-tune (``--init``) from a
     # model of another map scale starts the fine-feature stem fresh (``load_init_weights``).
     map_scale: int = 0
+    # Learning-rate multiple over the renderer's of the parts a fine-tune starts fresh (at zero)
+    # beside a trained field: the fine-feature stem (``encoder.FineFeatures``) and the
+    # colour-deviation map (``latent_field.LatentField.deviation_to_maps``).
+    fine_lr_scale: float = 1.0
+    # The model's ``colour_deviation`` (ModelConfig). A fine-tune (``--init``) from a model
+    # without it starts its map fresh, at zero.
+    colour_deviation: bool = False
     # The distortion loss of Mip-NeRF 360 on the explicit-colour blend weights along each target
     # ray (``losses.distortion``): it is smallest when the weight sits in one short stretch of
     # the ray, so it pushes the soft depth to commit to one surface instead of spreading.

@@ -81,6 +81,12 @@ class LatentField(nn.Module):
         # Explicit colour: the sampled reference RGB enters every field-map channel additively
         # (u and each block's keys/values), so it is one affine map per sample and view.
         self.rgb_to_maps = nn.Linear(3, cfg.field_channels) if cfg.explicit_rgb else None
+        # The views' disagreement (cfg.colour_deviation): [d_k, |d_k|] of each view's colour
+        # from the sample's mean, additively into its channels; zero at first.
+        self.deviation_to_maps = None
+        if cfg.colour_deviation:
+            self.deviation_to_maps = nn.Linear(6, cfg.field_channels, bias=False)
+            nn.init.zeros_(self.deviation_to_maps.weight)
 
     def prepare(self, features: torch.Tensor) -> torch.Tensor:
         """Per-scene, per-pixel work: ``features [V, D, h, w]`` -> field maps ``[V, C', h, w]``.
@@ -100,6 +106,17 @@ class LatentField(nn.Module):
         masked out of the ray transformer anyway)."""
         if self.rgb_to_maps is not None:
             sampled = sampled + self.rgb_to_maps(colours - 0.5)
+        if self.deviation_to_maps is not None:
+            sampled = sampled + self.deviation_to_maps(colour_deviation(colours, mask))
         u = sampled[..., :self.width]
         q0 = masked_max(u, mask[..., None], dim=1)                                # [N, W]
         return self.view_transformer(q0, sampled[..., self.width:], cues, mask)
+
+
+def colour_deviation(colours: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """``colours [N, V, 3]``, validity ``mask [N, V]`` -> ``[d, |d|] [N, V, 6]``, d the view's
+    colour minus the validity-weighted mean colour of the sample (0 where no view sees it)."""
+    w = mask.to(colours.dtype)[..., None]                                         # [N, V, 1]
+    mean = (colours * w).sum(1, keepdim=True) / w.sum(1, keepdim=True).clamp_min(1e-6)
+    d = colours - mean
+    return torch.cat([d, d.abs()], dim=-1)

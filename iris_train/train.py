@@ -58,8 +58,9 @@ def lr_factor(step: int, cfg: TrainConfig) -> float:
 
 
 def make_optimizer(model: IrisModel, cfg: TrainConfig, extra: list | None = None) -> torch.optim.AdamW:
-    """AdamW over the model (encoder + camera head at ``encoder_lr_scale``) and ``extra``
-    training-only parameters (at the renderer's rate)."""
+    """AdamW over the model (encoder + camera head at ``encoder_lr_scale``, the fine-feature
+    stem and the colour-deviation map at ``fine_lr_scale``) and ``extra`` training-only
+    parameters (at the renderer's rate)."""
     cameras = list(model.camera_head.parameters())
     if model.camera_encoder is not None:
         cameras += list(model.camera_encoder.parameters())
@@ -68,15 +69,21 @@ def make_optimizer(model: IrisModel, cfg: TrainConfig, extra: list | None = None
             p.requires_grad_(False)
         cameras = []
     slow = list(model.encoder.parameters()) + cameras
-    fast = list(model.field.parameters()) + list(model.renderer.parameters()) + list(extra or [])
-    if model.fine_features is not None:     # part of the field's features, new in a fine-tune
-        fast += list(model.fine_features.parameters())
+    # The parts a fine-tune may start fresh beside a trained field (FRESH_WHEN_CHANGED's
+    # renderer parts) learn at fine_lr_scale.
+    fine = [] if model.fine_features is None else list(model.fine_features.parameters())
+    if model.field.deviation_to_maps is not None:
+        fine += list(model.field.deviation_to_maps.parameters())
+    fast = [p for p in [*model.field.parameters(), *model.renderer.parameters(), *(extra or [])]
+            if all(p is not q for q in fine)]
 
     def split(params):   # no weight decay on norms and biases
         return ([p for p in params if p.ndim >= 2], [p for p in params if p.ndim < 2])
 
     groups = []
-    for params, scale in ((slow, cfg.encoder_lr_scale), (fast, 1.0)):
+    # The stem's groups only where there is a stem: an older run's optimiser state resumes.
+    parts = [(slow, cfg.encoder_lr_scale), (fast, 1.0)] + ([(fine, cfg.fine_lr_scale)] if fine else [])
+    for params, scale in parts:
         decay, no_decay = split(params)
         groups += [{"params": decay, "weight_decay": cfg.weight_decay, "lr_scale": scale},
                    {"params": no_decay, "weight_decay": 0.0, "lr_scale": scale}]
@@ -101,6 +108,8 @@ def model_config(cfg: TrainConfig, start: dict | None = None) -> ModelConfig:
         base = dataclasses.replace(base, blend_angle=cfg.blend_angle)
     if cfg.map_scale:
         base = dataclasses.replace(base, map_scale=cfg.map_scale)
+    if cfg.colour_deviation:
+        base = dataclasses.replace(base, colour_deviation=True)
     if cfg.camera_head or not isinstance(start, dict):
         return dataclasses.replace(base, camera_head=cfg.camera_head or base.camera_head)
     # The checkpoint's cameras as they are: its head, and its own camera encoder if it has one.
@@ -110,57 +119,51 @@ def model_config(cfg: TrainConfig, start: dict | None = None) -> ModelConfig:
                                                            base.correlation_scale))
 
 
-#: State-dict prefix of the camera head: weights an ``--init`` may leave unloaded.
-CAMERA_HEAD_PREFIX = "camera_head."
-#: State-dict prefix of the fine-feature stem, the other (when the map scale changes).
-FINE_FEATURES_PREFIX = "fine_features."
+#: The model settings a fine-tune (``--init``) may change, each with the state-dict prefix of the
+#: parameters that are its own: those start fresh (or are dropped) when the setting changes.
+FRESH_WHEN_CHANGED = {"camera_head": "camera_head.", "correlation_scale": "camera_head.",
+                      "map_scale": "fine_features.", "colour_deviation": "field.deviation_to_maps."}
+#: Read by train's note on what starts fresh.
+PART_NAMES = {"camera_head.": "camera head", "fine_features.": "fine-feature stem",
+              "field.deviation_to_maps.": "colour-deviation map"}
 
 
 def load_init_weights(model: IrisModel, payload: dict, what: str = "init") -> list[str]:
     """Load checkpoint ``payload`` (``read_checkpoint``) into ``model`` for a fine-tune; return
-    the state-dict keys left at their fresh initialisation (sorted; empty unless the head changes).
+    the state-dict keys left at their fresh initialisation (sorted; empty unless a part changes).
 
-    The checkpoint's model config must be ``model.cfg`` up to the camera head's settings
-    (``camera_head``, ``correlation_scale``), ``map_scale`` and ``blend_angle`` (no weights).
-    Same settings: every weight loads (strict). Another head (a "tokens" checkpoint into a
-    "correlation" model) or map scale (a checkpoint of scale 1 into a finer model): every
-    weight the two models share by name and shape loads, the new head's or stem's own parameters
-    (keys under ``camera_head.`` / ``fine_features.`` the checkpoint lacks, or holds in another
-    shape when the correlation grid differs) stay fresh and the old ones (keys the model lacks)
-    are dropped. Any other missing or unexpected key, or key of another shape, is a
-    ``ValueError`` naming them (``what``: its prefix)."""
+    The checkpoint's model config must be ``model.cfg`` up to ``blend_angle`` (no weights) and
+    the settings of ``FRESH_WHEN_CHANGED``: the camera head's (a "tokens" checkpoint into a
+    "correlation" model, another correlation grid), ``map_scale`` (a coarse checkpoint into a
+    model with the fine-feature stem) and ``colour_deviation``. Same settings: every weight
+    loads (strict). Otherwise every weight the two models share by name and shape loads; the
+    parameters of a changed setting's part that the checkpoint lacks (or holds in another shape)
+    stay fresh, and those the model lacks are dropped. Any other missing or unexpected key, or
+    key of another shape, is a ``ValueError`` naming them (``what``: its prefix)."""
     try:
         source = ModelConfig.from_dict(payload["config"])
     except (TypeError, ValueError) as exc:
         raise ValueError(f"{what}: unreadable model config ({exc})") from None
     # The colour blend's angular weighting holds no weights: a fine-tune may change it.
     source = dataclasses.replace(source, blend_angle=model.cfg.blend_angle)
-    head = {"camera_head": model.cfg.camera_head, "correlation_scale": model.cfg.correlation_scale,
-            "map_scale": model.cfg.map_scale}
-    if dataclasses.replace(source, **head) != model.cfg:
-        raise ValueError(f"{what} holds another model config than this run's (only the camera "
-                         f"head's settings, map_scale and blend_angle may differ)")
+    mine = {k: getattr(model.cfg, k) for k in FRESH_WHEN_CHANGED}
+    if dataclasses.replace(source, **mine) != model.cfg:
+        raise ValueError(f"{what} holds another model config than this run's (only blend_angle "
+                         f"and {', '.join(FRESH_WHEN_CHANGED)} may differ)")
     state = payload["model"]
-    if dataclasses.replace(source, **head) == source:
+    if dataclasses.replace(source, **mine) == source:
         model.load_state_dict(state)
         return []
     own = model.state_dict()
     missing, unexpected = set(own) - set(state), set(state) - set(own)
     reshaped = {k for k in set(own) & set(state) if own[k].shape != state[k].shape}
-    # Only another correlation grid reshapes head weights (the correlation net's first layer).
-    regrid = source.correlation_scale != model.cfg.correlation_scale
-    remapped = source.map_scale != model.cfg.map_scale
-
-    def may_differ(key: str) -> bool:
-        if key.startswith(FINE_FEATURES_PREFIX):
-            return remapped
-        return key.startswith(CAMERA_HEAD_PREFIX) and (key not in reshaped or regrid)
-
-    outside = sorted(k for k in missing | unexpected | reshaped if not may_differ(k))
+    changed = tuple({prefix for k, prefix in FRESH_WHEN_CHANGED.items()
+                     if getattr(source, k) != mine[k]})
+    outside = sorted(k for k in missing | unexpected | reshaped if not k.startswith(changed))
     if outside:
-        raise ValueError(f"{what}: the checkpoint does not match the model outside the new "
-                         f"camera head or fine-feature stem: missing, unexpected or of other "
-                         f"shapes {outside[:5]}")
+        raise ValueError(f"{what}: the checkpoint does not match the model outside the parts "
+                         f"its changed settings own ({', '.join(changed)}): missing, unexpected "
+                         f"or of other shapes {outside[:5]}")
     result = model.load_state_dict({k: v for k, v in state.items()
                                     if k in own and k not in reshaped}, strict=False)
     assert not result.unexpected_keys and set(result.missing_keys) == missing | reshaped
@@ -179,8 +182,8 @@ def _load_init(loss_module: PhotometricLoss, payload: dict, init: Path, verbose:
     (``load_init_weights``) and its warp auxiliary's head when it has one."""
     fresh = load_init_weights(loss_module.model, payload, f"init: {str(init)!r}")
     if fresh and verbose:
-        parts = {CAMERA_HEAD_PREFIX: f"{loss_module.model.cfg.camera_head!r} camera head",
-                 FINE_FEATURES_PREFIX: "fine-feature stem"}
+        parts = dict(PART_NAMES)
+        parts["camera_head."] = f"{loss_module.model.cfg.camera_head!r} camera head"
         new = " and ".join(v for k, v in parts.items() if any(f.startswith(k) for f in fresh))
         print(f"iris-train: --init {init}: {len(fresh)} tensors of the new {new} start fresh",
               file=sys.stderr)

@@ -30,9 +30,9 @@ def has_torch() -> bool:
 def random_model(preset_name: str = "tiny", **config):
     """``torch.manual_seed(0); build_model(preset(preset_name))`` (with ``config``'s fields
     replaced) in eval mode; for explicit-colour models the residual rgb head (zero at
-    initialisation) then gets N(0, 0.2) weights, and with a fine-feature stem (``map_scale``
-    > 1) its mix (zero at initialisation too) N(0, 0.05): zero layers would hide the paths
-    they gate from every parity test."""
+    initialisation) then gets N(0, 0.2) weights, a fine-feature stem (``map_scale`` > 1) its
+    mix (zero at initialisation too) N(0, 0.05), and a colour-deviation map (zero too) N(0,
+    0.3): zero layers would hide the paths they gate from every parity test."""
     import dataclasses
 
     import torch
@@ -46,10 +46,12 @@ def random_model(preset_name: str = "tiny", **config):
         with torch.no_grad():
             for p in model.renderer.rgb_head[-1].parameters():
                 p.normal_(0.0, 0.2)
-    if model.fine_features is not None:
-        with torch.no_grad():
+    with torch.no_grad():
+        if model.fine_features is not None:
             for p in model.fine_features.mix.parameters():
                 p.normal_(0.0, 0.05)
+        if model.field.deviation_to_maps is not None:
+            model.field.deviation_to_maps.weight.normal_(0.0, 0.3)
     return model
 
 
@@ -126,9 +128,10 @@ def torch_export_rgb(tmp_path_factory):
 @pytest.fixture(scope="session")
 def torch_export_fine(tmp_path_factory):
     """(model_dir, IrisModel): a random explicit-colour model with field maps at twice the token
-    grid (``map_scale`` 2: 16x16, the fine-feature stem) and its export."""
+    grid (``map_scale`` 2: 16x16, the fine-feature stem) and the views' colour deviation as a
+    field input (``colour_deviation``), and its export."""
     return _export_random_tiny(tmp_path_factory, "iris_model_fine", preset_name="tiny-rgb",
-                               blend_angle=0.02, map_scale=2)
+                               blend_angle=0.02, map_scale=2, colour_deviation=True)
 
 
 #: The shipped, trained model (explicit colour, a camera head on its own encoder, plain blend).

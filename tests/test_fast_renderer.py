@@ -204,6 +204,25 @@ def test_other_configs(shape, explicit_rgb):
         _check(model, inputs, contrib)
 
 
+@torch.no_grad()
+def test_finer_maps_and_colour_deviation():
+    """``map_scale`` 2 (16x16 maps through the dense tent matmul) and ``colour_deviation`` (one
+    more additive term a slot, from the views' colours and validity): the full renderer and the
+    selected-views one against the torch model."""
+    model = random_model("tiny-rgb", map_scale=2, colour_deviation=True, blend_angle=0.02)
+    inputs = random_renderer_inputs(model, 4, 7, 13, torch.Generator().manual_seed(5))
+    assert inputs["field_maps"].shape[-2:] == (16, 16)
+    for contrib in (False, True):
+        _check(model, inputs, contrib)
+    selected, masked = selected_view_inputs(inputs, 2, torch.Generator().manual_seed(2))
+    got = SelectedViewsRendererGraph(model)(**selected)
+    assert max(_errors(got, RendererGraph(model)(**masked))) <= TOL
+    # The deviation term matters: without it the same inputs render otherwise.
+    with torch.no_grad():
+        model.field.deviation_to_maps.weight.zero_()
+    assert max(_errors(RendererGraph(model)(**masked), got)) > 1e-3
+
+
 @pytest.mark.parametrize("V,R,S,k", [(5, 7, 11, 2), (8, 4, 6, 3), (4, 3, 9, 4), (1, 2, 3, 1)])
 @torch.no_grad()
 def test_selected_views_match_the_masked_renderer(model, V, R, S, k):

@@ -133,3 +133,26 @@ def test_a_fine_renderer_ships_with_a_coarse_models_camera_head(tmp_path):
                          capture_output=True, text=True)
     assert run.returncode != 0 and "another model" in run.stderr
     assert not (tmp_path / "x.pt").exists()
+
+
+def test_colour_deviation_starts_at_the_model_without_it():
+    """``colour_deviation``: its map starts at zero, so a fine-tune from a model without it
+    renders what that model renders, bit for bit; the deviation is each view's colour minus
+    the validity-weighted mean, and 0 where no view sees the sample."""
+    from iris_train.latent_field import colour_deviation
+
+    plain = random_model("tiny-rgb")
+    payload = {"config": plain.cfg.to_dict(), "model": plain.state_dict()}
+    model = build_model(dataclasses.replace(plain.cfg, colour_deviation=True)).eval()
+    assert load_init_weights(model, payload) == ["field.deviation_to_maps.weight"]
+    images = torch.rand(3, 3, 64, 64, generator=torch.Generator().manual_seed(3))
+    with torch.no_grad():
+        a = plain.render(plain.encode(images), plain.encode(images).world_from_cam[1:2], 16, 16)
+        b = model.render(model.encode(images), model.encode(images).world_from_cam[1:2], 16, 16)
+    assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1])
+    colours = torch.tensor([[[0.2, 0.4, 0.6], [0.4, 0.4, 0.0], [9.0, 9.0, 9.0]]])
+    d = colour_deviation(colours, torch.tensor([[1.0, 1.0, 0.0]]))
+    torch.testing.assert_close(d[0, 0], torch.tensor([-0.1, 0.0, 0.3, 0.1, 0.0, 0.3]))
+    assert torch.equal(colour_deviation(colours, torch.zeros(1, 3))[..., :3], colours)
+    with pytest.raises(InputError, match="colour_deviation"):
+        dataclasses.replace(preset("tiny"), colour_deviation=True)

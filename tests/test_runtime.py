@@ -106,7 +106,8 @@ def torch_pair_rgb(torch_export_rgb):
 
 @pytest.fixture(scope="session")
 def torch_pair_fine(torch_export_fine):
-    """``torch_pair`` for the random model with finer field maps (``map_scale`` 2)."""
+    """``torch_pair`` for the random model with finer field maps (``map_scale`` 2) and the
+    colour deviation input."""
     model_dir, model = torch_export_fine
     runtime = IrisRuntime(model_dir, threads=1)
     images = _images(3, runtime.image_size, seed=1)
