@@ -71,8 +71,8 @@ class ModelConfig:
     # the encoder's features upsampled (bilinear) plus a learned correction from a small
     # convolutional stem on the image (``encoder.FineFeatures``), so that a feature covers
     # patch_size / map_scale pixels instead of a whole patch: the depth of a sample is decided
-    # by finer evidence (docs/TRAINING.md, "Finer field maps"). 1: the encoder's grid (what
-    # checkpoints without this field hold).
+    # by finer evidence (docs/ARCHITECTURE.md, "Field maps finer than the tokens"). 1: the
+    # encoder's grid (what checkpoints without this field hold).
     map_scale: int = 1
     # Explicit colour: the views' disagreement as a field input (IBRNet's mean-and-variance
     # aggregation). Each view's deviation d_k from the sample's plain mean reference colour
