@@ -108,10 +108,13 @@ class ModelConfig:
         if self.blend_angle and not self.explicit_rgb:
             raise InputError("blend_angle: weights the explicit colour blend, so it needs "
                              "explicit_rgb")
+        # Above 1 the stem reaches the finer grid by stride-2 convs: patch_size / map_scale must
+        # be a power of two.
         valid = type(self.map_scale) is int and self.map_scale in (1, 2, 4)
         stride = self.patch_size // self.map_scale if valid else 0
-        if stride < 1 or self.patch_size % self.map_scale or stride & (stride - 1):
-            raise InputError(f"map_scale: expected 1, 2 or 4 dividing patch_size "
+        if not valid or (self.map_scale > 1 and (self.patch_size % self.map_scale
+                                                 or stride < 2 or stride & (stride - 1))):
+            raise InputError(f"map_scale: expected 1, or 2 or 4 dividing patch_size "
                              f"{self.patch_size} to a power of two, got {self.map_scale!r}")
         if self.camera_head == "correlation" and self.patch_size % 8:
             raise InputError(f"camera_head 'correlation' needs patch_size a multiple of 8 (its "

@@ -123,6 +123,10 @@ def model_config(cfg: TrainConfig, start: dict | None = None) -> ModelConfig:
 #: parameters that are its own: those start fresh (or are dropped) when the setting changes.
 FRESH_WHEN_CHANGED = {"camera_head": "camera_head.", "correlation_scale": "camera_head.",
                       "map_scale": "fine_features.", "colour_deviation": "field.deviation_to_maps."}
+#: Of those, the settings that change the shapes of their part's parameters (another
+#: correlation grid: the correlation net's first layer; another map scale: the stem's convs).
+#: A key of another shape outside these is a mismatch, not a fresh start.
+RESHAPES = ("correlation_scale", "map_scale")
 #: Read by train's note on what starts fresh.
 PART_NAMES = {"camera_head.": "camera head", "fine_features.": "fine-feature stem",
               "field.deviation_to_maps.": "colour-deviation map"}
@@ -137,8 +141,8 @@ def load_init_weights(model: IrisModel, payload: dict, what: str = "init") -> li
     "correlation" model, another correlation grid), ``map_scale`` (a coarse checkpoint into a
     model with the fine-feature stem) and ``colour_deviation``. Same settings: every weight
     loads (strict). Otherwise every weight the two models share by name and shape loads; the
-    parameters of a changed setting's part that the checkpoint lacks (or holds in another shape)
-    stay fresh, and those the model lacks are dropped. Any other missing or unexpected key, or
+    parameters of a changed setting's part that the checkpoint lacks (or holds in another shape,
+    for the settings of ``RESHAPES``) stay fresh, and those the model lacks are dropped. Any other missing or unexpected key, or
     key of another shape, is a ``ValueError`` naming them (``what``: its prefix)."""
     try:
         source = ModelConfig.from_dict(payload["config"])
@@ -157,13 +161,15 @@ def load_init_weights(model: IrisModel, payload: dict, what: str = "init") -> li
     own = model.state_dict()
     missing, unexpected = set(own) - set(state), set(state) - set(own)
     reshaped = {k for k in set(own) & set(state) if own[k].shape != state[k].shape}
-    changed = tuple({prefix for k, prefix in FRESH_WHEN_CHANGED.items()
-                     if getattr(source, k) != mine[k]})
-    outside = sorted(k for k in missing | unexpected | reshaped if not k.startswith(changed))
+    changed = {k for k in FRESH_WHEN_CHANGED if getattr(source, k) != mine[k]}
+    fresh_parts = tuple({FRESH_WHEN_CHANGED[k] for k in changed})
+    reshaped_parts = tuple({FRESH_WHEN_CHANGED[k] for k in changed if k in RESHAPES})
+    outside = sorted({k for k in missing | unexpected if not k.startswith(fresh_parts)}
+                     | {k for k in reshaped if not k.startswith(reshaped_parts)})
     if outside:
         raise ValueError(f"{what}: the checkpoint does not match the model outside the parts "
-                         f"its changed settings own ({', '.join(changed)}): missing, unexpected "
-                         f"or of other shapes {outside[:5]}")
+                         f"its changed settings own ({', '.join(fresh_parts)}): missing, "
+                         f"unexpected or of other shapes {outside[:5]}")
     result = model.load_state_dict({k: v for k, v in state.items()
                                     if k in own and k not in reshaped}, strict=False)
     assert not result.unexpected_keys and set(result.missing_keys) == missing | reshaped

@@ -156,3 +156,12 @@ def test_colour_deviation_starts_at_the_model_without_it():
     assert torch.equal(colour_deviation(colours, torch.zeros(1, 3))[..., :3], colours)
     with pytest.raises(InputError, match="colour_deviation"):
         dataclasses.replace(preset("tiny"), colour_deviation=True)
+
+
+def test_map_scale_needs_a_power_of_two_stride_only_above_one():
+    cfg = dataclasses.replace(preset("tiny-rgb"), image_height=72, image_width=72, patch_size=24)
+    assert cfg.field_grid == (3, 3)                    # map_scale 1: any patch
+    with pytest.raises(InputError, match="map_scale"):
+        dataclasses.replace(cfg, map_scale=2)          # stride 12
+    assert dataclasses.replace(preset("tiny-rgb"), patch_size=16).field_grid == (4, 4)
+    assert dataclasses.replace(preset("tiny-rgb"), patch_size=16, map_scale=4).field_grid == (16, 16)
