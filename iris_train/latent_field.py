@@ -101,8 +101,9 @@ class LatentField(nn.Module):
                 colours: torch.Tensor | None = None) -> torch.Tensor:
         """Point-wise latent features ``f~ [N, W]`` from ``sampled [N, V, C']`` field-map values,
         ``cues [N, V, 4]``, validity ``mask [N, V]`` (bool) and, with ``explicit_rgb``, the
-        reference ``colours [N, V, 3]`` in [0, 1] sampled at full resolution. Points valid in no
-        view get the view transformer's response to a zero token with no attention (finite, and
+        reference ``colours [N, V, 3]`` in [0, 1] sampled at full resolution (and, with
+        ``colour_deviation``, each view's deviation from their mean). Points valid in no view
+        get the view transformer's response to a zero token with no attention (finite, and
         masked out of the ray transformer anyway)."""
         if self.rgb_to_maps is not None:
             sampled = sampled + self.rgb_to_maps(colours - 0.5)
