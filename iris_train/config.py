@@ -112,8 +112,8 @@ class ModelConfig:
         # be a power of two.
         valid = type(self.map_scale) is int and self.map_scale in (1, 2, 4)
         stride = self.patch_size // self.map_scale if valid else 0
-        if not valid or (self.map_scale > 1 and (self.patch_size % self.map_scale
-                                                 or stride < 2 or stride & (stride - 1))):
+        if not valid or (self.map_scale > 1 and (self.patch_size % self.map_scale or stride < 2
+                                                 or stride & (stride - 1))):
             raise InputError(f"map_scale: expected 1, or 2 or 4 dividing patch_size "
                              f"{self.patch_size} to a power of two, got {self.map_scale!r}")
         if self.camera_head == "correlation" and self.patch_size % 8:

@@ -70,18 +70,14 @@ _PIXEL_MEAN = 0.5
 _PIXEL_STD = 0.25
 
 
-def _conv_block(c_in: int, c_out: int, kernel: int, stride: int) -> list[nn.Module]:
-    return conv_block(c_in, c_out, kernel, stride, NORM_GROUPS)
-
-
 class CorrelationStem(nn.Sequential):
     """Per-view descriptors on the correlation grid: ``images [N, 3, H, W]`` in [0, 1] ->
     ``[N, C, *ModelConfig.correlation_grid]``, not normalised."""
 
     def __init__(self, cfg: ModelConfig, channels: int = CORRELATION_CHANNELS):
         second = 2 if cfg.correlation_scale == 2 else 1
-        layers = [*_conv_block(3, channels // 2, 3, 2),
-                  *_conv_block(channels // 2, channels, 3, second),
+        layers = [*conv_block(3, channels // 2, 3, 2, NORM_GROUPS),
+                  *conv_block(channels // 2, channels, 3, second, NORM_GROUPS),
                   nn.Conv2d(channels, channels, 3, padding=1)]
         # Stride 4 (2 at correlation_scale 4) so far: a patch of 8 has the correlation grid
         # already, a patch of 16 (the paper and 128 presets) averages 2x2 cells down to it.
@@ -124,9 +120,9 @@ class CorrelationCameraHead(nn.Module):
         h2, w2 = cfg.correlation_grid
         self.stem = CorrelationStem(cfg)
         self.correlation_net = nn.Sequential(
-            *_conv_block(h2 * w2, EVIDENCE_CHANNELS, 1, 1),
-            *_conv_block(EVIDENCE_CHANNELS, EVIDENCE_CHANNELS, 3, 1),
-            *_conv_block(EVIDENCE_CHANNELS, EVIDENCE_CHANNELS, 3, 2))
+            *conv_block(h2 * w2, EVIDENCE_CHANNELS, 1, 1, NORM_GROUPS),
+            *conv_block(EVIDENCE_CHANNELS, EVIDENCE_CHANNELS, 3, 1, NORM_GROUPS),
+            *conv_block(EVIDENCE_CHANNELS, EVIDENCE_CHANNELS, 3, 2, NORM_GROUPS))
         # Not ``pose_mlp``: its input differs from the token head's, and a token-head checkpoint
         # must not half-load into it (``iris_train.train.load_init_weights``).
         self.fused_pose_mlp = MLP(3 * EVIDENCE_CHANNELS + 2 * d, d, 9)

@@ -116,7 +116,8 @@ class LatentField(nn.Module):
 
 def colour_deviation(colours: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     """``colours [N, V, 3]``, validity ``mask [N, V]`` -> ``[d, |d|] [N, V, 6]``, d the view's
-    colour minus the validity-weighted mean colour of the sample (0 where no view sees it)."""
+    colour minus the validity-weighted mean colour of the sample (a mean of 0 where no view sees
+    it: d is then the colour)."""
     w = mask.to(colours.dtype)[..., None]                                         # [N, V, 1]
     mean = (colours * w).sum(1, keepdim=True) / w.sum(1, keepdim=True).clamp_min(1e-6)
     d = colours - mean

@@ -194,8 +194,9 @@ class IrisModel(nn.Module):
     # -- encoding ---------------------------------------------------------------------------
     def encode_batch(self, images: torch.Tensor, is_reference: torch.Tensor | None = None):
         """``images [B, V, 3, H, W]``, ``is_reference`` bool ``[V]`` or ``[B, V]`` (None: all
-        references; view 0 must be one) -> features ``[B, V, D, *cfg.field_grid]``, poses ``[B, V, 4, 4]``
-        (view 0 = I), focal ``[B, 2]``. Reference outputs never depend on the query views."""
+        references; view 0 must be one) -> features ``[B, V, D, *cfg.field_grid]``, poses
+        ``[B, V, 4, 4]`` (view 0 = I), focal ``[B, 2]``. Reference outputs never depend on the
+        query views."""
         if is_reference is not None and not bool(is_reference[..., 0].all()):
             raise ValueError("is_reference: view 0 is the canonical frame and must be a reference")
         return self.encode_stages(images, is_reference)

@@ -74,15 +74,18 @@ def make_optimizer(model: IrisModel, cfg: TrainConfig, extra: list | None = None
     fine = [] if model.fine_features is None else list(model.fine_features.parameters())
     if model.field.deviation_to_maps is not None:
         fine += list(model.field.deviation_to_maps.parameters())
+    fresh = {id(p) for p in fine}
     fast = [p for p in [*model.field.parameters(), *model.renderer.parameters(), *(extra or [])]
-            if all(p is not q for q in fine)]
+            if id(p) not in fresh]
 
     def split(params):   # no weight decay on norms and biases
         return ([p for p in params if p.ndim >= 2], [p for p in params if p.ndim < 2])
 
     groups = []
-    # The stem's groups only where there is a stem: an older run's optimiser state resumes.
-    parts = [(slow, cfg.encoder_lr_scale), (fast, 1.0)] + ([(fine, cfg.fine_lr_scale)] if fine else [])
+    # Their groups only where the model has such parts: an older run's optimiser state resumes.
+    parts = [(slow, cfg.encoder_lr_scale), (fast, 1.0)]
+    if fine:
+        parts.append((fine, cfg.fine_lr_scale))
     for params, scale in parts:
         decay, no_decay = split(params)
         groups += [{"params": decay, "weight_decay": cfg.weight_decay, "lr_scale": scale},
@@ -127,7 +130,7 @@ FRESH_WHEN_CHANGED = {"camera_head": "camera_head.", "correlation_scale": "camer
 #: correlation grid: the correlation net's first layer; another map scale: the stem's convs).
 #: A key of another shape outside these is a mismatch, not a fresh start.
 RESHAPES = ("correlation_scale", "map_scale")
-#: Read by train's note on what starts fresh.
+#: How ``_load_init``'s note names each part that starts fresh.
 PART_NAMES = {"camera_head.": "camera head", "fine_features.": "fine-feature stem",
               "field.deviation_to_maps.": "colour-deviation map"}
 
@@ -142,8 +145,9 @@ def load_init_weights(model: IrisModel, payload: dict, what: str = "init") -> li
     model with the fine-feature stem) and ``colour_deviation``. Same settings: every weight
     loads (strict). Otherwise every weight the two models share by name and shape loads; the
     parameters of a changed setting's part that the checkpoint lacks (or holds in another shape,
-    for the settings of ``RESHAPES``) stay fresh, and those the model lacks are dropped. Any other missing or unexpected key, or
-    key of another shape, is a ``ValueError`` naming them (``what``: its prefix)."""
+    for the settings of ``RESHAPES``) stay fresh, and those the model lacks are dropped. Any
+    other missing or unexpected key, or key of another shape, is a ``ValueError`` naming them
+    (``what``: its prefix)."""
     try:
         source = ModelConfig.from_dict(payload["config"])
     except (TypeError, ValueError) as exc:

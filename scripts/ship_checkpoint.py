@@ -26,6 +26,8 @@ from iris_train.model import save_checkpoint
 
 KEEP = ("step", "elapsed", "train_config", "distill")
 HEAD_FIELDS = ("camera_head", "correlation_scale", "camera_encoder")
+#: Settings of the renderer alone: a head from a model that differs in them still merges.
+RENDERER_FIELDS = ("blend_angle", "map_scale", "colour_deviation")
 
 
 def with_cameras_of(payload: dict, cameras: dict, error) -> dict:
@@ -34,12 +36,12 @@ def with_cameras_of(payload: dict, cameras: dict, error) -> dict:
     in anything but the camera head."""
     config, theirs = (ModelConfig.from_dict(p["config"]) for p in (payload, cameras))
     head = {k: getattr(theirs, k) for k in HEAD_FIELDS}
-    # blend_angle and map_scale are the renderer's (the colour blend's weighting, the field
-    # maps' grid): the renderer's are kept.
-    renderer = {"blend_angle": config.blend_angle, "map_scale": config.map_scale}
+    # The renderer's own settings (the colour blend's weighting, the field maps' grid, the
+    # colour deviation input) are kept from the renderer.
+    renderer = {k: getattr(config, k) for k in RENDERER_FIELDS}
     if dataclasses.replace(config, **head) != dataclasses.replace(theirs, **renderer):
-        error("--camera-head-from: another model (only the camera head's settings, "
-              "blend_angle and map_scale may differ)")
+        error(f"--camera-head-from: another model (only the camera head's settings and "
+              f"{', '.join(RENDERER_FIELDS)} may differ)")
     encoder = "camera_encoder." if theirs.camera_encoder else "encoder."
     state = {k: v for k, v in payload["model"].items()
              if not k.startswith(("camera_head.", "camera_encoder."))}

@@ -97,9 +97,10 @@ def test_fine_tune_from_a_coarse_model_starts_the_stem_fresh():
 
 
 def test_a_fine_renderer_ships_with_a_coarse_models_camera_head(tmp_path):
-    """``ship_checkpoint.py --camera-head-from``: the field maps' grid is the renderer's, so a
-    head from a model of ``map_scale`` 1 merges into a finer renderer (which keeps its grid and
-    features); a model that differs in anything else is still refused."""
+    """``ship_checkpoint.py --camera-head-from``: the field maps' grid and the colour deviation
+    input are the renderer's, so a head from a model of ``map_scale`` 1 without the deviation
+    merges into a finer renderer with it (which keeps its settings and features); a model that
+    differs in anything else is still refused."""
     import subprocess
     import sys
     from pathlib import Path
@@ -109,7 +110,8 @@ def test_a_fine_renderer_ships_with_a_coarse_models_camera_head(tmp_path):
 
     root = Path(__file__).resolve().parents[1]
     script = [sys.executable, str(root / "scripts" / "ship_checkpoint.py")]
-    renderer = random_model("tiny-rgb", map_scale=2, camera_head="correlation")
+    renderer = random_model("tiny-rgb", map_scale=2, colour_deviation=True,
+                            camera_head="correlation")
     cameras = random_model("tiny-rgb", camera_head="correlation")
     with torch.no_grad():
         for p in cameras.camera_head.parameters():
@@ -119,7 +121,7 @@ def test_a_fine_renderer_ships_with_a_coarse_models_camera_head(tmp_path):
     subprocess.run([*script, str(tmp_path / "r.pt"), str(tmp_path / "m.pt"),
                     "--camera-head-from", str(tmp_path / "c.pt")], check=True, cwd=root)
     merged = load_model(tmp_path / "m.pt").eval()
-    assert merged.cfg.map_scale == 2 and merged.cfg.camera_encoder
+    assert merged.cfg.map_scale == 2 and merged.cfg.colour_deviation and merged.cfg.camera_encoder
     images = torch.rand(1, 3, 3, 64, 64)
     with torch.no_grad():
         f_m, T_m, _ = merged.encode_batch(images)
