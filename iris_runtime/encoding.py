@@ -207,10 +207,10 @@ class Encoding:
                     photos, poses64, focal64,
                     lambda perm: self._run_cameras(batch[perm], np.ones(len(perm), bool)))
                 cams = refine_model_cameras(photos, start, start_focal, (H, W),
-                                            (self.near, self.far))
+                                            self.unit_range)
             else:
                 cams = replace_model_cameras(photos, poses64, focal64, (H, W),
-                                             (self.near, self.far))
+                                             self.unit_range)
         timings["cameras"] = timings.get("cameras", 0.0) + (time.perf_counter() - t2)
         # The encoder's own cameras (what locate checks the references against) are kept
         # wherever the scene's are others: the solve's, the refinement's, and also the model's

@@ -79,6 +79,16 @@ class Manifest:
     #: "model" (the camera head's), "solve" (``iris-train --render-cameras solve``) or "refined".
     #: Optional in the file; "model" when absent (every model exported before it existed).
     cameras: str = "model"
+    #: Where the cameras' unit puts a scene's median point depth (``cameras.unit_range``); 0:
+    #: ``DEPTH_TARGET`` of the way into [near, far]. Optional in the file (0 when absent).
+    median_depth: float = 0.0
+
+    @property
+    def unit_range(self) -> tuple[float, float]:
+        """The ``depth_range`` the camera solve is given: the cameras' unit
+        (``cameras.unit_range``), [near, far] itself unless ``median_depth`` frees it."""
+        from .cameras.solve import unit_range
+        return unit_range(self.near, self.far, self.median_depth)
 
     @property
     def blend_angle(self) -> float:
@@ -268,6 +278,11 @@ def read_manifest(model_dir: str | os.PathLike, *, verify_hashes: bool = True) -
     near, far = _number(path, doc, "near"), _number(path, doc, "far")
     if not 0 < near < far:
         raise ManifestError(f"{path}: need 0 < near < far, got near={near}, far={far}")
+    # Optional (0 when absent: every model exported before it existed).
+    median_depth = _number(path, doc, "median_depth") if "median_depth" in doc else 0.0
+    if median_depth and not near < median_depth < far:
+        raise ManifestError(f"{path}: 'median_depth' must be 0 or in (near, far) = ({near}, "
+                            f"{far}), got {median_depth}")
     samples = _number(path, doc, "samples", kind=int)
     field_channels = _number(path, doc, "field_channels", kind=int)
     root = model_dir.resolve()
@@ -280,7 +295,8 @@ def read_manifest(model_dir: str | os.PathLike, *, verify_hashes: bool = True) -
                         image_size=(int(size[0]), int(size[1])), near=near, far=far,
                         samples=samples, field_channels=field_channels,
                         graphs=MappingProxyType(graphs),
-                        raw=MappingProxyType(doc), explicit_rgb=explicit_rgb, cameras=cameras)
+                        raw=MappingProxyType(doc), explicit_rgb=explicit_rgb, cameras=cameras,
+                        median_depth=median_depth)
     if verify_hashes:
         for entry in graphs.values():
             if not entry.path.is_file():

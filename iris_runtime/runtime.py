@@ -127,6 +127,11 @@ class IrisRuntime(Encoding, Rendering):
     def samples(self) -> int:
         return self.manifest.samples
 
+    @property
+    def unit_range(self) -> tuple[float, float]:
+        """The ``depth_range`` the camera solve is given (``Manifest.unit_range``)."""
+        return self.manifest.unit_range
+
     def __repr__(self) -> str:
         H, W = self.image_size
         return (f"IrisRuntime({str(self.model_dir)!r}, image_size={H}x{W}, samples={self.samples}, "

@@ -84,6 +84,11 @@ class ModelConfig:
     near: float = 0.1
     far: float = 1.0
     samples: int = 64
+    # The cameras' unit: the camera solve (and ``--cameras true``) scale a scene so that its
+    # median point depth lands here. 0: ``cameras.DEPTH_TARGET`` of the way into [near, far]
+    # (0.55 for the default range). Set, it frees ``far`` from the unit: a range reaching past
+    # the backgrounds keeps the scale the renderer learnt its depths at.
+    median_depth: float = 0.0
 
     def __post_init__(self):
         if self.image_height % self.patch_size or self.image_width % self.patch_size:
@@ -93,6 +98,9 @@ class ModelConfig:
             raise InputError("widths must be divisible by their head counts")
         if not 0 < self.near < self.far:
             raise InputError(f"need 0 < near < far, got near={self.near}, far={self.far}")
+        if self.median_depth and not self.near < self.median_depth < self.far:
+            raise InputError(f"median_depth: expected 0 or a depth in (near, far) = "
+                             f"({self.near}, {self.far}), got {self.median_depth}")
         if not 0 < self.focal_min < self.focal_max:
             raise InputError("need 0 < focal_min < focal_max")
         if self.camera_head not in CAMERA_HEADS:
@@ -131,6 +139,13 @@ class ModelConfig:
         """(h, w) of the field maps the renderer samples: ``map_scale`` times the token grid."""
         h, w = self.feature_grid
         return self.map_scale * h, self.map_scale * w
+
+    @property
+    def unit_range(self) -> tuple[float, float]:
+        """The (near, far) the camera solve's depth rule is given (its ``depth_range``): the one
+        whose ``DEPTH_TARGET`` point is ``median_depth``; (near, far) itself when that is 0."""
+        from iris_runtime.cameras import unit_range
+        return unit_range(self.near, self.far, self.median_depth)
 
     @property
     def correlation_grid(self) -> tuple[int, int]:
@@ -257,6 +272,10 @@ class TrainConfig:
     # The model's ``colour_deviation`` (ModelConfig). A fine-tune (``--init``) from a model
     # without it starts its map fresh, at zero.
     colour_deviation: bool = False
+    # The model's sampled depth range ends at ``far`` (0: the preset's); the cameras' unit stays
+    # the preset's (ModelConfig.median_depth), so the range reaches past the backgrounds that
+    # the default rule puts beyond 1.0. Holds no weights: a fine-tune may change it.
+    far: float = 0.0
     # The distortion loss of Mip-NeRF 360 on the explicit-colour blend weights along each target
     # ray (``losses.distortion``): it is smallest when the weight sits in one short stretch of
     # the ray, so it pushes the soft depth to commit to one surface instead of spreading.

@@ -39,6 +39,7 @@ import torch
 import torch.distributed as dist
 import torch.nn as nn
 
+from iris_runtime.cameras import DEPTH_TARGET
 from iris_runtime.errors import InputError
 from iris_runtime.manifest import CAMERAS, camera_name
 
@@ -113,6 +114,10 @@ def model_config(cfg: TrainConfig, start: dict | None = None) -> ModelConfig:
         base = dataclasses.replace(base, map_scale=cfg.map_scale)
     if cfg.colour_deviation:
         base = dataclasses.replace(base, colour_deviation=True)
+    if cfg.far:
+        # The unit stays the preset's: the scene's median depth where the preset puts it.
+        base = dataclasses.replace(base, far=cfg.far, median_depth=base.median_depth or
+                                   base.near + (base.unit_range[1] - base.near) * DEPTH_TARGET)
     if cfg.camera_head or not isinstance(start, dict):
         return dataclasses.replace(base, camera_head=cfg.camera_head or base.camera_head)
     # The checkpoint's cameras as they are: its head, and its own camera encoder if it has one.
@@ -122,6 +127,8 @@ def model_config(cfg: TrainConfig, start: dict | None = None) -> ModelConfig:
                                                            base.correlation_scale))
 
 
+#: The model settings that hold no weights: a fine-tune (``--init``) may change them freely.
+WEIGHTLESS = ("blend_angle", "near", "far", "samples", "median_depth")
 #: The model settings a fine-tune (``--init``) may change, each with the state-dict prefix of the
 #: parameters that are its own: those start fresh (or are dropped) when the setting changes.
 FRESH_WHEN_CHANGED = {"camera_head": "camera_head.", "correlation_scale": "camera_head.",
@@ -152,12 +159,13 @@ def load_init_weights(model: IrisModel, payload: dict, what: str = "init") -> li
         source = ModelConfig.from_dict(payload["config"])
     except (TypeError, ValueError) as exc:
         raise ValueError(f"{what}: unreadable model config ({exc})") from None
-    # The colour blend's angular weighting holds no weights: a fine-tune may change it.
-    source = dataclasses.replace(source, blend_angle=model.cfg.blend_angle)
+    # Settings that hold no weights (the colour blend's angular weighting, the sampled depth
+    # range and the cameras' unit): a fine-tune may change them.
+    source = dataclasses.replace(source, **{k: getattr(model.cfg, k) for k in WEIGHTLESS})
     mine = {k: getattr(model.cfg, k) for k in FRESH_WHEN_CHANGED}
     if dataclasses.replace(source, **mine) != model.cfg:
-        raise ValueError(f"{what} holds another model config than this run's (only blend_angle "
-                         f"and {', '.join(FRESH_WHEN_CHANGED)} may differ)")
+        raise ValueError(f"{what} holds another model config than this run's (only "
+                         f"{', '.join(WEIGHTLESS)} and {', '.join(FRESH_WHEN_CHANGED)} may differ)")
     state = payload["model"]
     if dataclasses.replace(source, **mine) == source:
         model.load_state_dict(state)
@@ -230,7 +238,7 @@ def _camera_targets(cfg: TrainConfig, mcfg: ModelConfig, scenes) -> tuple:
         raise ValueError(f"render_cameras: expected one of {CAMERAS[:2]}, got "
                          f"{cfg.render_cameras!r}")
     if render_cameras == "solve":
-        depth_range = (mcfg.near, mcfg.far)
+        depth_range = mcfg.unit_range
         return None, per_scene(scenes,
                                lambda sc, i: pseudo_poses.load_or_solve(sc, i, depth_range),
                                lambda images: pseudo_poses.solve_scene(images, depth_range))

@@ -27,7 +27,7 @@ from iris_train.model import save_checkpoint
 KEEP = ("step", "elapsed", "train_config", "distill")
 HEAD_FIELDS = ("camera_head", "correlation_scale", "camera_encoder")
 #: Settings of the renderer alone: a head from a model that differs in them still merges.
-RENDERER_FIELDS = ("blend_angle", "map_scale", "colour_deviation")
+RENDERER_FIELDS = ("blend_angle", "map_scale", "colour_deviation", "far", "samples", "median_depth")
 
 
 def with_cameras_of(payload: dict, cameras: dict, error) -> dict:
@@ -37,11 +37,15 @@ def with_cameras_of(payload: dict, cameras: dict, error) -> dict:
     config, theirs = (ModelConfig.from_dict(p["config"]) for p in (payload, cameras))
     head = {k: getattr(theirs, k) for k in HEAD_FIELDS}
     # The renderer's own settings (the colour blend's weighting, the field maps' grid, the
-    # colour deviation input) are kept from the renderer.
+    # colour deviation input, the sampled depth range) are kept from the renderer.
     renderer = {k: getattr(config, k) for k in RENDERER_FIELDS}
     if dataclasses.replace(config, **head) != dataclasses.replace(theirs, **renderer):
         error(f"--camera-head-from: another model (only the camera head's settings and "
               f"{', '.join(RENDERER_FIELDS)} may differ)")
+    # The head's translations are in its cameras' unit: the renderer's must be the same.
+    if config.unit_range != theirs.unit_range:
+        error(f"--camera-head-from: the cameras' unit differs (the solve's depth range "
+              f"{theirs.unit_range} against the renderer's {config.unit_range})")
     encoder = "camera_encoder." if theirs.camera_encoder else "encoder."
     state = {k: v for k, v in payload["model"].items()
              if not k.startswith(("camera_head.", "camera_encoder."))}

@@ -408,6 +408,23 @@ def test_model_config_picks_the_head():
         model_config(TrainConfig(camera_head="flow"))
 
 
+def test_a_wider_depth_range_keeps_the_unit_and_every_weight():
+    """``--far`` widens the sampled range only: the scene's median depth stays where the preset's
+    rule puts it (the solve's ``depth_range`` is the preset's (near, far) exactly, as the teacher
+    store's key has it), and a fine-tune from a model of the old range loads every weight."""
+    base = preset("tiny")
+    wide = model_config(TrainConfig(far=1.9))
+    assert (wide.near, wide.far, wide.median_depth) == (base.near, 1.9, pytest.approx(0.55))
+    assert wide.unit_range == (base.near, base.far)                # exactly: the store's key
+    assert base.unit_range == (base.near, base.far) and base.median_depth == 0
+    torch.manual_seed(1)
+    source = build_model(SMALL_CFG)
+    target = build_model(dataclasses.replace(SMALL_CFG, far=2.5, samples=32, median_depth=0.7))
+    assert load_init_weights(target, _payload(source, drop_head_field=False)) == []
+    assert all(torch.equal(a, b) for a, b in zip(target.state_dict().values(),
+                                                 source.state_dict().values()))
+
+
 def test_train_from_a_token_checkpoint_with_the_correlation_head(tmp_path, capsys):
     """iris-train --init TOKENS_CKPT --camera-head correlation: one step, the checkpoint is a
     correlation model whose encoder started from the token checkpoint's; resuming it with the

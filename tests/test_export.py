@@ -163,6 +163,7 @@ def test_manifest_content(exported, model, checkpoint):
     assert m["image_size"] == [H, W] and m["patch_size"] == CFG.patch_size
     assert m["feature_grid"] == list(CFG.field_grid) and m["field_channels"] == CFG.field_channels
     assert (m["near"], m["far"], m["samples"]) == (CFG.near, CFG.far, CFG.samples)
+    assert m["median_depth"] == CFG.median_depth
     assert m["export"]["opset"] == io_spec.DEFAULT_OPSET and m["export"]["renderer_sampler"] == "dense"
     assert set(m["export"]["versions"]) >= {"torch", "onnx", "onnxruntime"}
     assert m["source"] == {"checkpoint": checkpoint.name, "sha256": sha256_file(checkpoint)}

@@ -97,10 +97,11 @@ def test_fine_tune_from_a_coarse_model_starts_the_stem_fresh():
 
 
 def test_a_fine_renderer_ships_with_a_coarse_models_camera_head(tmp_path):
-    """``ship_checkpoint.py --camera-head-from``: the field maps' grid and the colour deviation
-    input are the renderer's, so a head from a model of ``map_scale`` 1 without the deviation
-    merges into a finer renderer with it (which keeps its settings and features); a model that
-    differs in anything else is still refused."""
+    """``ship_checkpoint.py --camera-head-from``: the field maps' grid, the colour deviation
+    input and the sampled depth range are the renderer's, so a head from a model of
+    ``map_scale`` 1 without the deviation merges into a finer renderer with it and a wider range
+    of the same cameras' unit (which keeps its settings and features); a renderer of another
+    unit, or a model that differs in anything else, is still refused."""
     import subprocess
     import sys
     from pathlib import Path
@@ -111,7 +112,7 @@ def test_a_fine_renderer_ships_with_a_coarse_models_camera_head(tmp_path):
     root = Path(__file__).resolve().parents[1]
     script = [sys.executable, str(root / "scripts" / "ship_checkpoint.py")]
     renderer = random_model("tiny-rgb", map_scale=2, colour_deviation=True,
-                            camera_head="correlation")
+                            camera_head="correlation", far=1.9, samples=96, median_depth=0.55)
     cameras = random_model("tiny-rgb", camera_head="correlation")
     with torch.no_grad():
         for p in cameras.camera_head.parameters():
@@ -122,6 +123,7 @@ def test_a_fine_renderer_ships_with_a_coarse_models_camera_head(tmp_path):
                     "--camera-head-from", str(tmp_path / "c.pt")], check=True, cwd=root)
     merged = load_model(tmp_path / "m.pt").eval()
     assert merged.cfg.map_scale == 2 and merged.cfg.colour_deviation and merged.cfg.camera_encoder
+    assert (merged.cfg.far, merged.cfg.samples, merged.cfg.median_depth) == (1.9, 96, 0.55)
     images = torch.rand(1, 3, 3, 64, 64)
     with torch.no_grad():
         f_m, T_m, _ = merged.encode_batch(images)
@@ -134,6 +136,13 @@ def test_a_fine_renderer_ships_with_a_coarse_models_camera_head(tmp_path):
                           "--camera-head-from", str(tmp_path / "o.pt")], cwd=root,
                          capture_output=True, text=True)
     assert run.returncode != 0 and "another model" in run.stderr
+    assert not (tmp_path / "x.pt").exists()
+    save_checkpoint(tmp_path / "u.pt", random_model("tiny-rgb", camera_head="correlation",
+                                                    far=1.9, median_depth=0.7))
+    run = subprocess.run([*script, str(tmp_path / "u.pt"), str(tmp_path / "x.pt"),
+                          "--camera-head-from", str(tmp_path / "c.pt")], cwd=root,
+                         capture_output=True, text=True)
+    assert run.returncode != 0 and "unit differs" in run.stderr
     assert not (tmp_path / "x.pt").exists()
 
 

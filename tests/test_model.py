@@ -711,6 +711,9 @@ def test_config_is_frozen():
     dict(near=2.0, far=1.0),
     dict(near=0.0),
     dict(near=-0.1),
+    dict(median_depth=0.05),            # the cameras' unit outside (near, far)
+    dict(median_depth=1.0),
+    dict(median_depth=-0.5),
     dict(encoder_width=130),
     dict(field_width=62),
     dict(focal_min=4.0, focal_max=0.25),

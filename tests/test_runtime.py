@@ -630,11 +630,30 @@ def test_io_spec_with_a_bool_mask_is_refused_with_a_re_export_hint(model_copy, v
     (lambda d: d["graphs"].pop("encoder"), ManifestError, "encoder"),
     (lambda d: d["graphs"]["renderer"].update(sha256="xyz"), ManifestError, "sha256"),
     (lambda d: d.update(near=2.0), ManifestError, "near"),
+    (lambda d: d.update(median_depth=d["far"] + 1), ManifestError, "median_depth"),
+    (lambda d: d.update(median_depth="0.5"), ManifestError, "median_depth"),
 ])
 def test_bad_manifest(model_copy, edit, error, match):
     _edit_manifest(model_copy, edit)
     with pytest.raises(error, match=match):
         IrisRuntime(model_copy)
+
+
+def test_median_depth_sets_the_cameras_unit_only(model_copy):
+    """The manifest's optional ``median_depth`` moves the solve's ``depth_range`` (the cameras'
+    unit: its DEPTH_TARGET point is ``median_depth``), never the sampled [near, far]; absent,
+    the unit range is [near, far] itself (every model exported before it)."""
+    from iris_runtime.cameras import DEPTH_TARGET
+    doc = json.loads((model_copy / "iris.json").read_text())
+    near, far = doc["near"], doc["far"]
+    _edit_manifest(model_copy, lambda d: d.pop("median_depth", None))
+    assert IrisRuntime(model_copy).unit_range == (near, far)
+    median = near + 0.25 * (far - near)
+    _edit_manifest(model_copy, lambda d: d.update(median_depth=median))
+    rt = IrisRuntime(model_copy)
+    lo, hi = rt.unit_range
+    assert (rt.near, rt.far) == (near, far) and lo == near
+    assert lo + DEPTH_TARGET * (hi - lo) == pytest.approx(median, abs=1e-12)
 
 
 def test_symlink_escaping_model_dir(model_copy, tmp_path):

@@ -25,8 +25,8 @@ from .locate import PointMap, locate_photos, locate_views
 from .mapper import MapperOptions
 from .refine import refine_cameras
 from .replace import ModelCameras, canonical_start, refine_model_cameras, replace_model_cameras
-from .solve import DEPTH_TARGET, STATUSES, CameraSolve, solve_cameras
+from .solve import DEPTH_TARGET, STATUSES, CameraSolve, solve_cameras, unit_range
 
 __all__ = ["solve_cameras", "refine_cameras", "CameraSolve", "MapperOptions", "PointMap",
            "locate_photos", "locate_views", "replace_model_cameras", "refine_model_cameras",
-           "ModelCameras", "canonical_order", "canonical_start", "DEPTH_TARGET", "STATUSES"]
+           "ModelCameras", "canonical_order", "canonical_start", "DEPTH_TARGET", "STATUSES", "unit_range"]

@@ -23,13 +23,24 @@ from .two_view import (MAX_ERROR, estimate_from_distinct, estimate_two_view, fun
 
 __all__ = ["CameraSolve", "solve_cameras", "check_photos", "check_depth_range", "check_focal",
            "finish_solve",
-           "STATUSES", "DEPTH_TARGET", "FOCAL_PRIORS", "LOCATE_MIN_INLIERS"]
+           "STATUSES", "DEPTH_TARGET", "unit_range", "FOCAL_PRIORS", "LOCATE_MIN_INLIERS"]
 
 #: Per-view outcome: registered in the joint solve, posed against its points afterwards with the
 #: points held fixed, or not posed at all.
 STATUSES = ("solved", "located", "unposed")
 #: Where the scene's median point depth goes in the renderer's [near, far] (0: near, 1: far).
 DEPTH_TARGET = 0.5
+
+
+def unit_range(near: float, far: float, median_depth: float = 0.0) -> tuple[float, float]:
+    """The ``depth_range`` to give the solve for a renderer that samples [near, far] and wants a
+    scene's median point depth at ``median_depth`` (0: ``DEPTH_TARGET`` of the way into [near,
+    far], the rule every model had before ``median_depth``): ``(near, far')`` whose
+    ``DEPTH_TARGET`` point is ``median_depth``. Rounded to 12 decimals, so the default
+    ``median_depth`` of (0.1, 1.0) gives (0.1, 1.0) exactly, as keys of stored solves have it."""
+    if not median_depth:
+        return float(near), float(far)
+    return float(near), round(near + (median_depth - near) / DEPTH_TARGET, 12)
 #: Starting focals, in units of the photo's longer side (the first is COLMAP's default prior);
 #: the bundle adjustment refines each, the mapper keeps the reconstruction that explains the
 #: observations best.

@@ -57,7 +57,7 @@ class TorchBackend:
     def __init__(self, model):
         self.model = model
         self.image_size = (model.cfg.image_height, model.cfg.image_width)
-        self.depth_range = (model.cfg.near, model.cfg.far)
+        self.depth_range = model.cfg.unit_range
         # A checkpoint loaded by load_evaluable knows the cameras it was trained with.
         self.default_cameras = getattr(model, "trained_cameras", "model")
 
@@ -127,7 +127,7 @@ class RuntimeBackend:
         self.rt = runtime
         H, W = runtime.image_size
         self.image_size = (int(H), int(W))
-        self.depth_range = (float(runtime.near), float(runtime.far))
+        self.depth_range = runtime.unit_range
         self.default_cameras = getattr(runtime, "default_cameras", "model")
 
     def encode(self, images, colour_size: tuple[int, int] | None = None):

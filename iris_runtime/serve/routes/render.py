@@ -76,13 +76,13 @@ async def orbit(request: Request, entry: SceneDep, service: ServiceDep,
                                                                "--max-orbit-frames")] = 24) -> dict:
     service.check_frames(frames, given="frames" in request.query_params)
     rt, s = service.rt, entry.scene
-    poses = orbit_poses(s.world_from_cam, frames, near=rt.near, far=rt.far)
-    centre = scene_centre(s.world_from_cam, rt.near, rt.far)
+    poses = orbit_poses(s.world_from_cam, frames, near=rt.near, far=rt.unit_range[1])
+    centre = scene_centre(s.world_from_cam, *rt.unit_range)
     return {"world_from_cam": poses.tolist(), "centre": centre.tolist()}
 
 
 def _orbit_video(rt: IrisRuntime, scene: Scene, req: OrbitRequest, h: int, w: int) -> bytes:
-    poses = orbit_poses(scene.world_from_cam, req.frames, near=rt.near, far=rt.far)
+    poses = orbit_poses(scene.world_from_cam, req.frames, near=rt.near, far=rt.unit_range[1])
     with tempfile.TemporaryDirectory(prefix="iris-orbit-") as tmp:
         path = Path(tmp) / "orbit.mp4"
         writer = render_job.open_video(path, req.fps, (h, w))
