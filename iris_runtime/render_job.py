@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import os
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -311,6 +312,10 @@ def _render_jobs(req: _Request, opts: RenderOptions, scene, jobs, out: Path, say
                                 quality=opts.quality)
             totals["rays"] += res.timings["rays"]
             totals["renderer"] += res.timings["renderer"]
+            if res.coverage == 0:
+                print(f"iris-render: warning: {name}: the camera sees none of the scene (no ray "
+                      f"meets a reference photo's view); its frame is the empty-ray colour",
+                      file=sys.stderr)
             t0 = time.perf_counter()
             _write_png(out / f"{name}.png", res.image)
             if opts.depth:

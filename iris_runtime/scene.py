@@ -358,6 +358,13 @@ class RenderResult:
     work: dict = field(default_factory=dict)
     settings: "RenderSettings | None" = None
 
+    @property
+    def coverage(self) -> float:
+        """The fraction of pixels whose ray meets some reference view's field of view (``depth``
+        > 0). 0: the camera sees none of the scene, and every pixel is the renderer's colour of
+        an empty ray, not a view of anything."""
+        return float(np.count_nonzero(self.depth > 0)) / max(self.depth.size, 1)
+
 
 @dataclass(frozen=True, eq=False)
 class RenderJob:

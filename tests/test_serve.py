@@ -99,6 +99,16 @@ def novel_pose(scene_json) -> list:
     return T.tolist()
 
 
+def away_pose(scene_json) -> np.ndarray:
+    """A camera one unit behind input view 1, looking away from the scene: every sample of its
+    rays lies behind the photos' cameras, so no ray meets a photo's view."""
+    T = np.array(scene_json["world_from_cam"][1])
+    forward = T[:3, 2].copy()
+    T[:3, 0], T[:3, 2] = -T[:3, 0], -T[:3, 2]          # turned half a turn about its y axis
+    T[:3, 3] -= forward
+    return T
+
+
 def render(client, scene_id, pose, **fields):
     return client.post(f"/scenes/{scene_id}/render", json={"world_from_cam": pose, **fields})
 
@@ -177,6 +187,9 @@ def test_render_equals_runtime_render(scene, rt, client):
     expected = rt.render(paths, np.array(pose), height=24, width=20)     # one shot, same photos
     assert served.shape == expected.shape == (24, 20, 3)
     assert np.abs(served.astype(int) - expected.astype(int)).max() <= 1
+    coverage = rt.render(paths, np.array(pose), height=24, width=20, depth=True).coverage
+    assert float(r.headers["x-iris-coverage"]) == pytest.approx(coverage, abs=1e-4)
+    assert coverage > 0.5
     # Depth on request: iris-render's 16-bit encoding of the same render's depth.
     r = render(client, body["scene_id"], pose, height=24, width=20, depth=True)
     assert r.status_code == 200 and float(r.headers["x-iris-depth-far"]) == rt.far
@@ -185,6 +198,19 @@ def test_render_equals_runtime_render(scene, rt, client):
     ref = rt.render(paths, np.array(pose), height=24, width=20, depth=True).depth
     expected = np.rint(np.clip(ref / rt.far, 0, 1) * 65535)
     assert np.abs(depth.astype(float) - expected).max() <= 2
+
+
+def test_a_view_of_nothing_is_refused(scene, rt, client):
+    """A camera that sees none of the scene (``away_pose``): the service says so (422 naming
+    world_from_cam), instead of a 200 with the renderer's empty-ray colour."""
+    body, paths = scene
+    T = away_pose(body)
+    assert rt.render(paths, T, height=8, width=8, depth=True).coverage == 0
+    r = render(client, body["scene_id"], T.tolist(), height=8, width=8)
+    assert r.status_code == 422, r.text
+    error = r.json()["error"]
+    assert error["type"] == "invalid" and "world_from_cam" in error["message"]
+    assert "sees none of the scene" in error["message"]
 
 
 def test_quality_preset_equals_runtime(scene, rt, client):
@@ -231,7 +257,7 @@ def test_cameras_picture_and_orbit(scene, rt, client):
     np.testing.assert_array_equal(png_pixels(r.content), expected)
     r = client.get(f"/scenes/{sid}/orbit", params={"frames": 3})
     np.testing.assert_allclose(r.json()["world_from_cam"],
-                               orbit_poses(T, 3, near=rt.near, far=rt.far), atol=1e-12)
+                               orbit_poses(T, 3, near=rt.near, far=rt.unit_range[1]), atol=1e-12)
     r = client.post(f"/scenes/{sid}/orbit.mp4", json={"frames": 2, "height": 16, "width": 16})
     assert r.status_code == 200 and r.headers["content-type"] == "video/mp4"
     assert r.content[4:8] == b"ftyp"
@@ -668,8 +694,10 @@ def _expected_retry_after(client, waiting: int, workers: int = 1) -> int:
     return min(RETRY_AFTER_MAX, max(RETRY_AFTER_MIN, math.ceil((waiting + 1) * mean / workers)))
 
 
-def _request_probes(c, sid: str, photo: bytes) -> list[Probe]:
-    """Probes of rows a single request reaches (server of ``test_documented_error_table``)."""
+def _request_probes(c, scene_json: dict, photo: bytes) -> list[Probe]:
+    """Probes of rows a single request reaches (server of ``test_documented_error_table``;
+    ``scene_json`` what creating its scene answered)."""
+    sid = scene_json["scene_id"]
     eye = np.eye(4).tolist()
     J = {"content-type": "application/json"}
     tiny = _png_bytes(8, 8)
@@ -733,6 +761,8 @@ def _request_probes(c, sid: str, photo: bytes) -> list[Probe]:
               "1e+07", "MAX_POSE_DISTANCE"),
         Probe(422, "invalid", "runtime refuses", lambda: scenes(photo, photo, cameras="magic"),
               "cameras", "magic"),
+        Probe(422, "invalid", "sees none of the scene", lambda: rnd(
+            world_from_cam=away_pose(scene_json).tolist()), "world_from_cam", "sees none"),
         Probe(422, "invalid", "`seq` without `stream`", lambda: rnd(seq=3), "stream"),
         Probe(422, "invalid", "odd or 1-pixel", lambda: c.post(
             f"/scenes/{sid}/orbit.mp4", json={"frames": 2, "height": 15, "width": 16}), "15x16"),
@@ -765,8 +795,9 @@ def test_documented_error_table(model_dir, tmp_path):
             r = c.post("/scenes", files=[("images", (p.name, p.read_bytes(), "image/png"))
                                          for p in PHOTOS[:2]])
             assert r.status_code == 201, r.text
-            sid = r.json()["scene_id"]
-            pose = novel_pose(r.json())
+            created = r.json()
+            sid = created["scene_id"]
+            pose = novel_pose(created)
             small = {"world_from_cam": pose, "height": 8, "width": 8}
 
             def run(probe):
@@ -775,7 +806,7 @@ def test_documented_error_table(model_dir, tmp_path):
                 probe.check(r, row)
                 probed.append(row["when"])
                 return r
-            for probe in _request_probes(c, sid, photo):
+            for probe in _request_probes(c, created, photo):
                 run(probe)
             assert c.post(f"/scenes/{sid}/render", json={**small, "stream": "s", "seq": 5}) \
                 .status_code == 200

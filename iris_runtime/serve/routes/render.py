@@ -36,21 +36,27 @@ def _as_request_field(exc: InputError) -> InputError:
 
 
 def _render_png(rt: IrisRuntime, scene: Scene, pose: np.ndarray, req: RenderRequest, h: int,
-                w: int) -> bytes:
+                w: int) -> tuple[bytes, float]:
+    """The PNG of one view and its ``coverage``; a view that sees none of the scene is refused
+    (422), not answered with a frame of the renderer's empty-ray colour."""
     try:
-        if not req.depth:
-            return png(rt.render(scene, pose, height=h, width=w, quality=req.quality,
-                                 precision=req.precision))
         result = rt.render(scene, pose, height=h, width=w, quality=req.quality,
                            precision=req.precision, depth=True)
     except InputError as exc:
         raise _as_request_field(exc) from None
-    return png(render_job.depth_uint16(result.depth, rt.far))
+    if result.coverage == 0:
+        raise Unprocessable("world_from_cam: the camera sees none of the scene (no ray of the "
+                            "view passes through a reference photo's field of view); aim it at "
+                            "the scene or move it toward the photos' cameras")
+    image = render_job.depth_uint16(result.depth, rt.far) if req.depth else result.image
+    return png(image), result.coverage
 
 
 @router.post("/{scene_id}/render", response_class=Response,
              responses={200: {"content": {"image/png": {}}, "description": "8-bit RGB, or with "
-                              "depth a 16-bit depth PNG (X-Iris-Depth-Far)"},
+                              "depth a 16-bit depth PNG (X-Iris-Depth-Far); X-Iris-Coverage: "
+                              "the fraction of pixels whose ray meets a reference photo's view "
+                              "(422 when none does)"},
                         **errors(400, 409, 413, 415, 422, 429, 503)})
 async def render(req: RenderRequest, entry: SceneDep, service: ServiceDep) -> Response:
     pose = snap_world_from_cam(req.world_from_cam, "world_from_cam")
@@ -61,10 +67,12 @@ async def render(req: RenderRequest, entry: SceneDep, service: ServiceDep) -> Re
         raise Unprocessable(f"{missing}: required with {given} (a render stream is named by "
                             f"both)")
     with service.streams.ticket(req.stream, req.seq) as ticket:
-        image = await service.pool.run(
+        image, coverage = await service.pool.run(
             "render", _render_png, service.rt, entry.scene, pose, req, h, w,
             superseded=None if ticket is None else ticket.superseded)
-    headers = {"X-Iris-Depth-Far": f"{service.rt.far:g}"} if req.depth else {}
+    headers = {"X-Iris-Coverage": f"{coverage:.4f}"}
+    if req.depth:
+        headers["X-Iris-Depth-Far"] = f"{service.rt.far:g}"
     if req.seq is not None:
         headers["X-Iris-Seq"] = str(req.seq)
     return Response(image, media_type="image/png", headers=headers)
