@@ -171,7 +171,7 @@ def scene_rays(model, scene, index: int = 0, principal_point: bool = False):
     for t in targets:
         rgb, weights, z, soft = render_target(model, encoded, T[t])
         true = prepared.true_depth[t].reshape(-1) * posed.scale
-        stats = ray_stats(weights, z, soft, true, *backend.depth_range)
+        stats = ray_stats(weights, z, soft, true, model.cfg.near, model.cfg.far)   # sampled range
         gt = prepared.gt_images[t].reshape(-1, 3)
         stats["sq_err"] = ((np.clip(rgb, 0.0, 1.0) - gt) ** 2).mean(-1)
         origins, directions = NG.rays_from_pixels(uv, prepared.K[t], T[t])

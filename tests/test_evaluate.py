@@ -168,6 +168,7 @@ class OracleRuntime:
 
     image_size = SIZE
     near, far = 0.1, 1.0
+    unit_range = (near, far)               # the cameras' unit: the default rule
 
     def __init__(self, scenes):
         self.truth = [(s.images, s.world_from_cam) for s in scenes]

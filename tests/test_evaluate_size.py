@@ -208,6 +208,7 @@ class RecordingRuntime:
     def __init__(self, rt):
         self.rt, self.calls = rt, []
         self.image_size, self.near, self.far = rt.image_size, rt.near, rt.far
+        self.unit_range = rt.unit_range
         self.default_cameras = rt.default_cameras
 
     def encode(self, images, **kw):
