@@ -251,8 +251,8 @@ def _jobs(req: _Request, opts: RenderOptions, scene, located):
         jobs += [(f"located_{k:03d}", T) for k, T in enumerate(located)]
     orbit = None
     if opts.orbit:
-        orbit = orbit_poses(scene.world_from_cam, opts.orbit, near=req.rt.near,
-                                far=req.rt.unit_range[1])
+        near, far = req.rt.unit_range             # where the cameras' unit puts the scene
+        orbit = orbit_poses(scene.world_from_cam, opts.orbit, near=near, far=far)
         jobs += [(f"orbit_{k:04d}", T) for k, T in enumerate(orbit)]
     if not jobs:
         jobs = [(f"view_{i:03d}", i) for i in range(len(req.inputs))]

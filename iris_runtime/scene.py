@@ -361,8 +361,9 @@ class RenderResult:
     @property
     def coverage(self) -> float:
         """The fraction of pixels whose ray meets some reference view's field of view (``depth``
-        > 0). 0: the camera sees none of the scene, and every pixel is the renderer's colour of
-        an empty ray, not a view of anything."""
+        > 0; where the march ran at a reduced size, of its linearly upsampled depth, so a pixel
+        beside a covered one counts). 0: the camera sees none of the scene, and every pixel is
+        the renderer's colour of an empty ray, not a view of anything."""
         return float(np.count_nonzero(self.depth > 0)) / max(self.depth.size, 1)
 
 

@@ -83,14 +83,16 @@ async def orbit(request: Request, entry: SceneDep, service: ServiceDep,
                 frames: Annotated[int, Query(ge=1, description="at most iris-serve "
                                                                "--max-orbit-frames")] = 24) -> dict:
     service.check_frames(frames, given="frames" in request.query_params)
-    rt, s = service.rt, entry.scene
-    poses = orbit_poses(s.world_from_cam, frames, near=rt.near, far=rt.unit_range[1])
-    centre = scene_centre(s.world_from_cam, *rt.unit_range)
+    s = entry.scene
+    near, far = service.rt.unit_range          # where the cameras' unit puts the scene
+    poses = orbit_poses(s.world_from_cam, frames, near=near, far=far)
+    centre = scene_centre(s.world_from_cam, near, far)
     return {"world_from_cam": poses.tolist(), "centre": centre.tolist()}
 
 
 def _orbit_video(rt: IrisRuntime, scene: Scene, req: OrbitRequest, h: int, w: int) -> bytes:
-    poses = orbit_poses(scene.world_from_cam, req.frames, near=rt.near, far=rt.unit_range[1])
+    near, far = rt.unit_range
+    poses = orbit_poses(scene.world_from_cam, req.frames, near=near, far=far)
     with tempfile.TemporaryDirectory(prefix="iris-orbit-") as tmp:
         path = Path(tmp) / "orbit.mp4"
         writer = render_job.open_video(path, req.fps, (h, w))
