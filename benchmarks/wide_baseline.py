@@ -6,6 +6,7 @@ surface.
         --sets walk orbit heldout --scenes 6 --json benchmarks/results/wide/b1_true.json
     ... --sets walk --arc 150 270      # the widest walks: targets 10-30 degrees from a reference
     ... --sets walk orbit --principal-point [--clean]   # what the model's assumptions cost
+    ... --sweep 0.0005 [--sweep-blur 2]                 # the photos alone: a plane sweep
 
 Cameras: the TRUE ones, as ``iris-eval --cameras true`` (``evaluate.cameras.pose_scene``: re-based
 on view 0, scaled into the model's units by the solve's depth rule), targets at their true poses,
@@ -30,9 +31,14 @@ of the weights (normalised to sum 1) over log S, the weight mass within +-5 % of
 whether the true depth lies outside the model's [near, far], the squared colour error; and the
 angle at the true surface point (the pixel unprojected with its true K and depth) between the
 target ray and the ray to the nearest reference centre whose frustum holds the point (occlusion
-not tested). Per target: the angle between its viewing direction and the nearest reference's.
-Bins (per ray): 0-10, 10-20, 20-30, 30-45, 45-90, >90 degrees, "unseen" (no reference frustum
-holds the point) and "no depth" (no true depth): they partition the rays.
+not tested); the parallax of the ±5 % band around the true depth (``band_parallax``: how many
+pixels it spans in the reference that sees it widest). Per target: the angle between its
+viewing direction and the nearest reference's. Bins (per ray): 0-10, 10-20, 20-30, 30-45, 45-90, >90 degrees, "unseen" (no reference frustum
+holds the point) and "no depth" (no true depth): they partition the rays. Then the rays by
+their band's parallax (under a quarter pixel of the model's image, to one pixel, more).
+
+``--sweep TAU``: the same statistics for a plane sweep of the reference photos on the model's
+samples instead of the model (``sweep_rays``): what photo-consistency alone says of the depth.
 """
 from __future__ import annotations
 
@@ -89,14 +95,43 @@ def load_set(name: str, n: int, image_size, arc=ARC_RANGE, clean: bool = False):
     return (scenes[i] for i in range(len(scenes))), len(scenes)
 
 
-def render_target(model, encoded, world_from_cam: np.ndarray, chunk: int = CHUNK):
+def sweep_rays(encoded, origins, directions, z, tau: float, blurred=None):
+    """The plane sweep's answer for the same samples: weights ``softmax(-variance / tau)`` over
+    the samples seen by at least two views (the variance of the views' colours, each view
+    weighted by its validity; with ``blurred`` [V, 3, H', W'] photos, the mean of the variances
+    at both scales: a patch's consistency, not a pixel's), colour the weighted view mean ->
+    ``rgb [R, 3]``, ``weights [R, S]``. No network: what the photos alone say of the depth."""
+    import torch
+    s = encoded.project_samples(origins, directions, z, colours=True)
+    levels = [s.colours]
+    if blurred is not None:
+        levels.append(dataclasses.replace(encoded, images=blurred).project_samples(
+            origins, directions, z, colours=True).colours)
+    m = s.mask[..., None]                                                        # [V, R, S, 1]
+    count = m.sum(0)
+    var = 0.0
+    for colours in levels:
+        mean = (colours * m).sum(0) / count.clamp_min(1e-6)
+        var = var + ((((colours - mean) ** 2) * m).sum(0) / count.clamp_min(1e-6)).mean(-1) / len(levels)
+    mean = (s.colours * m).sum(0) / count.clamp_min(1e-6)                        # [R, S, 3]
+    use = (s.mask > 0.5).sum(0) >= 2                                              # [R, S]
+    logits = torch.where(use, -var / tau, torch.full_like(var, -1e30))
+    weights = torch.softmax(logits, -1) * use.any(-1, keepdim=True).to(var.dtype)
+    return (weights[..., None] * mean).sum(1), weights
+
+
+def render_target(model, encoded, world_from_cam: np.ndarray, chunk: int = CHUNK,
+                  sweep: tuple[float, int] | None = None):
     """One target at the model's resolution, the rays, samples and soft depth of
     ``IrisModel.render`` (in chunks of ``chunk`` rays) -> ``rgb [R, 3]``, blend ``weights [R,
-    S]``, sample depths ``z [R, S]``, soft depth ``[R]`` (float64 numpy)."""
+    S]``, sample depths ``z [R, S]``, soft depth ``[R]`` (float64 numpy). ``sweep``: (tau,
+    blur dilation or 0) to answer with ``sweep_rays`` instead of the model."""
     import torch
 
     from iris_train import geometry as G
+    from iris_train import ibr
     (H, W), dtype, out = encoded.image_size, encoded.field_maps.dtype, []
+    blurred = (ibr.blur(encoded.images, sweep[1]) if sweep is not None and sweep[1] else None)
     with torch.no_grad():
         origins, directions = G.rays_from_pixels(G.pixel_centres(H, W, dtype=dtype),
                                                  encoded.intrinsics(H, W),
@@ -105,7 +140,10 @@ def render_target(model, encoded, world_from_cam: np.ndarray, chunk: int = CHUNK
             sl = slice(start, start + chunk)
             z = G.sample_depths(model.cfg.near, model.cfg.far, model.cfg.samples,
                                 origins[sl].shape[0], dtype=dtype)
-            rgb, weights = model.render_rays(encoded, origins[sl], directions[sl], z)
+            if sweep is None:
+                rgb, weights = model.render_rays(encoded, origins[sl], directions[sl], z)
+            else:
+                rgb, weights = sweep_rays(encoded, origins[sl], directions[sl], z, sweep[0], blurred)
             out.append((rgb, weights, z, (weights * z).sum(-1)))
     return tuple(torch.cat(parts).double().numpy() for parts in zip(*out))
 
@@ -137,17 +175,34 @@ def surface_angles(points, target_centre, ref_world_from_cam, ref_K, height: int
     return np.where(np.isfinite(angle), angle, np.nan)
 
 
+def band_parallax(origins, directions, true, ref_world_from_cam, ref_K, height: int, width: int):
+    """How far (pixels of the model's image) the ±``NEAR_BAND`` band around each ray's true
+    depth ``true [N]`` (rays ``origins, directions [N, 3]``) spans in the reference that sees it
+    widest: the most any method can tell depths apart within the band from those photos. nan
+    where no reference sees both ends (or no true depth). ``[N]``."""
+    cam_from_world = NG.invert_pose(np.asarray(ref_world_from_cam, dtype=np.float64))
+    ends = [origins + (true * f)[:, None] * directions for f in (1 - NEAR_BAND, 1 + NEAR_BAND)]
+    spans = []
+    for K, T in zip(ref_K, cam_from_world):
+        (uv0, _, ok0), (uv1, _, ok1) = (NG.project_points(e, K, T[None], height, width)
+                                        for e in ends)
+        spans.append(np.where(ok0[0] & ok1[0], np.linalg.norm(uv1[0] - uv0[0], axis=-1), -1.0))
+    widest = np.max(spans, axis=0)
+    return np.where((widest >= 0) & (true > 0), widest, np.nan)
+
+
 def bin_index(angle, has_depth) -> np.ndarray:
     """Each ray's position in ``BIN_NAMES``."""
     idx = np.digitize(np.nan_to_num(angle, nan=0.0), EDGES, right=True)
     return np.where(~has_depth, 7, np.where(np.isnan(angle), 6, idx))
 
 
-def scene_rays(model, scene, index: int = 0, principal_point: bool = False):
+def scene_rays(model, scene, index: int = 0, principal_point: bool = False,
+               sweep: tuple[float, int] | None = None):
     """One scene rendered at its true cameras -> (per-ray arrays over its targets, its record),
     or None when it has fewer than 8 frames. ``principal_point``: render with the references'
     true principal point (``Scene.principal_offset``) instead of the centred one the model
-    assumes."""
+    assumes. ``sweep``: the plane sweep's geometry instead of the model's (``render_target``)."""
     import torch
 
     from iris_train import geometry as G
@@ -169,7 +224,7 @@ def scene_rays(model, scene, index: int = 0, principal_point: bool = False):
     uv = G.pixel_centres(H, W, dtype=torch.float64).numpy()     # the rendered rays' pixels
     rays, rgbs, softs, view_deg = [], [], [], []
     for t in targets:
-        rgb, weights, z, soft = render_target(model, encoded, T[t])
+        rgb, weights, z, soft = render_target(model, encoded, T[t], sweep=sweep)
         true = prepared.true_depth[t].reshape(-1) * posed.scale
         stats = ray_stats(weights, z, soft, true, model.cfg.near, model.cfg.far)   # sampled range
         gt = prepared.gt_images[t].reshape(-1, 3)
@@ -179,6 +234,7 @@ def scene_rays(model, scene, index: int = 0, principal_point: bool = False):
         stats["angle"] = np.where(true > 0, surface_angles(points, T[t, :3, 3], T[refs],
                                                            prepared.K[refs], H, W), np.nan)
         stats["has_depth"] = true > 0
+        stats["parallax"] = band_parallax(origins, directions, true, T[refs], prepared.K[refs], H, W)
         rays.append(stats)
         rgbs.append(np.clip(rgb, 0.0, 1.0).reshape(H, W, 3))
         softs.append(soft.reshape(H, W))
@@ -214,29 +270,42 @@ def bin_row(name: str, rays: dict, mask) -> dict:
                    max_weight_median=np.median(rays["max_weight"][mask]),
                    entropy_median=np.nanmedian(rays["entropy"][mask]),
                    mass_near_mean=np.nanmean(rays["mass_near"][mask]) if has else None,
-                   outside_fraction=float(rays["outside"][mask].mean()))
+                   outside_fraction=float(rays["outside"][mask].mean()),
+                   parallax_median=np.nanmedian(rays["parallax"][mask])
+                   if np.isfinite(rays["parallax"][mask]).any() else None)
     return {k: v if isinstance(v, (str, int)) else _value(v) for k, v in row.items()}
 
 
+#: Edges (pixels of the model's image) of the parallax bins: a quarter pixel is one pixel of
+#: the 256x256 photos the colours come from.
+PARALLAX_EDGES = (0.25, 1.0)
+
+
 def summarise(rays: dict) -> list[dict]:
-    """One row per bin of ``BIN_NAMES`` (they partition the rays), then "all"."""
+    """One row per bin of ``BIN_NAMES`` (they partition the rays), then "all", then the rays
+    with a true depth by the parallax of their ±5% band (``band_parallax``)."""
     idx = bin_index(rays["angle"], rays["has_depth"])
+    par = rays["parallax"]
+    lo, hi = PARALLAX_EDGES
+    by_parallax = [(f"par<{lo:g}", par < lo), (f"par{lo:g}-{hi:g}", (par >= lo) & (par < hi)),
+                   (f"par>={hi:g}", par >= hi)]
     return ([bin_row(name, rays, idx == b) for b, name in enumerate(BIN_NAMES)]
-            + [bin_row("all", rays, np.ones(len(idx), dtype=bool))])
+            + [bin_row("all", rays, np.ones(len(idx), dtype=bool))]
+            + [bin_row(name, rays, mask) for name, mask in by_parallax])
 
 
 def format_report(sets: dict) -> str:
     cols = ("rays", "psnr", "depth_err_median", "depth_err_mean", "max_weight_median",
-            "entropy_median", "mass_near_mean", "outside_fraction")
+            "entropy_median", "mass_near_mean", "outside_fraction", "parallax_median")
     lines = [f"{'set':8}{'bin':>9}{'rays':>8}{'PSNR':>7}{'relerr med':>11}{'mean':>7}"
-             f"{'maxw med':>9}{'H/logS med':>11}{'mass+-5%':>9}{'outside':>8}"]
+             f"{'maxw med':>9}{'H/logS med':>11}{'mass+-5%':>9}{'outside':>8}{'par med':>8}"]
     for name, s in sets.items():
         for row in s["bins"]:
             vals = ["-" if row.get(c) is None else f"{row[c]:.3f}" if c != "rays" else str(row[c])
                     for c in cols]
             vals[1] = vals[1] if row.get("psnr") is None else f"{row['psnr']:.2f}"
             lines.append(f"{name:8}{row['bin']:>9}" + "".join(
-                f"{v:>{w}}" for v, w in zip(vals, (8, 7, 11, 7, 9, 11, 9, 8))))
+                f"{v:>{w}}" for v, w in zip(vals, (8, 7, 11, 7, 9, 11, 9, 8, 8))))
     lines.append("")
     lines.append(f"{'set':8}{'scene':>14}{'arc':>7}{'PSNR':>7}{'rho':>7}  target view angles "
                  f"(deg)  principal offset (px)")
@@ -251,7 +320,7 @@ def format_report(sets: dict) -> str:
 
 
 def run(model, sets, n: int, arc=ARC_RANGE, progress: bool = True, clean: bool = False,
-        principal_point: bool = False) -> dict:
+        principal_point: bool = False, sweep: tuple[float, int] | None = None) -> dict:
     """``{set: {"bins": rows, "scenes": records}}`` over the first ``n`` scenes of each set
     (``clean``, ``principal_point``: as ``load_set`` and ``scene_rays`` take them)."""
     from tqdm import tqdm
@@ -262,7 +331,7 @@ def run(model, sets, n: int, arc=ARC_RANGE, progress: bool = True, clean: bool =
         parts, records = [], []
         for i, scene in enumerate(tqdm(scenes, total=count, desc=name, unit="scene",
                                        disable=not progress, dynamic_ncols=True)):
-            result = scene_rays(model, scene, i, principal_point)
+            result = scene_rays(model, scene, i, principal_point, sweep)
             if result is not None:
                 parts.append(result[0])
                 records.append({k: _value(v) if isinstance(v, float) else v
@@ -290,6 +359,13 @@ def main(argv=None) -> int:
     ap.add_argument("--clean", action="store_true",
                     help="the capture sets without their photometric camera effects (exposure, "
                          "white balance, vignetting, blur, noise, JPEG)")
+    ap.add_argument("--sweep", type=float, default=None, metavar="TAU",
+                    help="answer with a plane sweep of the photos (weights softmax(-variance / "
+                         "TAU) over the samples two views see) instead of the model: the depth "
+                         "the photos alone give, on the same samples")
+    ap.add_argument("--sweep-blur", type=int, default=0, metavar="D",
+                    help="with --sweep: also the variance of the photos blurred with dilation D "
+                         "(a patch's consistency)")
     ap.add_argument("--no-progress", action="store_true", help="no progress bars")
     args = ap.parse_args(argv)
     if args.scenes < 1:
@@ -307,7 +383,8 @@ def main(argv=None) -> int:
     start = time.perf_counter()
     try:
         sets = run(model, list(dict.fromkeys(args.sets)), args.scenes, tuple(args.arc),
-                   not args.no_progress, args.clean, args.principal_point)
+                   not args.no_progress, args.clean, args.principal_point,
+                   None if args.sweep is None else (args.sweep, args.sweep_blur))
     except ValueError as exc:               # no walk spans --arc
         ap.error(str(exc))
     seconds = time.perf_counter() - start
@@ -319,7 +396,9 @@ def main(argv=None) -> int:
         path = Path(args.model).resolve()       # named as given, relative to the repository
         name = str(path.relative_to(REPO)) if path.is_relative_to(REPO) else path.name
         atomic_write_json(args.json, {
-            "model": name, "cameras": "true", "principal_point": "true" if
+            "model": name if args.sweep is None else
+            {"sweep_tau": args.sweep, "sweep_blur": args.sweep_blur, "samples_of": name},
+            "cameras": "true", "principal_point": "true" if
             args.principal_point else "centred", "clean": args.clean,
             "references": list(refs), "targets": list(targets),
             "arc_range": list(args.arc), "seeds_from": SEEDS_FROM,

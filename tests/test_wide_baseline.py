@@ -9,6 +9,7 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from benchmarks import wide_baseline as WB  # noqa: E402
+from iris_runtime import geometry as NG  # noqa: E402
 
 from .conftest import random_model  # noqa: E402
 from .np_scenes import look_at  # noqa: E402
@@ -84,10 +85,69 @@ def test_a_tiny_scene_at_its_true_cameras():
 
     rays, record = WB.scene_rays(model, scene)
     rows = WB.summarise(rays)
-    assert [r["bin"] for r in rows] == [*WB.BIN_NAMES, "all"]
-    assert sum(r["rays"] for r in rows[:-1]) == rows[-1]["rays"] == len(targets) * SIZE * SIZE
+    n = len(WB.BIN_NAMES)
+    assert [r["bin"] for r in rows] == [*WB.BIN_NAMES, "all", "par<0.25", "par0.25-1", "par>=1"]
+    assert sum(r["rays"] for r in rows[:n]) == rows[n]["rays"] == len(targets) * SIZE * SIZE
+    # The parallax bins partition the rays whose band some reference sees.
+    assert sum(r["rays"] for r in rows[n + 1:]) == np.isfinite(rays["parallax"]).sum() > 0
     assert rows[WB.BIN_NAMES.index("no depth")]["rays"] == 0          # the plane fills every view
     assert np.all(rays["angle"][np.isfinite(rays["angle"])] < 10.0)    # cameras a few degrees apart
     # PSNR and depth Spearman as iris-eval computes them with the true cameras (Seq order).
     seq = evaluate(model, [scene], progress=False, cameras="true")["seq"]["scenes"][0]["model"]
     assert record["psnr"] == seq["psnr"] and record["depth_spearman"] == seq["depth_spearman"]
+
+
+def test_band_parallax_of_a_sideways_camera():
+    """A reference moved by b along x, both looking down +z: the band [0.95 d, 1.05 d] of a ray
+    along the optical axis spans f b (1 / 0.95 d - 1 / 1.05 d) pixels in it."""
+    f, b, d = 20.0, 0.1, 2.0
+    K = np.array([[f, 0, SIZE / 2], [0, f, SIZE / 2], [0, 0, 1.0]])
+    ref = np.eye(4)
+    ref[0, 3] = b
+    origins, directions = np.zeros((2, 3)), np.array([[0.0, 0.0, 1.0]] * 2)
+    par = WB.band_parallax(origins, directions, np.array([d, 0.0]), ref[None], K[None], SIZE, SIZE)
+    band = WB.NEAR_BAND
+    assert par[0] == pytest.approx(f * b * (1 / ((1 - band) * d) - 1 / ((1 + band) * d)), rel=1e-12)
+    assert np.isnan(par[1])                                              # no true depth
+    behind = WB.band_parallax(origins, -directions, np.array([d, d]), ref[None], K[None], SIZE, SIZE)
+    assert np.isnan(behind).all()                                        # seen by no reference
+
+
+def test_the_sweep_finds_a_textured_plane():
+    """The plane sweep of a fronto-parallel textured plane (z = 0.6) seen by five cameras spread
+    sideways: its weights sum to one where two views see the ray, and their depth lies on the
+    plane to within the ±5% band on almost every ray whose band spans a pixel."""
+    import cv2
+
+    from iris_train.model import Scene
+    size, depth = 64, 0.6
+    model = random_model("tiny-rgb", image_height=size, image_width=size, samples=64)
+    K = np.array([[1.2 * size, 0, size / 2], [0, 1.2 * size, size / 2], [0, 0, 1.0]])
+    # Texels of about 4 pixels, so that bilinear sampling of the photos is faithful.
+    texture = cv2.resize(np.random.default_rng(0).uniform(0, 1, (64, 64, 3)).astype(np.float32),
+                         (256, 256), interpolation=cv2.INTER_LINEAR)
+    v, u = np.mgrid[0:size, 0:size] + 0.5
+    rays = np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(K).T           # z = 1
+    poses, images = [], []
+    for x in (-0.2, -0.1, 0.0, 0.1, 0.2):
+        T = np.eye(4)
+        T[0, 3] = x
+        X = T[:3, 3] + depth * rays                                                # on the plane
+        maps = [((c + 1.0) / 2.0 * 256 - 0.5).astype(np.float32) for c in (X[..., 0], X[..., 1])]
+        images.append(cv2.remap(texture, *maps, cv2.INTER_LINEAR))
+        poses.append(T)
+    poses = np.stack(poses)
+    images = torch.as_tensor(np.stack(images)).permute(0, 3, 1, 2).float()
+    scene = Scene(torch.zeros(5, 1, 8, 8), torch.as_tensor(poses).float(),
+                  torch.tensor([1.2, 1.2]), (size, size), images)
+    target = np.eye(4)
+    target[0, 3] = 0.05
+    rgb, weights, z, soft = WB.render_target(model, scene, target, sweep=(1e-4, 0))
+    seen = weights.sum(-1) > 0
+    np.testing.assert_allclose(weights.sum(-1)[seen], 1.0, atol=1e-5)
+    true = depth * np.ones(size * size)
+    origins, directions = NG.rays_from_pixels(np.stack([u, v], -1).reshape(-1, 2), K, target)
+    par = WB.band_parallax(origins, directions, true, poses, np.stack([K] * 5), size, size)
+    sharp = seen & (par >= 1.0)
+    assert sharp.mean() > 0.5
+    assert (np.abs(soft - true)[sharp] <= WB.NEAR_BAND * depth).mean() > 0.95
