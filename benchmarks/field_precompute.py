@@ -6,10 +6,11 @@ Two ways to get the view transformer's inputs for R rays x S samples x V views:
   per-scene:   apply them to the h x w feature maps once, then sample the [u, K, V] maps (C' channels).
 Bilinear weights sum to one, so both give the same numbers (checked here); this measures the time.
 
-    python benchmarks/field_precompute.py            # writes benchmarks/results/field_precompute.md
+    python benchmarks/field_precompute.py [--out FILE]   # default benchmarks/results/field_precompute.md
 """
 from __future__ import annotations
 
+import argparse
 import platform
 import statistics
 import sys
@@ -20,10 +21,18 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from iris_train import build_model, preset  # noqa: E402
+from iris_runtime.fileio import atomic_write_text  # noqa: E402
 from iris_train import geometry as G  # noqa: E402
 
 
-def main() -> None:
+RESULT = Path(__file__).parent / "results" / "field_precompute.md"
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--out", type=Path, default=RESULT, metavar="FILE",
+                        help="the Markdown result (default: benchmarks/results/field_precompute.md)")
+    args = parser.parse_args(argv)
     torch.manual_seed(0)
     torch.set_num_threads(2)
     cfg = preset("tiny")
@@ -72,9 +81,8 @@ def main() -> None:
         f"Speed-up of the per-scene path: **{ratio:.1f}x**; max abs difference between the two: {err:.2e} "
         "(float32 rounding: the maps are affine in u and bilinear weights sum to one).",
     ]
-    out = Path(__file__).parent / "results" / "field_precompute.md"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text("\n".join(lines) + "\n")
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(args.out, "\n".join(lines) + "\n")
     print("\n".join(lines))
 
 

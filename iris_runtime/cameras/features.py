@@ -1,8 +1,9 @@
 """Step 1 of the camera solve: SIFT features of each photo and their matches between two photos.
 
 Sparse features, not dense flow, because a keypoint matched by its descriptor survives a wide gap
-between two views (docs/CAMERAS.md, "Matches"). Conventions: pixel coordinates with pixel (row i,
-col j) centred at (j + 0.5, i + 0.5) (docs/ARCHITECTURE.md), OpenCV's keypoints shifted by +0.5 to it.
+between two views (dense DIS flow did worse on the same pairs: docs/record/cameras.md, "Repeated
+patterns, in detail"). Conventions: pixel coordinates with pixel (row i, col j) centred at
+(j + 0.5, i + 0.5) (docs/ARCHITECTURE.md), OpenCV's keypoints shifted by +0.5 to it.
 """
 from __future__ import annotations
 

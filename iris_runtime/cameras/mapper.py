@@ -281,7 +281,8 @@ def incremental_mapping(features, tracks: Tracks,
     could be (pairs with fewer than ``init_min_inliers`` inliers start only when no pair has as
     many). The reconstruction kept registers the most views and, among those, has the lowest
     ``reprojection_score``: a wrong focal can lead the bundle adjustment into a consistent but
-    wrong reconstruction that explains fewer of the observations (docs/CAMERAS.md, "Focal").
+    wrong reconstruction that explains fewer of the observations (docs/record/cameras.md,
+    "Choices, each measured ...": the starting focals).
     Views it cannot register stay ``registered`` False. ``distinct``: per view, bool [N_v] over its
     keypoints, those without a near twin in their photo (``features.distinct_keypoints``);
     given, each view is registered on the points its distinct keypoints see first
