@@ -7,6 +7,7 @@ surface.
     ... --sets walk --arc 150 270      # the widest walks: targets 10-30 degrees from a reference
     ... --sets walk orbit --principal-point [--clean]   # what the model's assumptions cost
     ... --sweep 0.0005 [--sweep-blur 2]                 # the photos alone: a plane sweep
+    ... --oracle                                        # the model's colours at the true depth
 
 Cameras: the TRUE ones, as ``iris-eval --cameras true`` (``evaluate.cameras.pose_scene``: re-based
 on view 0, scaled into the model's units by the solve's depth rule), targets at their true poses,
@@ -39,6 +40,8 @@ their band's parallax (under a quarter pixel of the model's image, to one pixel,
 
 ``--sweep TAU``: the same statistics for a plane sweep of the reference photos on the model's
 samples instead of the model (``sweep_rays``): what photo-consistency alone says of the depth.
+``--oracle``: the model's colour blend at the sample nearest the true depth (``oracle_rays``):
+what a right geometry would render.
 """
 from __future__ import annotations
 
@@ -120,12 +123,32 @@ def sweep_rays(encoded, origins, directions, z, tau: float, blurred=None):
     return (weights[..., None] * mean).sum(1), weights
 
 
+def oracle_rays(model, encoded, origins, directions, z, true):
+    """The model's own colour blend (``blend_views``: the views weighted by validity and angle)
+    at the one sample nearest each ray's true depth ``true [R]``, no residual head -> ``rgb [R,
+    3]``, one-hot ``weights [R, S]``: what the explicit colour gives when the geometry is right.
+    Rays with no true depth (backgrounds) or whose sample no view sees keep the model's answer."""
+    import torch
+
+    from iris_train.model import blend_views
+    s = encoded.project_samples(origins, directions, z, colours=True)
+    mean = blend_views(s.colours, s.mask, s.cues[..., 3], model.cfg.blend_angle)   # [R, S, 3]
+    nearest = (z - true[:, None]).abs().argmin(-1)                                  # [R]
+    weights = torch.nn.functional.one_hot(nearest, z.shape[-1]).to(z.dtype)
+    seen = s.mask.amax(0).gather(1, nearest[:, None])[:, 0] > 0                     # [R]
+    use = ((true > 0) & seen)[:, None]
+    rgb, model_weights = model.render_rays(encoded, origins, directions, z)
+    return (torch.where(use, (weights[..., None] * mean).sum(1), rgb),
+            torch.where(use, weights, model_weights))
+
+
 def render_target(model, encoded, world_from_cam: np.ndarray, chunk: int = CHUNK,
-                  sweep: tuple[float, int] | None = None):
+                  sweep: tuple[float, int] | None = None, oracle_depth: np.ndarray | None = None):
     """One target at the model's resolution, the rays, samples and soft depth of
     ``IrisModel.render`` (in chunks of ``chunk`` rays) -> ``rgb [R, 3]``, blend ``weights [R,
     S]``, sample depths ``z [R, S]``, soft depth ``[R]`` (float64 numpy). ``sweep``: (tau,
-    blur dilation or 0) to answer with ``sweep_rays`` instead of the model."""
+    blur dilation or 0) to answer with ``sweep_rays`` instead of the model; ``oracle_depth [R]``:
+    with ``oracle_rays`` at that depth (the true one)."""
     import torch
 
     from iris_train import geometry as G
@@ -140,7 +163,10 @@ def render_target(model, encoded, world_from_cam: np.ndarray, chunk: int = CHUNK
             sl = slice(start, start + chunk)
             z = G.sample_depths(model.cfg.near, model.cfg.far, model.cfg.samples,
                                 origins[sl].shape[0], dtype=dtype)
-            if sweep is None:
+            if oracle_depth is not None:
+                rgb, weights = oracle_rays(model, encoded, origins[sl], directions[sl], z,
+                                           torch.as_tensor(oracle_depth[sl]).to(dtype))
+            elif sweep is None:
                 rgb, weights = model.render_rays(encoded, origins[sl], directions[sl], z)
             else:
                 rgb, weights = sweep_rays(encoded, origins[sl], directions[sl], z, sweep[0], blurred)
@@ -198,11 +224,12 @@ def bin_index(angle, has_depth) -> np.ndarray:
 
 
 def scene_rays(model, scene, index: int = 0, principal_point: bool = False,
-               sweep: tuple[float, int] | None = None):
+               sweep: tuple[float, int] | None = None, oracle: bool = False):
     """One scene rendered at its true cameras -> (per-ray arrays over its targets, its record),
     or None when it has fewer than 8 frames. ``principal_point``: render with the references'
     true principal point (``Scene.principal_offset``) instead of the centred one the model
-    assumes. ``sweep``: the plane sweep's geometry instead of the model's (``render_target``)."""
+    assumes. ``sweep``: the plane sweep's geometry instead of the model's (``render_target``);
+    ``oracle``: the true depth's (``oracle_rays``)."""
     import torch
 
     from iris_train import geometry as G
@@ -224,8 +251,9 @@ def scene_rays(model, scene, index: int = 0, principal_point: bool = False,
     uv = G.pixel_centres(H, W, dtype=torch.float64).numpy()     # the rendered rays' pixels
     rays, rgbs, softs, view_deg = [], [], [], []
     for t in targets:
-        rgb, weights, z, soft = render_target(model, encoded, T[t], sweep=sweep)
         true = prepared.true_depth[t].reshape(-1) * posed.scale
+        rgb, weights, z, soft = render_target(model, encoded, T[t], sweep=sweep,
+                                              oracle_depth=true if oracle else None)
         stats = ray_stats(weights, z, soft, true, model.cfg.near, model.cfg.far)   # sampled range
         gt = prepared.gt_images[t].reshape(-1, 3)
         stats["sq_err"] = ((np.clip(rgb, 0.0, 1.0) - gt) ** 2).mean(-1)
@@ -320,7 +348,8 @@ def format_report(sets: dict) -> str:
 
 
 def run(model, sets, n: int, arc=ARC_RANGE, progress: bool = True, clean: bool = False,
-        principal_point: bool = False, sweep: tuple[float, int] | None = None) -> dict:
+        principal_point: bool = False, sweep: tuple[float, int] | None = None,
+        oracle: bool = False) -> dict:
     """``{set: {"bins": rows, "scenes": records}}`` over the first ``n`` scenes of each set
     (``clean``, ``principal_point``: as ``load_set`` and ``scene_rays`` take them)."""
     from tqdm import tqdm
@@ -331,7 +360,7 @@ def run(model, sets, n: int, arc=ARC_RANGE, progress: bool = True, clean: bool =
         parts, records = [], []
         for i, scene in enumerate(tqdm(scenes, total=count, desc=name, unit="scene",
                                        disable=not progress, dynamic_ncols=True)):
-            result = scene_rays(model, scene, i, principal_point, sweep)
+            result = scene_rays(model, scene, i, principal_point, sweep, oracle)
             if result is not None:
                 parts.append(result[0])
                 records.append({k: _value(v) if isinstance(v, float) else v
@@ -366,10 +395,15 @@ def main(argv=None) -> int:
     ap.add_argument("--sweep-blur", type=int, default=0, metavar="D",
                     help="with --sweep: also the variance of the photos blurred with dilation D "
                          "(a patch's consistency)")
+    ap.add_argument("--oracle", action="store_true",
+                    help="answer with the model's colour blend at the sample nearest the true "
+                         "depth (no residual): what a right geometry would give")
     ap.add_argument("--no-progress", action="store_true", help="no progress bars")
     args = ap.parse_args(argv)
     if args.scenes < 1:
         ap.error("--scenes must be at least 1")
+    if args.oracle and args.sweep is not None:
+        ap.error("--oracle and --sweep: choose one answer")
     if not 0 <= args.arc[0] < args.arc[1]:
         ap.error("--arc: expected 0 <= MIN < MAX")
     import torch
@@ -384,7 +418,7 @@ def main(argv=None) -> int:
     try:
         sets = run(model, list(dict.fromkeys(args.sets)), args.scenes, tuple(args.arc),
                    not args.no_progress, args.clean, args.principal_point,
-                   None if args.sweep is None else (args.sweep, args.sweep_blur))
+                   None if args.sweep is None else (args.sweep, args.sweep_blur), args.oracle)
     except ValueError as exc:               # no walk spans --arc
         ap.error(str(exc))
     seconds = time.perf_counter() - start
@@ -396,8 +430,9 @@ def main(argv=None) -> int:
         path = Path(args.model).resolve()       # named as given, relative to the repository
         name = str(path.relative_to(REPO)) if path.is_relative_to(REPO) else path.name
         atomic_write_json(args.json, {
-            "model": name if args.sweep is None else
-            {"sweep_tau": args.sweep, "sweep_blur": args.sweep_blur, "samples_of": name},
+            "model": ({"oracle_depth": True, "blend_of": name} if args.oracle else name
+                      if args.sweep is None else
+                      {"sweep_tau": args.sweep, "sweep_blur": args.sweep_blur, "samples_of": name}),
             "cameras": "true", "principal_point": "true" if
             args.principal_point else "centred", "clean": args.clean,
             "references": list(refs), "targets": list(targets),
