@@ -7,7 +7,7 @@ surface.
     ... --sets walk --arc 150 270      # the widest walks: targets 10-30 degrees from a reference
     ... --sets walk orbit --principal-point [--clean]   # what the model's assumptions cost
     ... --sweep 0.0005 [--sweep-blur 2]                 # the photos alone: a plane sweep
-    ... --oracle                                        # the model's colours at the true depth
+    ... --oracle [--size 256]                           # the model's colours at the true depth
 
 Cameras: the TRUE ones, as ``iris-eval --cameras true`` (``evaluate.cameras.pose_scene``: re-based
 on view 0, scaled into the model's units by the solve's depth rule), targets at their true poses,
@@ -40,8 +40,9 @@ their band's parallax (under a quarter pixel of the model's image, to one pixel,
 
 ``--sweep TAU``: the same statistics for a plane sweep of the reference photos on the model's
 samples instead of the model (``sweep_rays``): what photo-consistency alone says of the depth.
-``--oracle``: the model's colour blend at the sample nearest the true depth (``oracle_rays``):
-what a right geometry would render.
+``--oracle``: the model's colour blend at the true depth (``oracle_rays``):
+what a right geometry would render; with ``--size S``, at S x S beside the ``upsampled``
+baseline (``oracle_at_size``), what a right geometry would gain over it.
 """
 from __future__ import annotations
 
@@ -123,23 +124,82 @@ def sweep_rays(encoded, origins, directions, z, tau: float, blurred=None):
     return (weights[..., None] * mean).sum(1), weights
 
 
-def oracle_rays(model, encoded, origins, directions, z, true):
+def oracle_colours(model, encoded, origins, directions, z, true):
     """The model's own colour blend (``blend_views``: the views weighted by validity and angle)
-    at the one sample nearest each ray's true depth ``true [R]``, no residual head -> ``rgb [R,
-    3]``, one-hot ``weights [R, S]``: what the explicit colour gives when the geometry is right.
-    Rays with no true depth (backgrounds) or whose sample no view sees keep the model's answer."""
+    at each ray's true depth ``true [R]`` itself, no residual head -> ``rgb [R, 3]``, one-hot
+    ``weights [R, S]`` on the sample of ``z`` nearest it (for the depth statistics), and ``used
+    [R]``: the rays with a true depth that some view sees (the others' rgb is meaningless)."""
     import torch
 
     from iris_train.model import blend_views
-    s = encoded.project_samples(origins, directions, z, colours=True)
-    mean = blend_views(s.colours, s.mask, s.cues[..., 3], model.cfg.blend_angle)   # [R, S, 3]
+    at = true.clamp_min(model.cfg.near)[:, None]                                    # [R, 1]
+    s = encoded.project_samples(origins, directions, at, colours=True)
+    mean = blend_views(s.colours, s.mask, s.cues[..., 3], model.cfg.blend_angle)[:, 0]   # [R, 3]
     nearest = (z - true[:, None]).abs().argmin(-1)                                  # [R]
     weights = torch.nn.functional.one_hot(nearest, z.shape[-1]).to(z.dtype)
-    seen = s.mask.amax(0).gather(1, nearest[:, None])[:, 0] > 0                     # [R]
-    use = ((true > 0) & seen)[:, None]
-    rgb, model_weights = model.render_rays(encoded, origins, directions, z)
-    return (torch.where(use, (weights[..., None] * mean).sum(1), rgb),
-            torch.where(use, weights, model_weights))
+    return mean, weights, (true > 0) & (s.mask.amax(0)[:, 0] > 0)
+
+
+def oracle_rays(model, encoded, origins, directions, z, true):
+    """``oracle_colours``, with the model's answer on the rays it cannot use -> ``rgb [R, 3]``,
+    ``weights [R, S]``: what the explicit colour gives when the geometry is right."""
+    import torch
+    rgb, weights, used = oracle_colours(model, encoded, origins, directions, z, true)
+    model_rgb, model_weights = model.render_rays(encoded, origins, directions, z)
+    return (torch.where(used[:, None], rgb, model_rgb),
+            torch.where(used[:, None], weights, model_weights))
+
+
+def oracle_at_size(model, scene, size: int, index: int = 0, chunk: int = CHUNK):
+    """A scene at ``size`` x ``size`` (``iris-eval --size``'s protocol, true cameras): per target,
+    the ``upsampled`` baseline (the model's render at its resolution, bicubic to the size) and
+    the oracle (``oracle_colours`` on the output's own rays, with the photos' colours at their
+    resolution; ``upsampled`` where it has no answer) -> a record with both PSNRs, over all
+    pixels and over the oracle's, or None when the scene has fewer than 8 frames."""
+    import cv2
+    import torch
+
+    from iris_train import geometry as G
+    from iris_train.evaluate import TorchBackend, prepare_scene, split_frames
+    from iris_train.evaluate.cameras import pose_scene
+    from iris_train.metrics import psnr
+    backend = TorchBackend(model)
+    prepared = prepare_scene(scene, 8, backend.image_size, index, output_size=(size, size))
+    if prepared is None:
+        return None
+    refs, targets = split_frames(8)
+    posed = pose_scene(backend, prepared, refs, targets, "true", "true")
+    encoded, T, (H, W) = posed.encoded, posed.world_from_cam, backend.image_size
+    dtype = encoded.field_maps.dtype
+    out = {"upsampled": [], "oracle": [], "upsampled_used": [], "oracle_used": [], "used": []}
+    with torch.no_grad():
+        for t in targets:
+            low = np.clip(render_target(model, encoded, T[t])[0], 0.0, 1.0).reshape(H, W, 3)
+            up = np.clip(cv2.resize(np.ascontiguousarray(low), (size, size),
+                                    interpolation=cv2.INTER_CUBIC), 0.0, 1.0).reshape(-1, 3)
+            true = prepared.true_depth[t].reshape(-1) * posed.scale
+            origins, directions = G.rays_from_pixels(G.pixel_centres(size, size, dtype=dtype),
+                                                     encoded.intrinsics(size, size),
+                                                     torch.as_tensor(T[t]).to(dtype))
+            parts = []
+            for start in range(0, size * size, chunk):
+                sl = slice(start, start + chunk)
+                z = G.sample_depths(model.cfg.near, model.cfg.far, model.cfg.samples,
+                                    origins[sl].shape[0], dtype=dtype)
+                rgb, _, used = oracle_colours(model, encoded, origins[sl], directions[sl], z,
+                                              torch.as_tensor(true[sl]).to(dtype))
+                parts.append((rgb.double().numpy(), used.numpy()))
+            rgb, used = (np.concatenate(p) for p in zip(*parts))
+            oracle = np.where(used[:, None], np.clip(rgb, 0.0, 1.0), up)
+            gt = prepared.gt_images[t].reshape(-1, 3)
+            out["upsampled"].append(psnr(up, gt))
+            out["oracle"].append(psnr(oracle, gt))
+            out["upsampled_used"].append(psnr(up[used], gt[used]))
+            out["oracle_used"].append(psnr(oracle[used], gt[used]))
+            out["used"].append(float(used.mean()))
+    meta = getattr(scene, "meta", None) or {}
+    return {"name": prepared.name, **{k: meta.get(k) for k in ("seed", "kind", "arc_deg")},
+            **{k: float(np.mean(v)) for k, v in out.items()}}
 
 
 def render_target(model, encoded, world_from_cam: np.ndarray, chunk: int = CHUNK,
@@ -370,6 +430,33 @@ def run(model, sets, n: int, arc=ARC_RANGE, progress: bool = True, clean: bool =
     return out
 
 
+def main_at_size(model, args, start: float) -> int:
+    """``--oracle --size S``: ``oracle_at_size`` over each set's scenes, printed and written."""
+    from tqdm import tqdm
+    image_size = (model.cfg.image_height, model.cfg.image_width)
+    sets = {}
+    for name in dict.fromkeys(args.sets):
+        scenes, count = load_set(name, args.scenes, image_size, tuple(args.arc), args.clean)
+        records = [r for i, scene in enumerate(tqdm(scenes, total=count, desc=name, unit="scene",
+                                                    disable=args.no_progress, dynamic_ncols=True))
+                   if (r := oracle_at_size(model, scene, args.size, i)) is not None]
+        sets[name] = {"scenes": records, **{k: float(np.mean([r[k] for r in records])) for k in
+                      ("upsampled", "oracle", "upsampled_used", "oracle_used", "used")}}
+    seconds = time.perf_counter() - start
+    print(f"{'set':8}{'upsampled':>10}{'oracle':>8}{'margin':>8}   over the oracle's pixels "
+          f"({'share':>5}): upsampled, oracle")
+    for name, s in sets.items():
+        print(f"{name:8}{s['upsampled']:10.2f}{s['oracle']:8.2f}{s['oracle'] - s['upsampled']:+8.2f}"
+              f"   {s['used']:.3f}: {s['upsampled_used']:.2f}, {s['oracle_used']:.2f}")
+    print(f"\n{seconds:.0f} s")
+    if args.json is not None:
+        atomic_write_json(args.json, {"model": {"oracle_depth": True, "blend_of": str(args.model)},
+                                      "size": args.size, "cameras": "true", "clean": args.clean,
+                                      "seconds": round(seconds, 1), "sets": sets})
+        print(f"wrote {args.json}")
+    return 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                  epilog=__doc__.split("\n\n")[1],
@@ -396,14 +483,19 @@ def main(argv=None) -> int:
                     help="with --sweep: also the variance of the photos blurred with dilation D "
                          "(a patch's consistency)")
     ap.add_argument("--oracle", action="store_true",
-                    help="answer with the model's colour blend at the sample nearest the true "
-                         "depth (no residual): what a right geometry would give")
+                    help="answer with the model's colour blend at the true depth (no residual): "
+                         "what a right geometry would give")
+    ap.add_argument("--size", type=int, default=None, metavar="S",
+                    help="with --oracle: at S x S against the photos brought to S (iris-eval "
+                         "--size), the oracle beside the `upsampled` baseline, per scene")
     ap.add_argument("--no-progress", action="store_true", help="no progress bars")
     args = ap.parse_args(argv)
     if args.scenes < 1:
         ap.error("--scenes must be at least 1")
     if args.oracle and args.sweep is not None:
         ap.error("--oracle and --sweep: choose one answer")
+    if args.size is not None and (not args.oracle or args.size < 1):
+        ap.error("--size S: only with --oracle, S >= 1")
     if not 0 <= args.arc[0] < args.arc[1]:
         ap.error("--arc: expected 0 <= MIN < MAX")
     import torch
@@ -415,6 +507,8 @@ def main(argv=None) -> int:
     except CheckpointError as exc:
         ap.error(str(exc))
     start = time.perf_counter()
+    if args.size is not None:
+        return main_at_size(model, args, start)
     try:
         sets = run(model, list(dict.fromkeys(args.sets)), args.scenes, tuple(args.arc),
                    not args.no_progress, args.clean, args.principal_point,

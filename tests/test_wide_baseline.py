@@ -176,3 +176,14 @@ def test_the_oracle_renders_the_plane_from_the_photos():
     gt = target.permute(1, 2, 0).reshape(-1, 3).numpy()
     # The nearest sample is 0.0008 off the plane (0.002 here; 0.011 at a depth 3% off).
     assert np.abs(rgb - gt).mean() < 0.005
+
+
+def test_the_oracle_at_the_output_size_beats_a_random_model():
+    """``oracle_at_size`` of a textured plane's scene at 32x32 (the photos' size; the model's is
+    16): the plane fills every view, so the oracle answers nearly every pixel, from the photos,
+    far above a random model's render scaled up."""
+    model = random_model("tiny-rgb", image_height=SIZE, image_width=SIZE, samples=8)
+    record = WB.oracle_at_size(model, plane_scene(size=2 * SIZE), 2 * SIZE)
+    assert record["used"] > 0.9
+    assert record["oracle"] > record["upsampled"] + 5.0
+    assert np.isfinite([record[k] for k in ("upsampled_used", "oracle_used")]).all()
