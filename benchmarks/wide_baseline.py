@@ -106,18 +106,13 @@ def sweep_rays(encoded, origins, directions, z, tau: float, blurred=None):
     at both scales: a patch's consistency, not a pixel's), colour the weighted view mean ->
     ``rgb [R, 3]``, ``weights [R, S]``. No network: what the photos alone say of the depth."""
     import torch
+
+    from iris_train.ibr import view_mean
     s = encoded.project_samples(origins, directions, z, colours=True)
-    levels = [s.colours]
+    mean, var, _ = view_mean(s.colours, s.mask)                   # [R, S, 3], [R, S]
     if blurred is not None:
-        levels.append(dataclasses.replace(encoded, images=blurred).project_samples(
-            origins, directions, z, colours=True).colours)
-    m = s.mask[..., None]                                                        # [V, R, S, 1]
-    count = m.sum(0)
-    var = 0.0
-    for colours in levels:
-        mean = (colours * m).sum(0) / count.clamp_min(1e-6)
-        var = var + ((((colours - mean) ** 2) * m).sum(0) / count.clamp_min(1e-6)).mean(-1) / len(levels)
-    mean = (s.colours * m).sum(0) / count.clamp_min(1e-6)                        # [R, S, 3]
+        var = (var + view_mean(dataclasses.replace(encoded, images=blurred).project_samples(
+            origins, directions, z, colours=True).colours, s.mask)[1]) / 2
     use = (s.mask > 0.5).sum(0) >= 2                                              # [R, S]
     logits = torch.where(use, -var / tau, torch.full_like(var, -1e30))
     weights = torch.softmax(logits, -1) * use.any(-1, keepdim=True).to(var.dtype)
