@@ -19,6 +19,19 @@ from pathlib import Path
 import pytest
 
 
+def load_script(name: str):
+    """``scripts/NAME.py`` as a module (scripts/ is not a package), registered in
+    ``sys.modules`` so that its dataclasses can find their module."""
+    import importlib.util
+    import sys
+    spec = importlib.util.spec_from_file_location(name, Path(__file__).resolve().parents[1]
+                                                  / "scripts" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
 def has_torch() -> bool:
     try:
         import torch  # noqa: F401

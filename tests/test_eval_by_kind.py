@@ -1,20 +1,15 @@
 """scripts/eval_by_kind.py: per-kind means of an iris-eval result against a hand count."""
 from __future__ import annotations
 
-import importlib.util
 import json
-from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
+from . import conftest
 
 
 def load_script():
-    spec = importlib.util.spec_from_file_location("eval_by_kind", ROOT / "scripts" / "eval_by_kind.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return conftest.load_script("eval_by_kind")
 
 
 def scene(name: str, psnr: float, rho: float) -> dict:

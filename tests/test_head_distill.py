@@ -2,12 +2,13 @@
 solve's cameras, and writes a loadable checkpoint and a log with held-out scores."""
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 
 import numpy as np
 import pytest
+
+from . import conftest
 import torch
 
 from .tolerances import f32_tol
@@ -18,10 +19,7 @@ G1 = ROOT / "models" / "iris-tiny-rgb.train.pt"          # one encoder for the h
 
 
 def _script():
-    spec = importlib.util.spec_from_file_location("head_distill", ROOT / "scripts" / "head_distill.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return conftest.load_script("head_distill")
 
 
 @pytest.mark.skipif(not (SHIPPED.exists() and G1.exists()), reason="needs the checkpoints")
@@ -178,10 +176,7 @@ def test_direction_loss_is_scale_free_and_sees_a_reversed_baseline():
 
 
 def _heldout_rpa():
-    spec = importlib.util.spec_from_file_location("heldout_rpa", ROOT / "scripts" / "heldout_rpa.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return conftest.load_script("heldout_rpa")
 
 
 def test_fit_scores_a_head_against_the_teacher_by_baseline():

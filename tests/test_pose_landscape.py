@@ -2,24 +2,19 @@
 model (1 held-out scene, 2 alphas, 64 rays) whose JSON holds finite numbers."""
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-torch = pytest.importorskip("torch")
+from . import conftest
 
-ROOT = Path(__file__).resolve().parents[1]
+torch = pytest.importorskip("torch")
 
 
 def load_script():
-    spec = importlib.util.spec_from_file_location("pose_landscape", ROOT / "scripts" / "pose_landscape.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return conftest.load_script("pose_landscape")
 
 
 @pytest.fixture(autouse=True, scope="module")

@@ -3,9 +3,7 @@ cameras and their convention, atomic output, typed errors), the motion check on 
 sequences, and the real Debian package when it is installed."""
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
 from pathlib import Path
 
 import cv2
@@ -15,11 +13,10 @@ import pytest
 from iris_runtime.camera_io import read_transforms_json
 from iris_runtime.errors import InputError
 
+from . import conftest
+
 REPO = Path(__file__).resolve().parents[1]
-_spec = importlib.util.spec_from_file_location("real_sets", REPO / "scripts" / "real_sets.py")
-real_sets = importlib.util.module_from_spec(_spec)
-sys.modules["real_sets"] = real_sets          # dataclasses look their module up there
-_spec.loader.exec_module(real_sets)
+real_sets = conftest.load_script("real_sets")
 
 
 def look_at(centre, target=(0.0, 0.0, 0.0)):

@@ -2,11 +2,11 @@
 encoder, exactly what the original sees on the k x k block-averaged image."""
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
 
 import numpy as np
 import pytest
+
+from . import conftest
 
 torch = pytest.importorskip("torch")
 
@@ -14,15 +14,10 @@ from iris_train import build_model, load_model  # noqa: E402
 from iris_train.config import preset  # noqa: E402
 
 pytestmark = pytest.mark.torch
-ROOT = Path(__file__).resolve().parents[1]
 
 
 def _script():
-    spec = importlib.util.spec_from_file_location("resize_checkpoint",
-                                                  ROOT / "scripts" / "resize_checkpoint.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return conftest.load_script("resize_checkpoint")
 
 
 @pytest.mark.parametrize("factor", [2, 3])
