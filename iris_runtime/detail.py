@@ -23,6 +23,16 @@ from its own ray:
    views' colours over its samples (photo-consistency). Where candidates agree this is the
    bilinear upsampling of the coarse colour formula; at edges it follows the candidate whose
    depth the photos confirm, without a guide image of the target.
+4. **Depth from the photos, near the field's** (``depth_search`` bins, 0: off). A coarse ray's
+   window holds one depth for the 8 x 8 output pixels around it (at ``auto``'s eighth), and
+   the field's weights are soft: the photos, read at the output's scale, are sharp. Each sample
+   whose views disagree (spread at least ``SEARCH_SPREAD``) is moved, within ``depth_search``
+   bins of where step 2 put it, to where they agree best (``search_depth``: a plane sweep
+   along the pixel's own ray, bounded by the field's geometry; samples under ``SEARCH_SHARE``
+   of the pixel's weight stay). Where the views already agree
+   the sample stays; a textureless wall gives no reason to move and no colour to gain. The
+   field's prior keeps the search local: a wide sweep of the photos alone finds repeated
+   textures (docs/TRAINING.md, "What the photos alone say of the depth").
 
 With ``field_scale`` 1 and ``colour_samples`` = every bin the result is the exact march's, up to
 float rounding (tested). What the lossy steps cost in ground-truth PSNR and what they save in
@@ -37,7 +47,9 @@ import numpy as np
 from . import geometry as G
 from .colour import ColourSource, compose, mean_colour
 
-__all__ = ["CONSISTENCY", "FINE_BLOCK", "WINDOW_FLOOR", "CoarseField", "compose_fine", "ray_windows"]
+__all__ = ["CONSISTENCY", "FINE_BLOCK", "SEARCH_PRIOR", "SEARCH_SHARE", "SEARCH_SPREAD",
+           "SEARCH_STEPS",
+           "WINDOW_FLOOR", "CoarseField", "compose_fine", "ray_windows", "search_depth"]
 
 f32 = np.float32
 
@@ -50,6 +62,19 @@ CONSISTENCY = 0.003
 #: their weight in a few windows, and each window left out saves a sample per output pixel and
 #: view. ``benchmarks/two_scale.py`` measures the error against the exact march with it.
 WINDOW_FLOOR = 0.02
+#: ``depth_search`` leaves a sample where the field put it when its views' colour spread (as
+#: ``CONSISTENCY``'s) is below ``SEARCH_SPREAD`` -- they already agree, so moving it changes
+#: little of its colour -- or when it holds less than ``SEARCH_SHARE`` of its pixel's weight.
+#: Together they cut the search's time sixfold for 0.04 dB (docs/PERFORMANCE.md, "Depth from
+#: the photos").
+SEARCH_SPREAD = 5e-4
+SEARCH_SHARE = 0.05
+#: ``depth_search``'s tie-break towards the field's depth: spread added per squared bin moved
+#: (two depths the views agree on equally well: the nearer to the field's wins).
+SEARCH_PRIOR = 1e-5
+#: ``depth_search``'s steps, in depth bins: every multiple of the first within the search's
+#: span, then one step of each next on either side of the best so far.
+SEARCH_STEPS = (1.0, 0.5)
 #: Output rays composed at once: bounds the (ray, bin, view) arrays of a block to ~100 MB.
 FINE_BLOCK = 8192
 
@@ -73,15 +98,17 @@ def compose_fine(coarse: CoarseField, height: int, width: int, K: np.ndarray,
                  world_from_cam: np.ndarray, z_bins: np.ndarray, ref_K: np.ndarray,
                  cam_from_world: np.ndarray, image_size: tuple[int, int],
                  colours: ColourSource, colour_samples: int,
-                 consistency: float | None = None,
-                 blend_angle: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+                 consistency: float | None = None, blend_angle: float = 0.0,
+                 depth_search: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """The ``height`` x ``width`` render (intrinsics ``K`` in its pixels, pose
     ``world_from_cam``) from ``coarse``: rgb float32 [H*W, 3] and depth float32 [H*W].
     ``z_bins [S]``: the march's depth bins; ``ref_K``, ``cam_from_world [V, 4, 4]``,
     ``image_size``: the references (model pixels); ``colours``: their photos at the output's
     scale; ``colour_samples``: depth windows kept per coarse ray (``ray_windows``);
     ``consistency``: the spread scale of the candidates' weights (None: ``CONSISTENCY``);
-    ``blend_angle``: the model's angular weighting of the views (``colour.mean_colour``)."""
+    ``blend_angle``: the model's angular weighting of the views (``colour.mean_colour``);
+    ``depth_search``: bins each sample may move to where its views agree (0: off;
+    ``search_depth``)."""
     tau = f32(CONSISTENCY if consistency is None else consistency)
     hc, wc = coarse.size
     pooled, centre = ray_windows(coarse.weights, z_bins, colour_samples)      # [Nc, nW] each
@@ -118,6 +145,19 @@ def compose_fine(coarse: CoarseField, height: int, width: int, K: np.ndarray,
         points = origins[ray] + z[:, None] * directions[ray]                   # [P, 3]
         mean, spread = _sample_colours(points, ref_K, cam_from_world, image_size, colours,
                                        pose32[:3, 3], blend_angle)
+        if depth_search:
+            weight = mass.sum(axis=1)                    # the sample's share of its pixel
+            share = weight / np.maximum(np.bincount(ray, weight, R)[ray], f32(1e-30))
+            search = np.nonzero((spread >= f32(SEARCH_SPREAD)) & (share >= f32(SEARCH_SHARE)))[0]
+            found = search_depth(origins[ray[search]], directions[ray[search]], z[search],
+                                 spread[search], z_bins, depth_search, ref_K, cam_from_world,
+                                 image_size, colours)
+            changed = found != z[search]
+            moved = search[changed]
+            if len(moved):
+                points = origins[ray[moved]] + found[changed, None] * directions[ray[moved]]
+                mean[moved], spread[moved] = _sample_colours(
+                    points, ref_K, cam_from_world, image_size, colours, pose32[:3, 3], blend_angle)
         slot = np.zeros((R, n_win), np.intp)
         slot[ray, j] = np.arange(len(ray))
         p = slot[np.arange(R)[:, None, None], cand_win]                        # [R, 4, M]
@@ -131,6 +171,57 @@ def compose_fine(coarse: CoarseField, height: int, width: int, K: np.ndarray,
         rgb[rows] = np.einsum("rk,rkc->rc", alpha, colour)
         depth[rows] = (alpha * coarse.depth[cand]).sum(axis=1)
     return rgb, depth
+
+
+def search_depth(origins: np.ndarray, directions: np.ndarray, z: np.ndarray,
+                 spread: np.ndarray, z_bins: np.ndarray, bins: int, ref_K: np.ndarray,
+                 cam_from_world: np.ndarray, image_size: tuple[int, int],
+                 colours: ColourSource) -> np.ndarray:
+    """Depths float32 [Q] along rays ``origins``, ``directions [Q, 3]`` within ``bins`` depth bins
+    of ``z [Q]`` (whose views' spread is ``spread [Q]``) where the views' colours agree best:
+    the least spread plus ``SEARCH_PRIOR`` per squared bin from ``z``, over the steps of
+    ``SEARCH_STEPS``, clipped to the bins' span. ``z`` itself where nothing does better.
+    Along a ray each view's camera coordinates are ``a + z b``: the projection of a candidate
+    depth is one multiply-add."""
+    best_z = z.astype(f32)
+    if len(z) == 0 or bins < 1:
+        return best_z
+    rot, shift = cam_from_world[:, :3, :3], cam_from_world[:, :3, 3]
+    a = np.matmul(origins, np.swapaxes(rot, -1, -2)) + shift[:, None, :]         # [V, Q, 3]
+    b = np.matmul(directions, np.swapaxes(rot, -1, -2))                           # [V, Q, 3]
+    dz = f32(z_bins[1] - z_bins[0]) if len(z_bins) > 1 else f32(1)
+    lo, hi = f32(z_bins[0]), f32(z_bins[-1])
+    best = spread.astype(f32)
+    for i, step in enumerate(SEARCH_STEPS):
+        n = int(bins / step) if i == 0 else 1
+        centre = best_z
+        for k in [*range(1, n + 1), *range(-1, -n - 1, -1)]:
+            depth = np.clip(centre + f32(k * step) * dz, lo, hi)
+            score = (_spread(a + depth[None, :, None] * b, ref_K, image_size, colours)
+                     + f32(SEARCH_PRIOR) * ((depth - z) / dz) ** 2)
+            better = score < best
+            best = np.where(better, score, best)
+            best_z = np.where(better, depth, best_z)
+    return best_z
+
+
+def _spread(cam: np.ndarray, ref_K: np.ndarray, image_size: tuple[int, int],
+            colours: ColourSource) -> np.ndarray:
+    """``_sample_colours``' spread float32 [P] of points given in each view's camera coordinates
+    ``cam [V, P, 3]`` (to float32 rounding): the variance as the mean square less the squared
+    mean, in one pass over the views."""
+    H, W = image_size
+    z = cam[..., 2]
+    z_safe = np.maximum(z, f32(G.DEPTH_EPS))
+    u = ref_K[0, 0] * cam[..., 0] / z_safe + ref_K[0, 2]
+    v = ref_K[1, 1] * cam[..., 1] / z_safe + ref_K[1, 2]
+    weight = G.edge_validity(u, v, z, H, W)[..., None]                         # [V, P, 1]
+    sampled = colours.read(u, v)                                               # [V, P, 3]
+    count = weight.sum(axis=0)                                                 # [P, 1]
+    inv = f32(1) / np.maximum(count, f32(1e-12))
+    mean = (sampled * weight).sum(axis=0) * inv
+    var = _sum3((sampled * sampled * weight).sum(axis=0) * inv - mean * mean)
+    return np.where(count[:, 0] > 1.0, np.maximum(var, f32(0)), f32(0))
 
 
 def ray_windows(weights: np.ndarray, z_bins: np.ndarray, colour_samples: int):

@@ -92,6 +92,9 @@ class RenderSettings:
                on another model it is an ``InputError``. None: off
     colour_samples: with ``field_scale``, depth bins of each coarse ray the colour is read at
                (its heaviest, rescaled to its total weight)
+    depth_search:  with ``field_scale``, how many depth bins each of those samples may move,
+               along the output pixel's own ray, to where the views' colours agree best
+               (``iris_runtime.detail.search_depth``); 0: off
     """
     samples: int | None = None
     top_k: int | None = None
@@ -106,6 +109,7 @@ class RenderSettings:
     depth_mass: float = 0.9
     field_scale: float | None = None
     colour_samples: int = 8
+    depth_search: int = 0
 
     def __post_init__(self):
         for name in ("samples", "top_k"):
@@ -127,6 +131,10 @@ class RenderSettings:
                 raise InputError("field_scale: two scales replace refine and depth_window's "
                                  "coarse-to-fine march; set refine and depth_window to None")
         check_integer(self.colour_samples, "colour_samples", minimum=1)
+        check_integer(self.depth_search, "depth_search", minimum=0)
+        if self.depth_search and self.field_scale is None:
+            raise InputError("depth_search: moves the colour samples of two scales; set "
+                             "field_scale too, or depth_search to 0")
         if self.precision is not None and (not isinstance(self.precision, str)
                                            or self.precision not in PRECISIONS):
             raise InputError(f"precision: expected one of {list(PRECISIONS)} or None, got "
@@ -163,7 +171,8 @@ def _check_fraction(name: str, x, expected: str, ok) -> None:
 #:               eighth of the output's rows and columns, each pixel's colour from the photos
 #:               through the 8 heaviest depth bins of the coarse rays around it (error and
 #:               time against the full render at 128, 256 and 512: benchmarks/two_scale.py,
-#:               docs/PERFORMANCE.md "Two scales").
+#:               docs/PERFORMANCE.md "Two scales"), each of those samples moved up to 4 bins
+#:               to where the photos agree (``depth_search``; "Depth from the photos").
 #: - "exact":    the full render (at every size: the field marched at every output pixel).
 #: - "balanced": 64 -> 32 samples and at most 8 views per ray: about half the time of the full
 #:               render at an error far below the model's own (ground-truth PSNR unchanged), and a
@@ -181,7 +190,7 @@ def _check_fraction(name: str, x, expected: str, ok) -> None:
 #:               ``depth_window``: the shipped model's weights are spread along its rays (the
 #:               fallback would keep every sample), see docs/PERFORMANCE.md.
 QUALITY_PRESETS: dict[str, RenderSettings] = {
-    "auto": RenderSettings(field_scale=0.125, colour_samples=8),
+    "auto": RenderSettings(field_scale=0.125, colour_samples=8, depth_search=4),
     "exact": RenderSettings(),
     "balanced": RenderSettings(samples=32, top_k=8, top_k_by="ray"),
     "fast": RenderSettings(samples=16, top_k=2, top_k_by="ray", scale=0.5, upsample="cubic",
@@ -217,6 +226,7 @@ def resolve_settings(quality: str | RenderSettings | None = None, default: str =
             and base.field_scale is not None):
         # The coarse-to-fine march asked for replaces the preset's two scales.
         changes["field_scale"] = None
+        changes.setdefault("depth_search", 0)
     return dataclasses.replace(base, **changes) if changes else base
 
 

@@ -69,8 +69,8 @@ class Rendering:
         **knobs:    single ``RenderSettings`` fields overriding the preset's (documented there):
                     ``samples``, ``top_k``, ``top_k_by``, ``scale``, ``upsample``, ``precision``
                     (default: the runtime's), ``coarse``, ``refine``, ``refine_budget``,
-                    ``depth_window``, ``depth_mass``, ``field_scale``, ``colour_samples``; any
-                    other name is an ``InputError``.
+                    ``depth_window``, ``depth_mass``, ``field_scale``, ``colour_samples``,
+                    ``depth_search``; any other name is an ``InputError``.
 
         Returns uint8 [H, W, 3] RGB, or a ``RenderResult`` with ``depth=True``.
         """
@@ -82,7 +82,8 @@ class Rendering:
                 raise InputError("field_scale: two scales need an explicit-colour model (the "
                                  "colour from the photos); this model's colour comes from its "
                                  "field")
-            settings = dataclasses.replace(settings, field_scale=None)   # a preset: adapts
+            settings = dataclasses.replace(settings, field_scale=None,   # a preset: adapts
+                                           depth_search=0)
         job = self._render_job(images_or_scene, pose, settings,
                                height, width, intrinsics, chunk_rays, progress, timings)
         march = functools.partial(self._march_at, job)
@@ -181,7 +182,7 @@ class Rendering:
                 scene.K.astype(np.float32),
                 G.invert_pose(scene.world_from_cam).astype(np.float32),
                 scene.image_size, colours, job.settings.colour_samples,
-                blend_angle=self.manifest.blend_angle)
+                blend_angle=self.manifest.blend_angle, depth_search=job.settings.depth_search)
         timings["colour"] = time.perf_counter() - t0
         work = {"coarse_rays": hc * wc, "pixels": h * w}
         return raymarch.MarchResult(rgb, depth, coarse.stats), work

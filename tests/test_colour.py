@@ -145,6 +145,91 @@ def test_fine_pass_samples_as_the_march_does():
         np.testing.assert_allclose(spread, want_spread, rtol=0, atol=2 * tol)
 
 
+def _plane_photos(centres: np.ndarray, K: np.ndarray, size: int, plane_z: float) -> list:
+    """Photos ``size`` x ``size`` of a textured plane at world z = ``plane_z`` seen by cameras at
+    ``centres [V, 3]`` looking along +z (``K`` in the model's 64x64 pixels): a sum of
+    incommensurate waves, period several model pixels, so the views agree at the plane's depth
+    and nowhere near it."""
+    out = []
+    scale = size / 64
+    px = (np.arange(size) + 0.5) / scale                                   # model pixels
+    u, v = np.meshgrid(px, px)
+    for c in centres:
+        x = c[0] + (u - K[0, 2]) / K[0, 0] * (plane_z - c[2])
+        y = c[1] + (v - K[1, 2]) / K[1, 1] * (plane_z - c[2])
+        tex = np.stack([np.sin(41 * x + 3 * y), np.sin(29 * y - 7 * x + 1), np.sin(37 * (x + y))])
+        out.append(np.clip((0.5 + 0.4 * tex.transpose(1, 2, 0)) * 255, 0, 255).astype(np.uint8))
+    return out
+
+
+def test_depth_search_finds_the_plane_the_views_agree_on():
+    """``detail.search_depth`` on three views of a textured plane: samples put up to 3.7 bins off
+    the plane (either side) come back to it, to the search's finest step; a sample on the
+    plane stays; the spread at the found depth is the least among its neighbours, and the
+    one-pass spread is the fine pass's."""
+    from iris_runtime import detail
+    from iris_runtime.detail import SEARCH_STEPS, _sample_colours, _spread, search_depth
+    K = np.array([[70.0, 0, 32], [0, 70.0, 32], [0, 0, 1]], np.float32)
+    centres = np.array([[-0.2, 0.0, 0.0], [0.0, 0.05, 0.0], [0.2, 0.0, 0.0]])
+    plane = 1.0
+    photos = _plane_photos(centres, K, 256, plane)
+    model = np.stack([cv2.resize(p, (64, 64), interpolation=cv2.INTER_AREA)
+                      for p in photos]).transpose(0, 3, 1, 2).astype(np.float32) / 255
+    source = ColourSource.build(model, tuple(photos), 4.0)
+    world_from_cam = np.stack([np.eye(4)] * 3).astype(np.float32)
+    world_from_cam[:, :3, 3] = centres
+    cam_from_world = np.linalg.inv(world_from_cam).astype(np.float32)
+    target = np.eye(4, dtype=np.float32)
+    target[:3, 3] = [0.1, 0.02, 0.0]
+    rng = np.random.default_rng(5)
+    uv = rng.uniform(22, 42, (200, 2)).astype(np.float32)           # seen whole by every view
+    origins, directions = G.rays_from_pixels(uv, K, target)
+    z_bins = G.sample_depths(0.1, 1.9, 128, 1, dtype=np.float32)[0]        # bins of 1/71
+    dz = float(z_bins[1] - z_bins[0])
+    offset = rng.uniform(-3.7, 3.7, 200).astype(np.float32) * dz
+    offset[:20] = 0.0                                                     # already on the plane
+    z = (plane + offset).astype(np.float32)
+    _, spread = _sample_colours(origins + z[:, None] * directions, K, cam_from_world, (64, 64),
+                                source, target[:3, 3], 0.0)
+
+    def search(bins=4):
+        return search_depth(origins, directions, z, spread, z_bins, bins, K, cam_from_world,
+                            (64, 64), source)
+    # Without the tie-break towards the given depth: the plane, to the finest step.
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(detail, "SEARCH_PRIOR", 0.0)
+        found = search()
+    assert found.dtype == np.float32 and found.shape == (200,)
+    assert (np.abs(found - plane) <= SEARCH_STEPS[-1] * dz + 1e-6).all()
+    np.testing.assert_array_equal(found[:20], z[:20])
+    # With it, a ray whose views agree almost as well a bin off may stop short of the plane
+    # (where its texture runs along the baselines); by less than a bin.
+    found = search()
+    assert (np.abs(found - plane) < dz).all() and np.median(np.abs(found - plane)) < dz / 4
+    np.testing.assert_array_equal(found[:20], z[:20])
+    # No step of the finest size does better, and _spread is the fine pass's spread.
+    rot, shift = cam_from_world[:, :3, :3], cam_from_world[:, :3, 3]
+
+    def cam(depth):
+        points = origins + depth[:, None] * directions
+        return np.matmul(points, np.swapaxes(rot, -1, -2)) + shift[:, None, :], points
+
+    def score(depth):
+        return (_spread(cam(depth)[0], K, (64, 64), source)
+                + detail.SEARCH_PRIOR * ((depth - z) / dz) ** 2)
+    at_found = _spread(cam(found)[0], K, (64, 64), source)
+    np.testing.assert_allclose(
+        at_found, _sample_colours(cam(found)[1], K, cam_from_world, (64, 64), source,
+                                  target[:3, 3], 0.0)[1], rtol=0, atol=1e-5)
+    step = SEARCH_STEPS[-1] * dz
+    for k in (-1, 1):
+        assert (score(found) <= score(found + k * step) + 1e-7).all()
+    # Nothing to search, or no bins to move: the depths as given.
+    assert search_depth(origins[:0], directions[:0], z[:0], spread[:0], z_bins, 4, K,
+                        cam_from_world, (64, 64), source).shape == (0,)
+    np.testing.assert_array_equal(search(0), z)
+
+
 def test_blend_residual_composes_back():
     rng = np.random.default_rng(2)
     rgb = rng.uniform(0.01, 0.99, (100, 3)).astype(np.float32)
@@ -207,6 +292,15 @@ def test_settings_of_two_scales_are_checked():
         RenderSettings(field_scale=0.5, colour_samples=0)
     with pytest.raises(InputError, match="field_scale"):
         RenderSettings(field_scale=0.5, refine=0.1)
+    for bad in (-1, 1.5, True, None):
+        with pytest.raises(InputError, match="depth_search"):
+            RenderSettings(field_scale=0.5, depth_search=bad)
+    with pytest.raises(InputError, match="depth_search"):
+        RenderSettings(depth_search=2)                      # moves two scales' samples only
+    # A coarse-to-fine march asked of the default preset drops its two scales and the search.
+    from iris_runtime.quality import resolve_settings
+    assert resolve_settings(None, "auto").depth_search > 0
+    assert resolve_settings(None, "auto", refine=0.1).depth_search == 0
 
 
 # -- the runtime ------------------------------------------------------------------------------
@@ -261,7 +355,7 @@ def test_two_scales_at_full_scale_with_every_bin_is_the_exact_march(rt, scenes):
     pose = large.world_from_cam[1]
     exact = rt.render(large, pose, height=72, width=72, depth=True, quality="exact")
     two = rt.render(large, pose, height=72, width=72, depth=True, field_scale=1.0,
-                    colour_samples=rt.samples)
+                    colour_samples=rt.samples, depth_search=0)
     assert two.work["coarse_rays"] == 72 * 72            # marched at two scales
     # The same weights, colours and residual recomposed in float32: a blend of 64 samples and a
     # logit/sigmoid round trip, each a few ulps of O(1) values.
@@ -282,6 +376,20 @@ def test_two_scales_are_close_and_finite(rt, scenes):
                                   rt.render(large, pose, height=64, width=64))
     # Lossy, but close on a smooth random scene: mean error well under a grey level of 8/255.
     assert np.abs(two.image_float - exact.image_float).mean() < 8 / 255
+
+
+def test_depth_search_moves_only_where_the_views_disagree(rt, scenes):
+    """The default's depth search changes a render of textured photos, finite, and not one of
+    photos of one flat colour: its views agree at every depth, so no sample moves."""
+    large, _ = scenes
+    pose = large.world_from_cam[2]
+    kw = dict(height=96, width=96, depth=True)
+    searched, plain = rt.render(large, pose, **kw), rt.render(large, pose, depth_search=0, **kw)
+    assert searched.settings.depth_search > 0 and np.isfinite(searched.image_float).all()
+    assert np.abs(searched.image_float - plain.image_float).max() > 1 / 255
+    flat = rt.encode([np.full((256, 256, 3), 120, np.uint8)] * 3, cameras="model")
+    np.testing.assert_array_equal(rt.render(flat, 1, **kw).image,
+                                  rt.render(flat, 1, depth_search=0, **kw).image)
 
 
 def test_two_scales_need_explicit_colour(model_dir):

@@ -94,7 +94,8 @@ def _is_exact(s: RenderSettings) -> bool:
 def test_presets_exist_and_map_to_documented_settings():
     assert set(QUALITY_PRESETS) == {"auto", "exact", "balanced", "fast", "adaptive"}
     assert QUALITY_PRESETS["exact"] == RenderSettings() and _is_exact(QUALITY_PRESETS["exact"])
-    assert QUALITY_PRESETS["auto"] == RenderSettings(field_scale=0.125, colour_samples=8)
+    assert QUALITY_PRESETS["auto"] == RenderSettings(field_scale=0.125, colour_samples=8,
+                                                     depth_search=4)
     assert QUALITY_PRESETS["balanced"] == RenderSettings(samples=32, top_k=8, top_k_by="ray")
     assert QUALITY_PRESETS["fast"] == RenderSettings(samples=16, top_k=2, top_k_by="ray",
                                                      scale=0.5, upsample="cubic",
@@ -305,7 +306,7 @@ def test_lossy_knobs_give_finite_output_of_the_right_shape(rt, scene, kw):
     assert (res.image_float >= 0).all() and (res.image_float <= 1).all()
     want = Q.resolve_settings(kw.pop("quality", None), rt.default_quality, **kw)
     if not rt.manifest.explicit_rgb:                  # presets' two scales: explicit colour only
-        want = dataclasses.replace(want, field_scale=None)
+        want = dataclasses.replace(want, field_scale=None, depth_search=0)
     assert res.settings == want
     img = rt.render(scene, _pose(scene), height=16, width=24, **res.settings.__dict__)
     assert img.shape == (16, 24, 3)
