@@ -82,6 +82,9 @@ class Rendering:
                 raise InputError("field_scale: two scales need an explicit-colour model (the "
                                  "colour from the photos); this model's colour comes from its "
                                  "field")
+            if knobs.get("depth_search"):
+                raise InputError("depth_search: the search reads the photos' colours; this "
+                                 "model's colour comes from its field")
             settings = dataclasses.replace(settings, field_scale=None,   # a preset: adapts
                                            depth_search=0)
         job = self._render_job(images_or_scene, pose, settings,

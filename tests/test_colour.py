@@ -401,6 +401,8 @@ def test_two_scales_need_explicit_colour(model_dir):
         rt.render(scene, 0, field_scale=0.5)
     with pytest.raises(InputError, match="field_scale"):
         rt.render(scene, 0, quality=RenderSettings(field_scale=0.5))
+    with pytest.raises(InputError, match="depth_search"):
+        rt.render(scene, 0, depth_search=2)
     kw = dict(height=72, width=72, depth=True)
     auto = rt.render(scene, 0, **kw)
     assert auto.settings.field_scale is None
