@@ -29,8 +29,8 @@ from its own ray:
    whose views disagree (spread at least ``SEARCH_SPREAD``) is moved, within ``depth_search``
    bins of where step 2 put it, to where they agree best (``search_depth``: a plane sweep
    along the pixel's own ray, bounded by the field's geometry; samples under ``SEARCH_SHARE``
-   of the pixel's weight stay). Where the views already agree
-   the sample stays; a textureless wall gives no reason to move and no colour to gain. The
+   of the pixel's weight stay). Where the views already agree the sample stays; a textureless
+   wall gives no reason to move and no colour to gain. The
    field's prior keeps the search local: a wide sweep of the photos alone finds repeated
    textures (docs/TRAINING.md, "What the photos alone say of the depth").
 
@@ -48,8 +48,8 @@ from . import geometry as G
 from .colour import ColourSource, compose, mean_colour
 
 __all__ = ["CONSISTENCY", "FINE_BLOCK", "SEARCH_PRIOR", "SEARCH_SHARE", "SEARCH_SPREAD",
-           "SEARCH_STEPS",
-           "WINDOW_FLOOR", "CoarseField", "compose_fine", "ray_windows", "search_depth"]
+           "SEARCH_STEPS", "WINDOW_FLOOR", "CoarseField", "compose_fine", "ray_windows",
+           "search_depth"]
 
 f32 = np.float32
 
@@ -210,13 +210,8 @@ def _spread(cam: np.ndarray, ref_K: np.ndarray, image_size: tuple[int, int],
     """``_sample_colours``' spread float32 [P] of points given in each view's camera coordinates
     ``cam [V, P, 3]`` (to float32 rounding): the variance as the mean square less the squared
     mean, in one pass over the views."""
-    H, W = image_size
-    z = cam[..., 2]
-    z_safe = np.maximum(z, f32(G.DEPTH_EPS))
-    u = ref_K[0, 0] * cam[..., 0] / z_safe + ref_K[0, 2]
-    v = ref_K[1, 1] * cam[..., 1] / z_safe + ref_K[1, 2]
-    weight = G.edge_validity(u, v, z, H, W)[..., None]                         # [V, P, 1]
-    sampled = colours.read(u, v)                                               # [V, P, 3]
+    weight, sampled = _read_views(cam, ref_K, image_size, colours)
+    weight = weight[..., None]                                                 # [V, P, 1]
     count = weight.sum(axis=0)                                                 # [P, 1]
     inv = f32(1) / np.maximum(count, f32(1e-12))
     mean = (sampled * weight).sum(axis=0) * inv
@@ -269,15 +264,9 @@ def _sample_colours(points: np.ndarray, ref_K: np.ndarray, cam_from_world: np.nd
     ``geometry.validity`` and ``geometry.cue_cosine``, fused for the many samples of a large
     output (to float32 rounding): the distance from a view's centre is the norm of the point in
     that camera's coordinates, which the projection computes anyway."""
-    H, W = image_size
     rot, shift = cam_from_world[:, :3, :3], cam_from_world[:, :3, 3]
     cam = np.matmul(points, np.swapaxes(rot, -1, -2)) + shift[:, None, :]      # [V, P, 3]
-    z = cam[..., 2]
-    z_safe = np.maximum(z, f32(G.DEPTH_EPS))
-    u = ref_K[0, 0] * cam[..., 0] / z_safe + ref_K[0, 2]
-    v = ref_K[1, 1] * cam[..., 1] / z_safe + ref_K[1, 2]
-    weight = G.edge_validity(u, v, z, H, W)                                    # [V, P]
-    sampled = colours.read(u, v)                                               # [V, P, 3]
+    weight, sampled = _read_views(cam, ref_K, image_size, colours)
     plain = mean_colour(sampled, weight)
     mean = plain
     if blend_angle:
@@ -292,6 +281,19 @@ def _sample_colours(points: np.ndarray, ref_K: np.ndarray, cam_from_world: np.nd
     var = (_sum3((sampled - plain) ** 2) * weight).sum(axis=0) / np.maximum(count, f32(1e-12))
     spread = np.where(count > 1.0, var, f32(0))
     return mean.astype(f32, copy=False), spread.astype(f32, copy=False)
+
+
+def _read_views(cam: np.ndarray, ref_K: np.ndarray, image_size: tuple[int, int],
+                colours: ColourSource) -> tuple[np.ndarray, np.ndarray]:
+    """Points in each view's camera coordinates ``cam [V, P, 3]`` projected with ``ref_K``: their
+    validity float32 [V, P] (``geometry.edge_validity``) and the views' colours there float32
+    [V, P, 3] (``ColourSource.read``)."""
+    H, W = image_size
+    z = cam[..., 2]
+    z_safe = np.maximum(z, f32(G.DEPTH_EPS))
+    u = ref_K[0, 0] * cam[..., 0] / z_safe + ref_K[0, 2]
+    v = ref_K[1, 1] * cam[..., 1] / z_safe + ref_K[1, 2]
+    return G.edge_validity(u, v, z, H, W), colours.read(u, v)
 
 
 def _sum3(x: np.ndarray) -> np.ndarray:
